@@ -1,0 +1,102 @@
+"""The project's one exception hierarchy.
+
+::
+
+    ContainerError                 anything this package raises on purpose
+    ├── ExecutorError              the executor refused an impossible move
+    ├── ConfigError                a container configuration file is wrong
+    ├── PluginError                a plugin distribution could not be used
+    ├── LoadError                  a node could not be loaded into the container
+    ├── TransitionError            a lifecycle transition could not be carried out
+    └── DeviceError                a device (serial port, capture file) failed
+
+Foreign errors (rclpy, import machinery, serial, YAML) are translated into
+these where they enter our code, chained with ``raise ... from exc`` so the
+original traceback is kept.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "ConfigError",
+    "ContainerError",
+    "DeviceError",
+    "ExecutorError",
+    "LoadError",
+    "PluginError",
+    "TransitionError",
+]
+
+
+class ContainerError(Exception):
+    """Base of every error this package raises on purpose."""
+
+
+class ExecutorError(ContainerError):
+    """The executor was asked for something its state does not allow."""
+
+
+class ConfigError(ContainerError):
+    """A configuration file or value is invalid.
+
+    :param source: where the bad value came from (a file path, a key path).
+    """
+
+    def __init__(self, message: str, *, source: str | None = None) -> None:
+        super().__init__(f"{source}: {message}" if source else message)
+        self.source = source
+
+
+class PluginError(ContainerError):
+    """A plugin distribution or entry point could not be used.
+
+    :param distribution: the distribution that ships the plugin, if known.
+    :param entry_point: the entry point's name, if known.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        distribution: str | None = None,
+        entry_point: str | None = None,
+    ) -> None:
+        where = " ".join(
+            part
+            for part in (
+                f"distribution {distribution!r}" if distribution else "",
+                f"entry point {entry_point!r}" if entry_point else "",
+            )
+            if part
+        )
+        super().__init__(f"{where}: {message}" if where else message)
+        self.distribution = distribution
+        self.entry_point = entry_point
+
+
+class LoadError(ContainerError):
+    """A node could not be loaded; the message is what a LoadNode caller sees."""
+
+
+class TransitionError(ContainerError):
+    """A lifecycle transition could not be carried out.
+
+    :param node: the full name of the node.
+    :param transition: the transition's label.
+    """
+
+    def __init__(self, message: str, *, node: str, transition: str) -> None:
+        super().__init__(f"{node}: transition {transition!r}: {message}")
+        self.node = node
+        self.transition = transition
+
+
+class DeviceError(ContainerError):
+    """A device failed: the port could not open, vanished, or sent nothing valid.
+
+    :param device: the port or URL of the device.
+    """
+
+    def __init__(self, message: str, *, device: str) -> None:
+        super().__init__(f"{device}: {message}")
+        self.device = device

@@ -1,0 +1,604 @@
+"""The rcl side of the executor: cached wait sets, take, hand to lanes.
+
+rclpy's own executors rebuild the wait set in Python on every iteration
+(re-collecting every entity of every node); measured here that is most of
+their cost. The dispatcher collects entities only when they change (rclpy
+nodes call ``executor.wake()`` whenever one is created or destroyed) and
+otherwise just re-adds the cached handles before each wait, since ``rcl_wait``
+clears the slots of entities that were not ready.
+
+Entities are split over two wait sets. The *hot* one (subscriptions, timers,
+service clients, guard conditions) is waited on by the event loop's thread.
+The *cold* one (services, publishers' QoS event handlers, other waitables
+such as action servers) is waited on by a thread of its own: every node
+carries seven parameter and type-description services and a pair of QoS
+event handlers per publisher, and re-adding those before every wait was a
+quarter of a ping-pong round trip. A request the cold thread takes goes to
+its lane as directly as one the loop takes; only an ``async def`` service
+callback pays one extra hand-over to the loop.
+
+Everything that becomes ready is *taken at once* and handed to its callback
+group's lane. rcl wait sets are level-triggered, so an entity left untaken
+would wake the next wait immediately; taking eagerly and bounding what is
+pending per entity (see ``_lanes``) avoids both the busy loop and a wait-set
+rebuild whenever a group becomes busy or idle.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import inspect
+import threading
+import traceback
+from collections.abc import Callable, Coroutine, Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
+from rclpy.event_handler import EventHandler, QoSSubscriptionEventType
+from rclpy.exceptions import InvalidHandle
+from rclpy.guard_condition import GuardCondition
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.subscription import Subscription
+from rclpy.waitable import NumberOfEntities
+
+from ._lanes import Lane, Post, Work
+
+if TYPE_CHECKING:
+    import asyncio
+
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+__all__: list[str] = []
+
+#: Pending firings kept per timer or guard condition while its group is busy.
+_COALESCED = 1
+#: Pending items kept for a waitable (action goals, QoS events): never drop.
+_WAITABLE_DEPTH = 1 << 16
+
+#: Flags :meth:`Dispatcher.wait_and_dispatch` returns about the executor's own
+#: guard conditions: woken on purpose, a file descriptor is ready.
+WOKEN = 1
+FDS_READY = 2
+
+ErrorHandler = Callable[["Node", object, BaseException], None]
+Adapt = Callable[[Coroutine[Any, Any, object]], Coroutine[Any, Any, object]]
+
+
+@dataclass(slots=True)
+class _Entry:
+    """An entity with what dispatching it needs, computed once per change."""
+
+    entity: Any
+    node: Node
+    lane: Lane
+    is_async: bool
+    depth: int
+    done: Callable[[Work, BaseException | None], None]
+
+
+@dataclass(slots=True)
+class _Table:
+    """The entities one wait set waits on, collected once per change."""
+
+    by_pointer: dict[str, dict[int, _Entry]] = field(default_factory=dict)
+    handles: dict[str, list[Any]] = field(default_factory=dict)
+    own_guards: dict[int, int] = field(default_factory=dict)
+    #: QoS event handlers, added through their event handle directly.
+    events: list[tuple[Any, _Entry]] = field(default_factory=list)
+    #: Any other waitable (actions), through the generic Waitable API.
+    waitables: list[_Entry] = field(default_factory=list)
+    held: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
+    wait_set: Any = None
+
+
+def describe(entity: object) -> str:
+    """Name an entity the way a ROS user would recognise it in a log."""
+    callback = getattr(entity, "callback", None)
+    name = getattr(callback, "__qualname__", None) or repr(callback)
+    for attribute, kind in (("topic_name", "subscription"), ("srv_name", "service")):
+        value = getattr(entity, attribute, None)
+        if isinstance(value, str):
+            return f"{kind} {value!r} callback {name}"
+    return f"{type(entity).__name__.lower()} callback {name}"
+
+
+def format_error(entity: object, error: BaseException) -> str:
+    details = "".join(traceback.format_exception(error)).rstrip()
+    return f"{describe(entity)} raised {type(error).__name__}: {error}\n{details}"
+
+
+def _event_handle(waitable: object) -> Any:
+    """The rcl event handle of a QoS event handler, if rclpy still has one.
+
+    Adding a handler through the generic Waitable API costs about a
+    microsecond per wait, several times the direct call. Anything
+    unrecognised takes the generic path.
+    """
+    if isinstance(waitable, EventHandler):
+        return getattr(waitable, "_EventHandler__event", None)
+    return None
+
+
+def _is_hot_waitable(waitable: object) -> bool:
+    """Whether a waitable must sit in the hot wait set.
+
+    A subscription's QoS events share Fast DDS's listener with its data, so a
+    wait set holding only the event wakes on every message; kept with the
+    subscriptions, that wake-up is one the hot wait set has anyway.
+    """
+    return isinstance(waitable, EventHandler) and isinstance(
+        waitable.event_type, QoSSubscriptionEventType
+    )
+
+
+_HOT = ("subscription", "timer", "client", "guard_condition")
+_COLD = ("service",)
+
+
+class _WaitSet:
+    """One rcl wait set over some kinds of entity, used by one thread at a time."""
+
+    def __init__(
+        self,
+        dispatcher: Dispatcher,
+        *,
+        kinds: tuple[str, ...],
+        takes_waitable: Callable[[Any], bool],
+        own_guards: Callable[[], Iterable[tuple[GuardCondition, int]]],
+    ) -> None:
+        self._dispatcher = dispatcher
+        self._kinds = kinds
+        self._takes_waitable = takes_waitable
+        self._own_guards = own_guards
+        self._table = _Table()
+        self._dirty = True
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def invalidate(self) -> None:
+        self._dirty = True
+
+    def _rebuild(self) -> None:
+        self._dirty = False
+        dispatcher = self._dispatcher
+        table = _Table()
+        held = table.held
+        extra = NumberOfEntities()
+        for kind in _HOT + _COLD:
+            table.by_pointer[kind] = {}
+            table.handles[kind] = []
+        for node in dispatcher.nodes():
+            for kind in self._kinds:
+                for entity in _entities_of(node, kind):
+                    if _hold(held, entity.handle):
+                        entry = dispatcher.entry(entity, node, kind)
+                        table.by_pointer[kind][entity.handle.pointer] = entry
+                        table.handles[kind].append(entity.handle)
+            for waitable in list(node.waitables):
+                if not self._takes_waitable(waitable) or not _hold(held, waitable):
+                    continue
+                entry = dispatcher.entry(waitable, node, "waitable")
+                event = _event_handle(waitable)
+                if event is not None:
+                    table.events.append((event, entry))
+                else:
+                    table.waitables.append(entry)
+                    extra += waitable.get_num_entities()
+        guards = table.handles["guard_condition"]
+        for gc, flag in self._own_guards():
+            if _hold(held, gc.handle):
+                table.own_guards[gc.handle.pointer] = flag
+                guards.append(gc.handle)
+        context = dispatcher.context
+        held.enter_context(context.handle)
+        table.wait_set = _rclpy.WaitSet(
+            len(table.handles["subscription"]) + extra.num_subscriptions,
+            len(guards) + extra.num_guard_conditions,
+            len(table.handles["timer"]) + extra.num_timers,
+            len(table.handles["client"]) + extra.num_clients,
+            len(table.handles["service"]) + extra.num_services,
+            len(table.events) + extra.num_events,
+            context.handle,
+        )
+        old, self._table = self._table, table
+        old.held.close()
+
+    def wait_and_dispatch(self, timeout_ns: int) -> int:
+        """Block in rcl until something is ready (or timeout) and dispatch it.
+
+        :return: the flags of the executor's own guards that fired.
+        """
+        with self._lock:
+            if self._closed:
+                return WOKEN
+            if self._dirty:
+                self._rebuild()
+            return self._wait_and_dispatch(self._table, timeout_ns)
+
+    def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
+        wait_set = table.wait_set
+        handles = table.handles
+        wait_set.clear_entities()
+        add = wait_set.add_subscription
+        for handle in handles["subscription"]:
+            add(handle)
+        add = wait_set.add_guard_condition
+        for handle in handles["guard_condition"]:
+            add(handle)
+        add = wait_set.add_timer
+        for handle in handles["timer"]:
+            add(handle)
+        add = wait_set.add_client
+        for handle in handles["client"]:
+            add(handle)
+        add = wait_set.add_service
+        for handle in handles["service"]:
+            add(handle)
+        add = wait_set.add_event
+        indices = [add(event) for event, _ in table.events]
+        for entry in table.waitables:
+            entry.entity.add_to_wait_set(wait_set)
+        wait_set.wait(timeout_ns)
+        if self._closed:
+            return WOKEN
+        dispatcher = self._dispatcher
+        flags = 0
+        by_pointer = table.by_pointer
+        for pointer in wait_set.get_ready_entities("guard_condition"):
+            own = table.own_guards.get(pointer)
+            if own is not None:
+                flags |= own
+            else:
+                entry = by_pointer["guard_condition"][pointer]
+                dispatcher.submit(entry, entry.entity.callback, ())
+        if handles["timer"]:
+            for pointer in wait_set.get_ready_entities("timer"):
+                dispatcher.take_timer(by_pointer["timer"][pointer])
+        if handles["subscription"]:
+            for pointer in wait_set.get_ready_entities("subscription"):
+                dispatcher.take_message(by_pointer["subscription"][pointer])
+        if handles["client"]:
+            for pointer in wait_set.get_ready_entities("client"):
+                dispatcher.take_response(by_pointer["client"][pointer])
+        if handles["service"]:
+            for pointer in wait_set.get_ready_entities("service"):
+                dispatcher.take_request(by_pointer["service"][pointer])
+        is_ready = wait_set.is_ready
+        for index, (_, entry) in zip(indices, table.events):
+            if is_ready("event", index):
+                # Hand over to rclpy's own handler for the rare ready path.
+                entry.entity._event_index = index
+                if entry.entity.is_ready(wait_set):
+                    dispatcher.take_waitable(entry)
+        for entry in table.waitables:
+            if entry.entity.is_ready(wait_set):
+                dispatcher.take_waitable(entry)
+        return flags
+
+    def close(self, *, timeout: float) -> None:
+        """Release every handle, once no thread waits any more.
+
+        A thread still inside ``rcl_wait`` holds the lock; whoever calls this
+        has woken it first through one of its own guard conditions.
+        """
+        self._closed = True
+        if self._lock.acquire(timeout=max(timeout, 0.1)):
+            try:
+                self._table.held.close()
+                self._table = _Table()
+            finally:
+                self._lock.release()
+
+
+class Dispatcher:
+    """Wait on every node's entities and hand what is ready to lanes.
+
+    :meth:`wait_and_dispatch` serves the hot wait set and is called by one
+    thread at a time (the loop's, or the fallback waiter); the cold wait set
+    has its own thread, started by :meth:`start`.
+    """
+
+    def __init__(
+        self,
+        *,
+        context: Context,
+        nodes: Callable[[], Iterable[Node]],
+        own_guards: Callable[[], Iterable[tuple[GuardCondition, int]]],
+        loop: asyncio.AbstractEventLoop,
+        post: Post,
+        reentrant_limit: int,
+        future_executor: object,
+        on_error: ErrorHandler,
+        on_done: Callable[[], None],
+        on_response: Callable[[], None],
+        adapt: Adapt,
+    ) -> None:
+        self.context = context
+        self._nodes = nodes
+        self._loop = loop
+        self._post = post
+        self._reentrant_limit = reentrant_limit
+        self._future_executor = future_executor
+        self._on_error = on_error
+        self._on_done = on_done
+        self._on_response = on_response
+        self._adapt = adapt
+        self._lanes: dict[int, tuple[CallbackGroup, Lane]] = {}
+        self._lanes_lock = threading.Lock()
+        self._loop_thread: int | None = None
+        self._cold_wake = GuardCondition(callback=None, callback_group=None, context=context)
+        self._hot = _WaitSet(
+            self, kinds=_HOT, takes_waitable=_is_hot_waitable, own_guards=own_guards
+        )
+        self._cold = _WaitSet(
+            self,
+            kinds=_COLD,
+            takes_waitable=lambda waitable: not _is_hot_waitable(waitable),
+            own_guards=lambda: [(self._cold_wake, WOKEN)],
+        )
+        self._cold_thread: threading.Thread | None = None
+        self._active = threading.Event()
+        self._closed = False
+
+    # -- threads ----------------------------------------------------------------
+    def start(self) -> None:
+        """Let the cold wait set's thread take work (idempotent).
+
+        Like rclpy's executors, nothing new is taken while nobody spins.
+        """
+        if self._closed:
+            return
+        self._active.set()
+        if self._cold_thread is None:
+            self._cold_thread = threading.Thread(
+                target=self._serve_cold, name="rcl-cold-waiter", daemon=True
+            )
+            self._cold_thread.start()
+
+    def pause(self) -> None:
+        """Stop taking cold work until the next :meth:`start`."""
+        self._active.clear()
+        with contextlib.suppress(InvalidHandle):
+            self._cold_wake.trigger()
+
+    def _serve_cold(self) -> None:
+        while True:
+            self._active.wait()
+            if self._closed:
+                return
+            self._cold.wait_and_dispatch(-1)
+
+    def bind_loop_thread(self, ident: int | None) -> None:
+        self._loop_thread = ident
+
+    @property
+    def loop_thread(self) -> int | None:
+        return self._loop_thread
+
+    def _on_loop_thread(self) -> bool:
+        return threading.get_ident() == self._loop_thread
+
+    # -- entities ---------------------------------------------------------------
+    def invalidate(self) -> None:
+        """Collect entities again before the next waits (any thread)."""
+        self._hot.invalidate()
+        self._cold.invalidate()
+        with contextlib.suppress(InvalidHandle):
+            self._cold_wake.trigger()
+
+    def nodes(self) -> list[Node]:
+        return list(self._nodes())
+
+    def entry(self, entity: Any, node: Node, kind: str) -> _Entry:
+        if kind == "waitable":
+            is_async, depth = True, _WAITABLE_DEPTH
+        elif kind == "subscription" or kind == "service":
+            is_async = inspect.iscoroutinefunction(entity.callback)
+            depth = max(1, entity.qos_profile.depth)
+        elif kind == "client":
+            is_async, depth = False, 1
+        else:
+            is_async, depth = inspect.iscoroutinefunction(entity.callback), _COALESCED
+        return _Entry(
+            entity=entity,
+            node=node,
+            lane=self.lane_for(entity.callback_group, node),
+            is_async=is_async,
+            depth=depth,
+            done=functools.partial(self._done, node),
+        )
+
+    def wait_and_dispatch(self, timeout_ns: int) -> int:
+        """Wait on the hot wait set and dispatch; see :class:`_WaitSet`."""
+        if self._hot._dirty:
+            self._retire_lanes()
+        return self._hot.wait_and_dispatch(timeout_ns)
+
+    # -- taking ---------------------------------------------------------------
+    def take_timer(self, entry: _Entry) -> None:
+        tmr = entry.entity
+        try:
+            with tmr.handle:
+                if not tmr.handle.is_timer_ready():
+                    return
+                tmr.handle.call_timer()
+        except InvalidHandle:
+            return
+        self.submit(entry, tmr.callback, ())
+
+    def take_message(self, entry: _Entry) -> None:
+        sub = entry.entity
+        try:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        except InvalidHandle:
+            return
+        if taken is None:
+            return
+        if sub._callback_type is Subscription.CallbackType.MessageOnly:
+            self.submit(entry, sub.callback, (taken[0],))
+        else:
+            self.submit(entry, sub.callback, tuple(taken))
+
+    def take_response(self, entry: _Entry) -> None:
+        cli = entry.entity
+        try:
+            with cli.handle:
+                header, response = cli.handle.take_response(cli.srv_type.Response)
+        except InvalidHandle:
+            return
+        if header is None:
+            return
+        try:
+            future = cli.get_pending_request(header.request_id.sequence_number)
+        except KeyError:
+            return  # the caller cancelled the request
+        future._set_executor(self._future_executor)
+        future.set_result(response)
+        self._on_response()
+
+    def take_request(self, entry: _Entry) -> None:
+        srv = entry.entity
+        try:
+            with srv.handle:
+                request, header = srv.handle.service_take_request(srv.srv_type.Request)
+        except InvalidHandle:
+            return
+        if header is None:
+            return
+        callback = srv.callback
+        response_type = srv.srv_type.Response
+        if entry.is_async:
+
+            async def serve_async() -> None:
+                srv.send_response(await callback(request, response_type()), header)
+
+            self.run(entry, serve_async)
+        else:
+
+            def serve() -> None:
+                srv.send_response(callback(request, response_type()), header)
+
+            self.run(entry, serve)
+
+    def take_waitable(self, entry: _Entry) -> None:
+        waitable = entry.entity
+        data = waitable.take_data()
+        for future in waitable._futures:
+            future._set_executor(self._future_executor)
+
+        async def execute() -> None:
+            await waitable.execute(data)
+
+        self.run(entry, execute)
+
+    # -- lanes ----------------------------------------------------------------
+    def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
+        """Hand ``callback(*args)`` to the entry's lane."""
+        call: Callable[[], Any]
+        if entry.is_async:
+            call = functools.partial(_start_async, self._adapt, callback, args)
+        elif args:
+            call = functools.partial(callback, *args)
+        else:
+            call = callback
+        entry.lane.submit(Work(entry.entity, call, entry.is_async, entry.depth, entry.done))
+
+    def run(self, entry: _Entry, call: Callable[[], Any]) -> None:
+        self.submit(entry, call, ())
+
+    def _done(self, node: Node, work: Work, error: BaseException | None) -> None:
+        if error is not None:
+            self._on_error(node, work.entity, error)
+        self._on_done()
+
+    def lane_for(self, group: CallbackGroup, node: Node | None) -> Lane:
+        key = id(group)
+        with self._lanes_lock:
+            found = self._lanes.get(key)
+            if found is not None and found[0] is group:
+                return found[1]
+            limit = self._reentrant_limit if isinstance(group, ReentrantCallbackGroup) else 1
+            owner = node.get_fully_qualified_name() if node is not None else "executor"
+            lane = Lane(
+                name=f"{owner}:{type(group).__name__}",
+                limit=limit,
+                loop=self._loop,
+                on_loop_thread=self._on_loop_thread,
+                post=self._post,
+            )
+            self._lanes[key] = (group, lane)
+            return lane
+
+    def _retire_lanes(self) -> None:
+        """Close the lanes of groups no entity of any node refers to any more."""
+        live = {id(group) for group in _groups_of(self.nodes())}
+        with self._lanes_lock:
+            dead = [
+                (key, lane)
+                for key, (_, lane) in self._lanes.items()
+                if key not in live and not lane.busy()
+            ]
+            for key, _ in dead:
+                del self._lanes[key]
+        for _, lane in dead:
+            lane.close(timeout=1.0)
+
+    def lanes(self) -> list[Lane]:
+        with self._lanes_lock:
+            return [lane for _, lane in self._lanes.values()]
+
+    def close(self, *, timeout: float) -> bool:
+        """Stop dispatching, close every lane, release every handle."""
+        self._closed = True
+        with self._lanes_lock:
+            lanes = [lane for _, lane in self._lanes.values()]
+            self._lanes.clear()
+        joined = all([lane.close(timeout=timeout) for lane in lanes])
+        self._hot.close(timeout=timeout)
+        self._active.set()
+        with contextlib.suppress(InvalidHandle):
+            self._cold_wake.trigger()
+        if self._cold_thread is not None and self._cold_thread is not threading.current_thread():
+            self._cold_thread.join(timeout)
+            joined = joined and not self._cold_thread.is_alive()
+        self._cold.close(timeout=timeout)
+        self._cold_wake.destroy()
+        return joined
+
+
+def _entities_of(node: Node, kind: str) -> list[Any]:
+    if kind == "subscription":
+        return list(node.subscriptions)
+    if kind == "timer":
+        return list(node.timers)
+    if kind == "client":
+        return list(node.clients)
+    if kind == "service":
+        return list(node.services)
+    return list(node.guards)
+
+
+def _groups_of(nodes: Iterable[Node]) -> Iterator[CallbackGroup]:
+    for node in nodes:
+        for kind in _HOT + _COLD:
+            for entity in _entities_of(node, kind):
+                yield entity.callback_group
+        for waitable in list(node.waitables):
+            yield waitable.callback_group
+
+
+def _start_async(adapt: Adapt, callback: Callable[..., Any], args: tuple[Any, ...]) -> Any:
+    return adapt(callback(*args))
+
+
+def _hold(stack: contextlib.ExitStack, handle: Any) -> bool:
+    """Keep ``handle`` alive while it sits in the wait set; skip destroyed ones."""
+    try:
+        stack.enter_context(handle)
+    except InvalidHandle:
+        return False
+    return True

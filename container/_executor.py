@@ -1,0 +1,569 @@
+"""``AsyncioExecutor``: an rclpy executor driven by an asyncio event loop.
+
+Where the time goes, measured here (``shared/brief/executor-facts.md``): rclpy's
+executors spend most of a round trip rebuilding their wait set in Python, and
+each hand-over between threads costs tens of microseconds. So:
+
+* the loop's own thread sleeps in the rcl wait set (``_selector``) and takes
+  messages itself, with a wait set that is rebuilt only when entities change
+  (``_dispatch``);
+* ``async def`` callbacks run as asyncio tasks on that same thread: no hop;
+* plain callbacks may block, so each runs on its callback group's own worker
+  thread (``_lanes``): one hop, and a slow node delays only itself.
+
+On a loop the executor did not create (``await executor.spin_async()`` from
+``asyncio.run``), a waiter thread takes the loop thread's place in rcl and
+hands async work over with ``call_soon_threadsafe``: correct, just slower.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import inspect
+import threading
+import types
+from collections.abc import Awaitable, Callable, Coroutine, Generator
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from rclpy.context import Context
+from rclpy.executors import Executor
+from rclpy.task import Future as RclFuture
+
+from ._dispatch import FDS_READY, WOKEN, Dispatcher, format_error
+from rclpy.guard_condition import GuardCondition
+from ._errors import ExecutorError
+from ._lanes import Lane, Work
+from ._selector import RclSelector
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+
+__all__ = ["AsyncioExecutor", "CallbackErrorHandler"]
+
+T = TypeVar("T")
+
+#: Called with the node, the entity and the exception a callback raised.
+CallbackErrorHandler = Callable[["Node", object, BaseException], None]
+
+#: How long an ``await`` on an rclpy future may sleep before looking again,
+#: for futures completed outside the executor (no wake-up reaches us then).
+_RCL_FUTURE_POLL_S = 0.01
+#: The flag of the inbox guard condition (beside ``WOKEN`` and ``FDS_READY``).
+_INBOX = 4
+
+
+class AsyncioExecutor(Executor):
+    """Run rclpy nodes' callbacks on an asyncio event loop.
+
+    A drop-in for rclpy's executors (``add_node``, ``remove_node``, ``spin``,
+    ``spin_once``, ``spin_until_future_complete``, ``shutdown``, and
+    ``rclpy.spin(node, executor=...)``) that can also run on an already
+    running loop: ``await executor.spin_async()``.
+
+    :param context: the rclpy context; the default one if ``None``.
+    :param reentrant_limit: how many callbacks of one
+        ``ReentrantCallbackGroup`` may run at once.
+    :param on_callback_error: called when a callback raises, after the
+        error is logged through the node's logger; a place for fault
+        containment (the container sends the node through error processing).
+    :param shutdown_timeout: seconds :meth:`shutdown` waits for running
+        callbacks by default.
+    """
+
+    def __init__(
+        self,
+        *,
+        context: Context | None = None,
+        reentrant_limit: int = 8,
+        on_callback_error: CallbackErrorHandler | None = None,
+        shutdown_timeout: float = 5.0,
+    ) -> None:
+        if reentrant_limit < 1:
+            raise ExecutorError(f"reentrant_limit must be at least 1, not {reentrant_limit}")
+        super().__init__(context=context)
+        self._reentrant_limit = reentrant_limit
+        self._on_callback_error = on_callback_error
+        self._shutdown_timeout = shutdown_timeout
+        self._selector = RclSelector(context=self._context, fds_ready_flag=FDS_READY)
+        # Hand-overs from other threads to the owned loop: a deque and an rcl
+        # guard condition, one wake-up instead of call_soon_threadsafe's three
+        # (self-pipe, fd watcher, guard condition).
+        self._inbox: collections.deque[tuple[Callable[..., object], tuple[Any, ...]]] = (
+            collections.deque()
+        )
+        self._inbox_ready = GuardCondition(callback=None, callback_group=None, context=self._context)
+        self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
+        self._running_loop: asyncio.AbstractEventLoop | None = None
+        self._dispatcher = self._make_dispatcher(self._loop)
+        self._stopped: asyncio.Future[None] | None = None
+        self._progress: asyncio.Future[None] | None = None
+        self._completion_waiters: list[asyncio.Future[None]] = []
+        self._state_lock = threading.Lock()
+        self._spinning = False
+        self._task_lane: Lane | None = None
+        self._closed = False
+        self._released: bool | None = None
+        self._idle = threading.Event()
+        self._idle.set()
+
+    # -- public surface ---------------------------------------------------------
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop callbacks run on (the running one under ``spin_async``)."""
+        return self._running_loop or self._loop
+
+    def wake(self) -> None:
+        """Collect entities again: a node created or destroyed one."""
+        self._dispatcher.invalidate()
+        super().wake()
+
+    def add_node(self, node: Node) -> bool:
+        added = super().add_node(node)
+        self._dispatcher.invalidate()
+        return added
+
+    def remove_node(self, node: Node) -> None:
+        super().remove_node(node)
+        self._dispatcher.invalidate()
+        self._guard_trigger()
+
+    def spin(self) -> None:
+        """Run callbacks until :meth:`shutdown` or the context shuts down."""
+        self._run_owned(self._until_stopped())
+
+    def spin_once(self, timeout_sec: float | None = None) -> None:
+        """Run callbacks until one of them completes, or ``timeout_sec`` passes."""
+        self._run_owned(self._until_a_callback_completes(timeout_sec))
+
+    def spin_until_future_complete(
+        self,
+        future: RclFuture | asyncio.Future[Any] | Coroutine[Any, Any, Any],
+        timeout_sec: float | None = None,
+    ) -> None:
+        """Run callbacks until ``future`` is done or ``timeout_sec`` passes.
+
+        ``future`` may be an rclpy future, an asyncio future, or a coroutine
+        (run as a task on the loop).
+        """
+        self._run_owned(self._until_done(future, timeout_sec))
+
+    def spin_once_until_future_complete(
+        self,
+        future: RclFuture,
+        timeout_sec: float | None = None,  # type: ignore[override]
+    ) -> None:
+        self._run_owned(self._until_done(future, timeout_sec))
+
+    async def spin_async(self) -> None:
+        """Run callbacks on the running event loop until shutdown.
+
+        On the executor's own loop (``executor.loop``) the loop thread waits in
+        rcl directly; on any other loop a waiter thread does and hands work
+        over, which costs one thread hop per async callback.
+        """
+        loop = asyncio.get_running_loop()
+        if loop is self._loop:
+            await self._until_stopped()
+            return
+        with self._spinning_on(loop):
+            waiter = threading.Thread(
+                target=self._wait_in_thread, name="rcl-waiter", daemon=True
+            )
+            waiter.start()
+            try:
+                await self._stopped_future()
+            finally:
+                self._signal_stopped()
+                await asyncio.to_thread(waiter.join)
+
+    def create_task(  # type: ignore[override]
+        self, callback: Callable[..., Any] | Coroutine[Any, Any, Any], *args: Any, **kwargs: Any
+    ) -> RclFuture:
+        """Run ``callback`` soon and return an rclpy future of its result.
+
+        Coroutines run as asyncio tasks on the loop; plain callables on a
+        shared worker lane, since they may block (action execute callbacks
+        do). rclpy routes future done-callbacks through here.
+        """
+        result = RclFuture(executor=self)
+        loop = self.loop
+        if inspect.iscoroutine(callback) or inspect.iscoroutinefunction(callback):
+            coro = callback if inspect.iscoroutine(callback) else callback(*args, **kwargs)
+
+            def start() -> None:
+                task = loop.create_task(self.adapt(coro))
+                task.add_done_callback(lambda t: _settle(result, t))
+
+            self._call_soon(loop, start)
+        else:
+
+            def run() -> None:
+                try:
+                    result.set_result(callback(*args, **kwargs))
+                except Exception as exc:  # handed to the future's owner
+                    result.set_exception(exc)
+
+            self._tasks_lane().submit(_work(run))
+        self._notify_progress()
+        return result
+
+    def shutdown(self, timeout_sec: float | None = None) -> bool:
+        """Stop running callbacks, wait for running ones, release resources.
+
+        Safe from any thread and from inside a callback; in the latter case
+        the release happens when the spinning call returns.
+
+        :return: ``False`` if callbacks were still running after
+            ``timeout_sec`` (default: the constructor's ``shutdown_timeout``).
+        """
+        timeout = self._shutdown_timeout if timeout_sec is None else max(0.0, timeout_sec)
+        with self._state_lock:
+            first = not self._closed
+            self._closed = True
+        if first:
+            self._signal_stopped()
+        if self._spinning and not self._inside_executor():
+            self._idle.wait(timeout)
+        if self._spinning:
+            return False
+        return self._release(timeout)
+
+    def _release(self, timeout: float) -> bool:
+        with self._state_lock:
+            if self._released is not None:
+                return self._released
+            self._released = False
+        joined = self._dispatcher.close(timeout=timeout)
+        if self._task_lane is not None:
+            joined = self._task_lane.close(timeout=timeout) and joined
+        super().shutdown(timeout_sec=0)
+        if not self._loop.is_running() and not self._loop.is_closed():
+            self._drain_owned_loop()
+            self._loop.close()
+        self._inbox.clear()
+        self._inbox_ready.destroy()
+        self._released = joined
+        return joined
+
+    def _inside_executor(self) -> bool:
+        current = threading.current_thread()
+        if current.ident == self._dispatcher.loop_thread:
+            return True
+        return any(current in lane.threads for lane in self._all_lanes())
+
+    def _all_lanes(self) -> list[Lane]:
+        lanes = self._dispatcher.lanes()
+        if self._task_lane is not None:
+            lanes.append(self._task_lane)
+        return lanes
+
+    def threads(self) -> list[threading.Thread]:
+        """Worker threads currently alive in this executor's lanes."""
+        threads = [t for lane in self._dispatcher.lanes() for t in lane.threads]
+        if self._task_lane is not None:
+            threads.extend(self._task_lane.threads)
+        return threads
+
+    def tasks(self) -> set[asyncio.Task[object]]:
+        """Asyncio tasks currently running callbacks."""
+        tasks: set[asyncio.Task[object]] = set()
+        for lane in self._dispatcher.lanes():
+            tasks |= lane.tasks
+        return tasks
+
+    def adapt(self, coro: Coroutine[Any, Any, T]) -> Coroutine[Any, Any, T]:
+        """Make ``await rclpy_future`` inside ``coro`` sleep instead of spin.
+
+        rclpy's futures ``yield`` bare ``None`` until done; to asyncio that
+        means "run me again at once", a busy loop. The adapter parks such a
+        coroutine until the executor next delivers a service response or
+        schedules a done-callback (or a short poll interval passes).
+        """
+        return _rcl_aware(coro, self._progress_future)  # type: ignore[return-value]
+
+    # -- running the owned loop ------------------------------------------------
+    def _run_owned(self, main: Coroutine[Any, Any, None]) -> None:
+        if self._closed:
+            main.close()
+            return
+        with contextlib.suppress(RuntimeError):
+            if asyncio.get_running_loop() is not None:
+                main.close()
+                raise ExecutorError(
+                    "spin*() cannot run inside a running event loop; await spin_async()"
+                )
+        with self._spinning_on(self._loop):
+            self._selector.attach(self._wait)
+            try:
+                self._loop.run_until_complete(main)
+            finally:
+                self._selector.attach(None)
+
+    @contextlib.contextmanager
+    def _spinning_on(self, loop: asyncio.AbstractEventLoop) -> Generator[None, None, None]:
+        with self._state_lock:
+            if self._spinning:
+                raise ExecutorError("the executor is already spinning")
+            self._spinning = True
+            self._idle.clear()
+            owned = self._dispatcher
+            if loop is not self._loop:
+                self._dispatcher = self._make_dispatcher(loop)
+            self._dispatcher.bind_loop_thread(threading.get_ident())
+            self._running_loop = loop
+            self._stopped = None
+            self._progress = None
+        self._dispatcher.start()
+        try:
+            yield
+        finally:
+            with self._state_lock:
+                if self._dispatcher is not owned:
+                    foreign, self._dispatcher = self._dispatcher, owned
+                else:
+                    foreign = None
+                self._running_loop = None
+                self._stopped = None
+                self._progress = None
+            owned.pause()
+            if foreign is not None:
+                foreign.close(timeout=self._shutdown_timeout)
+            self._dispatcher.bind_loop_thread(None)
+            with self._state_lock:
+                self._spinning = False
+            self._idle.set()
+            if self._closed:
+                self._release(self._shutdown_timeout)
+
+    def _make_dispatcher(self, loop: asyncio.AbstractEventLoop) -> Dispatcher:
+        return Dispatcher(
+            post=self._post if loop is self._loop else loop.call_soon_threadsafe,
+            context=self._context,
+            nodes=self.get_nodes,
+            own_guards=self._own_guards,
+            loop=loop,
+            reentrant_limit=self._reentrant_limit,
+            future_executor=self,
+            on_error=self._report_error,
+            on_done=self._callback_completed,
+            on_response=self._notify_progress,
+            adapt=self.adapt,
+        )
+
+    def _own_guards(self) -> list[tuple[Any, int]]:
+        guards = [(self._guard, WOKEN), (self._sigint_gc, WOKEN)]
+        if self._running_loop is self._loop or self._running_loop is None:
+            guards.append((self._selector.fd_ready, FDS_READY))
+            guards.append((self._inbox_ready, _INBOX))
+        return [(g, flag) for g, flag in guards if g is not None]
+
+    def _post(self, callback: Callable[..., object], *args: Any) -> None:
+        """Run ``callback(*args)`` on the owned loop's thread soon (any thread)."""
+        self._inbox.append((callback, args))
+        with contextlib.suppress(Exception):
+            self._inbox_ready.trigger()
+
+    def _wait(self, timeout_ns: int) -> int:
+        flags = self._dispatcher.wait_and_dispatch(timeout_ns)
+        inbox = self._inbox
+        while inbox:
+            callback, args = inbox.popleft()
+            callback(*args)
+        # Shutdown of the context and SIGINT both trigger one of our guards.
+        if flags & WOKEN and not self._context.ok():
+            self._signal_stopped()
+        return flags
+
+    def _wait_in_thread(self) -> None:
+        while not self._closed and self._context.ok() and not self._stop_requested():
+            self._wait(-1)
+        self._signal_stopped()
+
+    async def _until_stopped(self) -> None:
+        await self._stopped_future()
+
+    async def _until_a_callback_completes(self, timeout_sec: float | None) -> None:
+        waiter = self.loop.create_future()
+        self._completion_waiters.append(waiter)
+        try:
+            await self._bounded(waiter, timeout_sec)
+        finally:
+            with contextlib.suppress(ValueError):
+                self._completion_waiters.remove(waiter)
+
+    async def _until_done(
+        self,
+        future: RclFuture | asyncio.Future[Any] | Coroutine[Any, Any, Any],
+        timeout_sec: float | None,
+    ) -> None:
+        target: Awaitable[Any]
+        if isinstance(future, RclFuture):
+            target = self._wrap_rcl_future(future)
+        elif inspect.iscoroutine(future):
+            target = self.loop.create_task(self.adapt(future))
+        else:
+            target = future
+        await self._bounded(target, timeout_sec)
+
+    async def _bounded(self, target: Awaitable[Any], timeout_sec: float | None) -> None:
+        stopped = self._stopped_future()
+        work = asyncio.ensure_future(target)
+        waits: set[asyncio.Future[Any]] = {work, stopped}
+        timeout = None if timeout_sec is None or timeout_sec < 0 else timeout_sec
+        await asyncio.wait(waits, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+
+    def _wrap_rcl_future(self, future: RclFuture) -> asyncio.Future[Any]:
+        loop = self.loop
+        mirror: asyncio.Future[Any] = loop.create_future()
+
+        def copy(done: RclFuture) -> None:
+            def settle() -> None:
+                if mirror.done():
+                    return
+                if done.cancelled():
+                    mirror.cancel()
+                else:
+                    mirror.set_result(None)
+
+            self._call_soon(loop, settle)
+
+        # Without an executor rclpy runs done-callbacks in the completing thread.
+        future.add_done_callback(copy)
+        return mirror
+
+    def _drain_owned_loop(self) -> None:
+        pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]
+        for task in pending:
+            task.cancel()
+        if pending:
+            self._loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+        self._selector.attach(None)
+        self._loop.run_until_complete(self._loop.shutdown_asyncgens())
+
+    # -- stop / progress signalling --------------------------------------------
+    def _stopped_future(self) -> asyncio.Future[None]:
+        if self._stopped is None:
+            self._stopped = self.loop.create_future()
+            if self._closed or not self._context.ok():
+                self._stopped.set_result(None)
+        return self._stopped
+
+    def _stop_requested(self) -> bool:
+        return self._stopped is not None and self._stopped.done()
+
+    def _signal_stopped(self) -> None:
+        stopped = self._stopped
+        if stopped is None:
+            self._guard_trigger()
+            return
+
+        def settle() -> None:
+            if not stopped.done():
+                stopped.set_result(None)
+
+        self._call_soon(stopped.get_loop(), settle)
+        self._guard_trigger()
+
+    def _guard_trigger(self) -> None:
+        guard = self._guard
+        if guard is not None:
+            with contextlib.suppress(Exception):
+                guard.trigger()
+
+    def _progress_future(self) -> asyncio.Future[None]:
+        progress = self._progress
+        if progress is None or progress.done():
+            loop = self.loop
+            progress = loop.create_future()
+            self._progress = progress
+            loop.call_later(_RCL_FUTURE_POLL_S, _resolve, progress)
+        return progress
+
+    def _notify_progress(self) -> None:
+        progress = self._progress
+        if progress is not None and not progress.done():
+            self._call_soon(progress.get_loop(), _resolve, progress)
+
+    def _callback_completed(self) -> None:
+        if self._completion_waiters:
+            for waiter in list(self._completion_waiters):
+                self._call_soon(waiter.get_loop(), _resolve, waiter)
+
+    def _call_soon(
+        self, loop: asyncio.AbstractEventLoop, callback: Callable[..., object], *args: Any
+    ) -> None:
+        if loop.is_closed():
+            return
+        if self._dispatcher_on_loop_thread(loop):
+            loop.call_soon(callback, *args)
+        else:
+            loop.call_soon_threadsafe(callback, *args)
+
+    def _dispatcher_on_loop_thread(self, loop: asyncio.AbstractEventLoop) -> bool:
+        try:
+            return asyncio.get_running_loop() is loop
+        except RuntimeError:
+            return False
+
+    def _report_error(self, node: Node, entity: object, error: BaseException) -> None:
+        if isinstance(error, asyncio.CancelledError):
+            return
+        node.get_logger().error(format_error(entity, error))
+        if self._on_callback_error is not None:
+            self._on_callback_error(node, entity, error)
+
+    def _tasks_lane(self) -> Lane:
+        with self._state_lock:
+            if self._task_lane is None:
+                self._task_lane = Lane(
+                    name="executor:tasks",
+                    limit=self._reentrant_limit,
+                    loop=self.loop,
+                    on_loop_thread=lambda: False,
+                )
+            return self._task_lane
+
+
+def _resolve(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_result(None)
+
+
+def _settle(result: RclFuture, task: asyncio.Task[Any]) -> None:
+    if task.cancelled():
+        result.cancel()
+    elif task.exception() is not None:
+        result.set_exception(task.exception())
+    else:
+        result.set_result(task.result())
+
+
+def _work(run: Callable[[], None]) -> Work:
+    return Work(entity=run, call=run, is_async=False, depth=1 << 16, done=lambda w, e: None)
+
+
+@types.coroutine
+def _rcl_aware(
+    coro: Coroutine[Any, Any, T], progress: Callable[[], asyncio.Future[None]]
+) -> Generator[Any, Any, T]:
+    """Drive ``coro``, turning rclpy's bare ``yield`` into a real wait."""
+    value: Any = None
+    error: BaseException | None = None
+    while True:
+        try:
+            if error is not None:
+                yielded = coro.throw(error)
+            else:
+                yielded = coro.send(value)
+        except StopIteration as stop:
+            return stop.value  # type: ignore[no-any-return]
+        value, error = None, None
+        try:
+            if yielded is None:
+                yield from progress()
+            else:
+                value = yield yielded
+        except BaseException as exc:  # forwarded into the coroutine
+            error = exc

@@ -1,0 +1,355 @@
+"""Plugin discovery and the table of node types the container can load.
+
+Plugins are loaded one entry point at a time, each inside its own
+``try``/``except``: a plugin that fails to import, implements a hook wrongly,
+raises while registering or registers something invalid is recorded as a
+:class:`PluginError`, logged, and skipped as a whole, so one broken
+distribution never takes the container down with it.
+
+A request names a node type by ``package_name`` and ``plugin_name`` strings;
+they are only ever looked up in this table. Nothing imports a module path that
+came from a request.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import logging
+import os
+import re
+import types
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Final
+
+import pluggy
+from rclpy.node import Node
+
+from . import _hookspecs
+from ._errors import LoadError, PluginError
+
+__all__ = ["ENTRY_POINT_GROUP", "NodeType", "PluginRegistry", "ros_package_name"]
+
+#: The entry point group plugin distributions declare their plugins under.
+ENTRY_POINT_GROUP: Final = "container.plugins"
+
+_BLOCK_ENV: Final = "CONTAINER_PLUGINS_BLOCK"
+_ALLOW_ENV: Final = "CONTAINER_PLUGINS_ALLOW"
+_TRACE_ENV: Final = "CONTAINER_TRACE_HOOKS"
+
+# rclcpp's ComponentManager wording, which `ros2 component load` users know.
+_NO_PACKAGE: Final = "Could not find requested resource in ament index"
+_NO_CLASS: Final = "Failed to find class with the requested plugin name."
+
+logger = logging.getLogger("container.plugins")
+#: Receives pluggy's hook-call trace when tracing is on.
+trace_logger = logging.getLogger("container.hooks")
+
+
+def ros_package_name(distribution: str) -> str:
+    """Return the ROS package name that node types of ``distribution`` live in.
+
+    Runs of ``-``, ``_`` and ``.`` collapse like in PEP 503, so two
+    distributions that importlib.metadata tells apart never share a package.
+    """
+    return re.sub(r"[-_.]+", "_", distribution).lower()
+
+
+@dataclass(frozen=True)
+class NodeType:
+    """A node class a plugin registered, under its ``package::Type`` name.
+
+    :param distribution: the distribution's name as its metadata spells it.
+    """
+
+    package: str
+    name: str
+    node_class: type[Node]
+    distribution: str
+    full_name: str = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "full_name", f"{self.package}::{self.name}")
+
+
+class _Registrar:
+    """The ``register`` callback handed to one plugin's hook call.
+
+    It stages what the plugin registers, so that a plugin failing half-way
+    leaves nothing behind, and it remembers the first invalid registration
+    even if the plugin catches the error it raised.
+    """
+
+    def __init__(
+        self,
+        *,
+        distribution: str,
+        entry_point: str | None,
+        taken: Mapping[str, NodeType],
+    ) -> None:
+        self._distribution = distribution
+        self._entry_point = entry_point
+        self._package = ros_package_name(distribution)
+        self._taken = taken
+        self.staged: dict[str, NodeType] = {}
+        self.error: PluginError | None = None
+        self.open = True
+
+    def __repr__(self) -> str:
+        # Shows in hook traces: says whose hook call this one is.
+        where = f" entry point {self._entry_point!r}" if self._entry_point else ""
+        return f"<register for distribution {self._distribution!r}{where}>"
+
+    def __call__(self, node_class: type[Node], /, *, name: str | None = None) -> None:
+        if not self.open:
+            raise self.failure("register() called after register_node_types returned")
+        try:
+            node_type = self._validate(node_class, name)
+        except PluginError as exc:
+            if self.error is None:
+                self.error = exc
+            raise
+        self.staged[node_type.full_name] = node_type
+
+    def _validate(self, node_class: object, name: str | None) -> NodeType:
+        if not isinstance(node_class, type):
+            raise self.failure(f"cannot register {node_class!r}: not a class")
+        if not issubclass(node_class, Node):
+            raise self.failure(
+                f"cannot register {node_class.__qualname__}: "
+                "not a subclass of rclpy.node.Node"
+            )
+        type_name = node_class.__name__ if name is None else name
+        if not isinstance(type_name, str) or not type_name.isidentifier():
+            raise self.failure(
+                f"cannot register {node_class.__qualname__} as {type_name!r}: "
+                "the type name must be a Python identifier"
+            )
+        node_type = NodeType(
+            package=self._package,
+            name=type_name,
+            node_class=node_class,
+            distribution=self._distribution,
+        )
+        full_name = node_type.full_name
+        if full_name in self.staged:
+            raise self.failure(f"node type {full_name!r} is registered twice")
+        if full_name in self._taken:
+            owner = self._taken[full_name].distribution
+            raise self.failure(
+                f"node type {full_name!r} is already registered by "
+                f"distribution {owner!r}"
+            )
+        return node_type
+
+    def failure(self, reason: str) -> PluginError:
+        return PluginError(
+            reason, distribution=self._distribution, entry_point=self._entry_point
+        )
+
+
+def _names_from_env(variable: str) -> set[str] | None:
+    value = os.environ.get(variable)
+    if value is None:
+        return None
+    return {name.strip() for name in value.split(",") if name.strip()}
+
+
+def _flag_from_env(variable: str) -> bool:
+    return os.environ.get(variable, "").strip().lower() in {"1", "true", "yes", "on"}
+
+
+def _one_line(text: str) -> str:
+    # pluggy's validation messages span lines; a log line and a LoadNode
+    # error_message read better as one.
+    return "; ".join(line.strip() for line in text.splitlines() if line.strip())
+
+
+class PluginRegistry:
+    """Load plugin distributions and keep the node types they register.
+
+    Restrictions from the keyword arguments (the configuration file) and from
+    the environment only ever narrow what loads: a distribution named in
+    either block-list is skipped, and when both allow-lists are given a
+    distribution must be in both. An empty allow-list loads no plugin.
+    Distribution names match whatever their spelling of case, ``-``, ``_``
+    and ``.``.
+
+    :param block: distributions never to load (also ``CONTAINER_PLUGINS_BLOCK``,
+        comma-separated).
+    :param allow: if given, the only distributions to load (also
+        ``CONTAINER_PLUGINS_ALLOW``).
+    :param trace: log every hook call to the ``container.hooks`` logger (also
+        ``CONTAINER_TRACE_HOOKS=1``).
+    :param group: the entry point group to discover; tests point it elsewhere
+        so installed plugins stay out of the way.
+    """
+
+    def __init__(
+        self,
+        *,
+        block: Iterable[str] = (),
+        allow: Iterable[str] | None = None,
+        trace: bool = False,
+        group: str = ENTRY_POINT_GROUP,
+    ) -> None:
+        self._pm = pluggy.PluginManager(_hookspecs.PROJECT_NAME)
+        self._pm.add_hookspecs(_hookspecs)
+        if trace or _flag_from_env(_TRACE_ENV):
+            self._pm.trace.root.setwriter(_write_trace)
+            self._pm.enable_tracing()
+        self._types: dict[str, NodeType] = {}
+        self._failures: list[PluginError] = []
+        env_block = _names_from_env(_BLOCK_ENV) or set()
+        self._block = {ros_package_name(name) for name in (*block, *env_block)}
+        self._allow: list[set[str]] = [
+            {ros_package_name(name) for name in names}
+            for names in (allow, _names_from_env(_ALLOW_ENV))
+            if names is not None
+        ]
+        self._load_entry_points(group)
+
+    @property
+    def types(self) -> Mapping[str, NodeType]:
+        """Node types by full name (``package::Type``), read-only."""
+        return types.MappingProxyType(self._types)
+
+    @property
+    def failures(self) -> list[PluginError]:
+        """Plugins that were skipped because they are broken, in load order."""
+        return list(self._failures)
+
+    def packages(self) -> dict[str, list[str]]:
+        """Return full type names grouped by package, both sorted.
+
+        This is what ``ros2 component types`` prints: each package, then its
+        ``package::Type`` names.
+        """
+        grouped: dict[str, list[str]] = {}
+        for node_type in self._types.values():
+            grouped.setdefault(node_type.package, []).append(node_type.full_name)
+        return {package: sorted(grouped[package]) for package in sorted(grouped)}
+
+    def resolve(self, package_name: str, plugin_name: str) -> NodeType:
+        """Return the registered type a LoadNode request names.
+
+        :param plugin_name: ``package::Type`` as ``ros2 component load`` sends
+            it, or the bare ``Type``.
+        :raises LoadError: with rclcpp's messages, for an unknown package or an
+            unknown type in a known package.
+        """
+        if not any(t.package == package_name for t in self._types.values()):
+            raise LoadError(_NO_PACKAGE)
+        if "::" not in plugin_name:
+            plugin_name = f"{package_name}::{plugin_name}"
+        node_type = self._types.get(plugin_name)
+        if node_type is None or node_type.package != package_name:
+            raise LoadError(_NO_CLASS)
+        return node_type
+
+    def add_plugin(self, plugin: object, *, distribution: str) -> None:
+        """Load an in-process plugin object as if ``distribution`` shipped it.
+
+        For built-in node types and for tests; the same checks apply as to an
+        installed plugin, but a broken one raises instead of being skipped.
+
+        :raises PluginError: the plugin is invalid; nothing of it was kept.
+        """
+        self._add(plugin, distribution=distribution, entry_point=None)
+
+    def _load_entry_points(self, group: str) -> None:
+        for entry_point in importlib.metadata.entry_points(group=group):
+            distribution = entry_point.dist.name if entry_point.dist else None
+            if distribution is None:
+                self._fail(
+                    PluginError(
+                        "the entry point belongs to no distribution",
+                        entry_point=entry_point.name,
+                    )
+                )
+                continue
+            if not self._permitted(distribution):
+                logger.debug(
+                    "Not loading plugin %s from distribution %r: not permitted by "
+                    "the block/allow lists",
+                    entry_point.name,
+                    distribution,
+                )
+                continue
+            try:
+                plugin = self._import(entry_point, distribution)
+                self._add(plugin, distribution=distribution, entry_point=entry_point.name)
+            except PluginError as exc:
+                self._fail(exc)
+
+    def _permitted(self, distribution: str) -> bool:
+        name = ros_package_name(distribution)
+        return name not in self._block and all(name in allow for allow in self._allow)
+
+    @staticmethod
+    def _import(entry_point: importlib.metadata.EntryPoint, distribution: str) -> object:
+        try:
+            return entry_point.load()
+        except Exception as exc:
+            raise PluginError(
+                f"cannot import {entry_point.value!r}: {type(exc).__name__}: {exc}",
+                distribution=distribution,
+                entry_point=entry_point.name,
+            ) from exc
+
+    def _add(self, plugin: object, *, distribution: str, entry_point: str | None) -> None:
+        def error(reason: str) -> PluginError:
+            return PluginError(reason, distribution=distribution, entry_point=entry_point)
+
+        pm_name = f"{distribution}:{entry_point or self._pm.get_canonical_name(plugin)}"
+        try:
+            registered = self._pm.register(plugin, name=pm_name)
+        except pluggy.PluginValidationError as exc:
+            raise error(f"invalid hook implementation: {_one_line(str(exc))}") from exc
+        except Exception as exc:
+            raise error(f"cannot register the plugin: {_one_line(str(exc))}") from exc
+        if registered is None:
+            raise error("the entry point resolved to None")
+        try:
+            try:
+                # Every plugin before this one passed, so it is the culprit.
+                self._pm.check_pending()
+            except pluggy.PluginValidationError as exc:
+                raise error(f"invalid hook implementation: {_one_line(str(exc))}") from exc
+            registrar = _Registrar(
+                distribution=distribution, entry_point=entry_point, taken=self._types
+            )
+            self._call_register_hook(plugin, registrar)
+        except BaseException:
+            self._pm.unregister(plugin)
+            raise
+        self._types.update(registrar.staged)
+
+    def _call_register_hook(self, plugin: object, registrar: _Registrar) -> None:
+        # pluggy calls all implementations of a hook together; calling through
+        # a subset caller that holds only this plugin tells whose types these
+        # are, and still goes through the manager, so tracing sees the call.
+        others = [other for other in self._pm.get_plugins() if other is not plugin]
+        hook = self._pm.subset_hook_caller("register_node_types", remove_plugins=others)
+        raised: Exception | None = None
+        try:
+            hook(register=registrar)
+        except Exception as exc:
+            raised = exc
+        finally:
+            registrar.open = False
+        if registrar.error is not None:
+            raise registrar.error
+        if raised is not None:
+            raise registrar.failure(
+                f"register_node_types raised {type(raised).__name__}: {raised}"
+            ) from raised
+
+    def _fail(self, error: PluginError) -> None:
+        self._failures.append(error)
+        logger.warning("Skipping plugin: %s", error)
+        logger.debug("Plugin failure detail", exc_info=error)
+
+
+def _write_trace(message: str) -> None:
+    trace_logger.info("%s", message.rstrip())

@@ -1,0 +1,112 @@
+"""An asyncio selector that sleeps inside the rcl wait set.
+
+DDS offers no file descriptor to hand to asyncio, and a thread hand-over
+per message costs several times a whole round trip here. So the event loop's
+thread itself blocks in ``rcl_wait`` and takes ROS work without any hop;
+asyncio's own file descriptors (serial ports, sockets, the loop's self-pipe
+that ``call_soon_threadsafe`` and signals write to) are watched by a small
+thread that only triggers an rcl guard condition when one becomes readable.
+That thread stays parked while nothing but ROS traffic flows.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import selectors
+import threading
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from rclpy.context import Context
+from rclpy.guard_condition import GuardCondition
+
+__all__: list[str] = []
+
+#: Waits in rcl for at most the given nanoseconds (``-1``: forever), dispatches
+#: what became ready, and returns flags; ``FDS_READY`` set means the guard
+#: condition of this selector fired.
+WaitAndDispatch = Callable[[int], int]
+
+
+class RclSelector(selectors.BaseSelector):
+    """Delegate file descriptors to epoll; block in rcl instead of epoll.
+
+    :param wait: waits in rcl for at most the given nanoseconds (``-1``:
+        forever) and dispatches what became ready.
+    """
+
+    def __init__(self, *, context: Context, fds_ready_flag: int) -> None:
+        self._inner = selectors.DefaultSelector()
+        self.fd_ready = GuardCondition(callback=None, callback_group=None, context=context)
+        self._wait: WaitAndDispatch | None = None
+        self._fds_ready_flag = fds_ready_flag
+        self._armed = False
+        self._rearm = threading.Event()
+        self._stop_r, self._stop_w = os.pipe()
+        self._watcher = threading.Thread(
+            target=self._watch, name="rcl-selector-fd-watcher", daemon=True
+        )
+        self._watcher.start()
+
+    def attach(self, wait: WaitAndDispatch | None) -> None:
+        """Route blocking selects through ``wait`` (``None``: plain epoll)."""
+        self._wait = wait
+
+    # -- selectors.BaseSelector -----------------------------------------------
+    def register(
+        self, fileobj: Any, events: int, data: Any = None
+    ) -> selectors.SelectorKey:
+        return self._inner.register(fileobj, events, data)
+
+    def unregister(self, fileobj: Any) -> selectors.SelectorKey:
+        return self._inner.unregister(fileobj)
+
+    def modify(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
+        return self._inner.modify(fileobj, events, data)
+
+    def get_map(self) -> Mapping[Any, selectors.SelectorKey]:
+        return self._inner.get_map()
+
+    def select(
+        self, timeout: float | None = None
+    ) -> list[tuple[selectors.SelectorKey, int]]:
+        wait = self._wait
+        if wait is None:
+            return self._inner.select(timeout)
+        # While the watcher is armed it would have woken rcl for a ready fd,
+        # so pure ROS traffic costs no epoll call at all.
+        ready = [] if self._armed else self._inner.select(0)
+        if ready or (timeout is not None and timeout <= 0):
+            # Still give ROS a turn so a busy fd cannot starve it.
+            flags = wait(0)
+            return ready or (self._inner.select(0) if flags & self._fds_ready_flag else [])
+        if not self._armed:
+            self._armed = True
+            self._rearm.set()
+        flags = wait(-1 if timeout is None else int(timeout * 1e9))
+        return self._inner.select(0) if flags & self._fds_ready_flag else []
+
+    def close(self) -> None:
+        os.write(self._stop_w, b"x")
+        self._rearm.set()
+        self._watcher.join(timeout=5.0)
+        os.close(self._stop_r)
+        os.close(self._stop_w)
+        self._inner.close()
+        self.fd_ready.destroy()
+
+    # -- the watcher thread ---------------------------------------------------
+    def _watch(self) -> None:
+        poller = select.poll()
+        poller.register(self._inner.fileno(), select.POLLIN)
+        poller.register(self._stop_r, select.POLLIN)
+        while True:
+            self._rearm.wait()
+            self._rearm.clear()
+            events = poller.poll()
+            if any(fd == self._stop_r for fd, _ in events):
+                return
+            # Disarm before waking the loop so its next select re-arms us.
+            self._armed = False
+            self.fd_ready.trigger()

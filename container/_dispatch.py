@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import inspect
+import logging
 import threading
 import traceback
 from collections.abc import Callable, Coroutine, Iterable, Iterator
@@ -53,18 +54,18 @@ if TYPE_CHECKING:
 
 __all__: list[str] = []
 
+_log = logging.getLogger(__name__)
+
 #: Pending firings kept per timer or guard condition while its group is busy.
 _COALESCED = 1
 #: Pending items kept for a waitable (action goals, QoS events): never drop.
 _WAITABLE_DEPTH = 1 << 16
 
-#: Flags :meth:`Dispatcher.wait_and_dispatch` returns about the executor's own
-#: guard conditions: woken on purpose, a file descriptor is ready.
+#: What :meth:`Dispatcher.wait_and_dispatch` returns when one of the
+#: executor's own guard conditions fired.
 WOKEN = 1
-FDS_READY = 2
 
 ErrorHandler = Callable[["Node", object, BaseException], None]
-Adapt = Callable[[Coroutine[Any, Any, object]], Coroutine[Any, Any, object]]
 
 
 @dataclass(slots=True)
@@ -134,6 +135,9 @@ def _is_hot_waitable(waitable: object) -> bool:
     )
 
 
+#: See :meth:`_WaitSet._events_due`.
+_EVENT_CHECK_EVERY = 64
+
 _HOT = ("subscription", "timer", "client", "guard_condition")
 _COLD = ("service",)
 
@@ -157,6 +161,7 @@ class _WaitSet:
         self._dirty = True
         self._lock = threading.Lock()
         self._closed = False
+        self._waits_since_events = 0
 
     def invalidate(self) -> None:
         self._dirty = True
@@ -214,9 +219,16 @@ class _WaitSet:
         with self._lock:
             if self._closed:
                 return WOKEN
-            if self._dirty:
-                self._rebuild()
-            return self._wait_and_dispatch(self._table, timeout_ns)
+            try:
+                if self._dirty:
+                    self._rebuild()
+                return self._wait_and_dispatch(self._table, timeout_ns)
+            except Exception:
+                # Whatever went wrong stays ready (rcl wait sets are
+                # level-triggered) and is tried again; the executor lives on.
+                _log.exception("dispatching ROS work failed")
+                self._dirty = True
+                return WOKEN
 
     def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
         wait_set = table.wait_set
@@ -247,7 +259,8 @@ class _WaitSet:
         dispatcher = self._dispatcher
         flags = 0
         by_pointer = table.by_pointer
-        for pointer in wait_set.get_ready_entities("guard_condition"):
+        guards_ready = wait_set.get_ready_entities("guard_condition")
+        for pointer in guards_ready:
             own = table.own_guards.get(pointer)
             if own is not None:
                 flags |= own
@@ -257,15 +270,17 @@ class _WaitSet:
         if handles["timer"]:
             for pointer in wait_set.get_ready_entities("timer"):
                 dispatcher.take_timer(by_pointer["timer"][pointer])
-        if handles["subscription"]:
-            for pointer in wait_set.get_ready_entities("subscription"):
-                dispatcher.take_message(by_pointer["subscription"][pointer])
+        messages = wait_set.get_ready_entities("subscription") if handles["subscription"] else ()
+        for pointer in messages:
+            dispatcher.take_message(by_pointer["subscription"][pointer])
         if handles["client"]:
             for pointer in wait_set.get_ready_entities("client"):
                 dispatcher.take_response(by_pointer["client"][pointer])
         if handles["service"]:
             for pointer in wait_set.get_ready_entities("service"):
                 dispatcher.take_request(by_pointer["service"][pointer])
+        if not self._events_due(bool(guards_ready or messages)):
+            return flags
         is_ready = wait_set.is_ready
         for index, (_, entry) in zip(indices, table.events):
             if is_ready("event", index):
@@ -277,6 +292,21 @@ class _WaitSet:
             if entry.entity.is_ready(wait_set):
                 dispatcher.take_waitable(entry)
         return flags
+
+    def _events_due(self, busy: bool) -> bool:
+        """Whether to look at QoS events after this wait.
+
+        Looking costs a call per event per wait, and events are rare. A ready
+        event left untaken makes the next wait return at once (rcl wait sets
+        are level-triggered), so it is enough to look after a wait that
+        nothing else explains, and at least every ``_EVENT_CHECK_EVERY``
+        waits so that steady traffic cannot starve an event.
+        """
+        self._waits_since_events += 1
+        if busy and self._waits_since_events < _EVENT_CHECK_EVERY:
+            return False
+        self._waits_since_events = 0
+        return True
 
     def close(self, *, timeout: float) -> None:
         """Release every handle, once no thread waits any more.
@@ -314,7 +344,7 @@ class Dispatcher:
         on_error: ErrorHandler,
         on_done: Callable[[], None],
         on_response: Callable[[], None],
-        adapt: Adapt,
+        progress: Callable[[], asyncio.Future[None]],
     ) -> None:
         self.context = context
         self._nodes = nodes
@@ -325,7 +355,7 @@ class Dispatcher:
         self._on_error = on_error
         self._on_done = on_done
         self._on_response = on_response
-        self._adapt = adapt
+        self._progress = progress
         self._lanes: dict[int, tuple[CallbackGroup, Lane]] = {}
         self._lanes_lock = threading.Lock()
         self._loop_thread: int | None = None
@@ -431,11 +461,8 @@ class Dispatcher:
 
     def take_message(self, entry: _Entry) -> None:
         sub = entry.entity
-        try:
-            with sub.handle:
-                taken = sub.handle.take_message(sub.msg_type, sub.raw)
-        except InvalidHandle:
-            return
+        # The table holds the handle for as long as the entry exists.
+        taken = sub.handle.take_message(sub.msg_type, sub.raw)
         if taken is None:
             return
         if sub._callback_type is Subscription.CallbackType.MessageOnly:
@@ -499,9 +526,7 @@ class Dispatcher:
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Hand ``callback(*args)`` to the entry's lane."""
         call: Callable[[], Any]
-        if entry.is_async:
-            call = functools.partial(_start_async, self._adapt, callback, args)
-        elif args:
+        if args:
             call = functools.partial(callback, *args)
         else:
             call = callback
@@ -529,6 +554,7 @@ class Dispatcher:
                 loop=self._loop,
                 on_loop_thread=self._on_loop_thread,
                 post=self._post,
+                progress=self._progress,
             )
             self._lanes[key] = (group, lane)
             return lane
@@ -589,10 +615,6 @@ def _groups_of(nodes: Iterable[Node]) -> Iterator[CallbackGroup]:
                 yield entity.callback_group
         for waitable in list(node.waitables):
             yield waitable.callback_group
-
-
-def _start_async(adapt: Adapt, callback: Callable[..., Any], args: tuple[Any, ...]) -> Any:
-    return adapt(callback(*args))
 
 
 def _hold(stack: contextlib.ExitStack, handle: Any) -> bool:

@@ -31,8 +31,7 @@ from rclpy.context import Context
 from rclpy.executors import Executor
 from rclpy.task import Future as RclFuture
 
-from ._dispatch import FDS_READY, WOKEN, Dispatcher, format_error
-from rclpy.guard_condition import GuardCondition
+from ._dispatch import WOKEN, Dispatcher, format_error
 from ._errors import ExecutorError
 from ._lanes import Lane, Work
 from ._selector import RclSelector
@@ -50,8 +49,6 @@ CallbackErrorHandler = Callable[["Node", object, BaseException], None]
 #: How long an ``await`` on an rclpy future may sleep before looking again,
 #: for futures completed outside the executor (no wake-up reaches us then).
 _RCL_FUTURE_POLL_S = 0.01
-#: The flag of the inbox guard condition (beside ``WOKEN`` and ``FDS_READY``).
-_INBOX = 4
 
 
 class AsyncioExecutor(Executor):
@@ -86,14 +83,17 @@ class AsyncioExecutor(Executor):
         self._reentrant_limit = reentrant_limit
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout
-        self._selector = RclSelector(context=self._context, fds_ready_flag=FDS_READY)
-        # Hand-overs from other threads to the owned loop: a deque and an rcl
+        # One guard condition wakes the loop for everything: entities changed
+        # (rclpy's base class), a file descriptor is ready (the selector's
+        # watcher), a hand-over arrived in the inbox. Each guard condition in
+        # the wait set costs on every single wait.
+        self._selector = RclSelector(wake=self._guard_trigger)
+        # Hand-overs from other threads to the owned loop: a deque and the
         # guard condition, one wake-up instead of call_soon_threadsafe's three
         # (self-pipe, fd watcher, guard condition).
         self._inbox: collections.deque[tuple[Callable[..., object], tuple[Any, ...]]] = (
             collections.deque()
         )
-        self._inbox_ready = GuardCondition(callback=None, callback_group=None, context=self._context)
         self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
         self._running_loop: asyncio.AbstractEventLoop | None = None
         self._dispatcher = self._make_dispatcher(self._loop)
@@ -243,7 +243,6 @@ class AsyncioExecutor(Executor):
             self._drain_owned_loop()
             self._loop.close()
         self._inbox.clear()
-        self._inbox_ready.destroy()
         self._released = joined
         return joined
 
@@ -349,21 +348,17 @@ class AsyncioExecutor(Executor):
             on_error=self._report_error,
             on_done=self._callback_completed,
             on_response=self._notify_progress,
-            adapt=self.adapt,
+            progress=self._progress_future,
         )
 
     def _own_guards(self) -> list[tuple[Any, int]]:
         guards = [(self._guard, WOKEN), (self._sigint_gc, WOKEN)]
-        if self._running_loop is self._loop or self._running_loop is None:
-            guards.append((self._selector.fd_ready, FDS_READY))
-            guards.append((self._inbox_ready, _INBOX))
         return [(g, flag) for g, flag in guards if g is not None]
 
     def _post(self, callback: Callable[..., object], *args: Any) -> None:
         """Run ``callback(*args)`` on the owned loop's thread soon (any thread)."""
         self._inbox.append((callback, args))
-        with contextlib.suppress(Exception):
-            self._inbox_ready.trigger()
+        self._guard_trigger()
 
     def _wait(self, timeout_ns: int) -> int:
         flags = self._dispatcher.wait_and_dispatch(timeout_ns)
@@ -522,6 +517,8 @@ class AsyncioExecutor(Executor):
                     limit=self._reentrant_limit,
                     loop=self.loop,
                     on_loop_thread=lambda: False,
+                    post=self._post,
+                    progress=self._progress_future,
                 )
             return self._task_lane
 

@@ -24,7 +24,8 @@ import collections
 import queue
 import threading
 import time
-from collections.abc import Callable
+import types
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,7 +40,7 @@ class Work:
     """One callback invocation waiting for, or running in, a lane.
 
     :param entity: the rclpy entity whose callback this is (identity only).
-    :param call: runs the callback; returns an awaitable when ``is_async``.
+    :param call: runs the callback; returns a coroutine when ``is_async``.
     :param depth: how many pending invocations of ``entity`` to keep.
     :param done: told the outcome, in the thread or task that ran ``call``.
     """
@@ -66,9 +67,11 @@ class Lane:
         loop: asyncio.AbstractEventLoop,
         on_loop_thread: Callable[[], bool],
         post: Post,
+        progress: Callable[[], asyncio.Future[None]],
     ) -> None:
         self.name = name
         self._post = post
+        self._progress = progress
         self.limit = limit
         self._loop = loop
         self._on_loop_thread = on_loop_thread
@@ -186,11 +189,38 @@ class Lane:
         self._runners.add(runner)
         runner.add_done_callback(self._runners.discard)
 
-    async def _run(self, work: Work | None) -> None:
+    @types.coroutine
+    def _run(self, work: Work | None) -> Generator[Any, Any, None]:
+        """Run async work, one callback after another, inside one task.
+
+        A generator-based coroutine rather than ``async def``, so that it can
+        drive each callback's coroutine itself: rclpy's futures ``yield`` a
+        bare ``None`` until done, which to asyncio means "run me again at
+        once", a busy loop. Such a yield parks the callback on the
+        executor's progress future instead (see ``AsyncioExecutor``).
+        """
         while work is not None:
             error: BaseException | None = None
             try:
-                await work.call()
+                coro = work.call()
+                value: Any = None
+                thrown: BaseException | None = None
+                while True:
+                    try:
+                        if thrown is None:
+                            yielded = coro.send(value)
+                        else:
+                            yielded = coro.throw(thrown)
+                    except StopIteration:
+                        break
+                    value = thrown = None
+                    try:
+                        if yielded is None:
+                            yield from self._progress()
+                        else:
+                            value = yield yielded
+                    except BaseException as exc:  # forwarded into the callback
+                        thrown = exc
             except asyncio.CancelledError:
                 if self._closed:
                     raise
@@ -208,7 +238,7 @@ class Lane:
             if work is None and not self._closed:
                 idle: asyncio.Future[Work | None] = self._loop.create_future()
                 self._idle_runners.append(idle)
-                work = await idle
+                work = yield from idle
 
     # -- closing --------------------------------------------------------------
     def close(self, *, timeout: float) -> bool:

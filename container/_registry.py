@@ -315,7 +315,8 @@ class PluginRegistry:
                 # Every plugin before this one passed, so it is the culprit.
                 self._pm.check_pending()
             except pluggy.PluginValidationError as exc:
-                raise error(f"invalid hook implementation: {_one_line(str(exc))}") from exc
+                reason = f"invalid hook implementation: {_one_line(str(exc))}"
+                raise error(reason) from exc
             registrar = _Registrar(
                 distribution=distribution, entry_point=entry_point, taken=self._types
             )

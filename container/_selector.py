@@ -18,29 +18,25 @@ import threading
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from rclpy.context import Context
-from rclpy.guard_condition import GuardCondition
 
 __all__: list[str] = []
 
-#: Waits in rcl for at most the given nanoseconds (``-1``: forever), dispatches
-#: what became ready, and returns flags; ``FDS_READY`` set means the guard
-#: condition of this selector fired.
-WaitAndDispatch = Callable[[int], int]
+#: Waits in rcl for at most the given nanoseconds (``-1``: forever) and
+#: dispatches what became ready.
+WaitAndDispatch = Callable[[int], object]
 
 
 class RclSelector(selectors.BaseSelector):
     """Delegate file descriptors to epoll; block in rcl instead of epoll.
 
-    :param wait: waits in rcl for at most the given nanoseconds (``-1``:
-        forever) and dispatches what became ready.
+    :param wake: triggers a guard condition that the rcl wait set holds.
     """
 
-    def __init__(self, *, context: Context, fds_ready_flag: int) -> None:
+    def __init__(self, *, wake: Callable[[], None]) -> None:
         self._inner = selectors.DefaultSelector()
-        self.fd_ready = GuardCondition(callback=None, callback_group=None, context=context)
+        self._wake = wake
+        self._fds_ready = False
         self._wait: WaitAndDispatch | None = None
-        self._fds_ready_flag = fds_ready_flag
         self._armed = False
         self._rearm = threading.Event()
         self._stop_r, self._stop_w = os.pipe()
@@ -79,13 +75,19 @@ class RclSelector(selectors.BaseSelector):
         ready = [] if self._armed else self._inner.select(0)
         if ready or (timeout is not None and timeout <= 0):
             # Still give ROS a turn so a busy fd cannot starve it.
-            flags = wait(0)
-            return ready or (self._inner.select(0) if flags & self._fds_ready_flag else [])
+            wait(0)
+            return ready or self._fds_if_woken()
         if not self._armed:
             self._armed = True
             self._rearm.set()
-        flags = wait(-1 if timeout is None else int(timeout * 1e9))
-        return self._inner.select(0) if flags & self._fds_ready_flag else []
+        wait(-1 if timeout is None else int(timeout * 1e9))
+        return self._fds_if_woken()
+
+    def _fds_if_woken(self) -> list[tuple[selectors.SelectorKey, int]]:
+        if not self._fds_ready:
+            return []
+        self._fds_ready = False
+        return self._inner.select(0)
 
     def close(self) -> None:
         os.write(self._stop_w, b"x")
@@ -94,7 +96,6 @@ class RclSelector(selectors.BaseSelector):
         os.close(self._stop_r)
         os.close(self._stop_w)
         self._inner.close()
-        self.fd_ready.destroy()
 
     # -- the watcher thread ---------------------------------------------------
     def _watch(self) -> None:
@@ -109,4 +110,5 @@ class RclSelector(selectors.BaseSelector):
                 return
             # Disarm before waking the loop so its next select re-arms us.
             self._armed = False
-            self.fd_ready.trigger()
+            self._fds_ready = True
+            self._wake()

@@ -182,24 +182,26 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=2.0)
+    parser.add_argument("--only", choices=sorted(MEASURES), help="run one measurement")
     parser.add_argument("--child", nargs=3, metavar=("MEASURE", "KIND", "SECONDS"))
     args = parser.parse_args()
     if args.child:
         _child(args.child[0], args.child[1], float(args.child[2]))
     results: dict[tuple[str, str], list[float]] = {}
     for round_index in range(args.rounds):
-        for measure in MEASURES:
+        for measure in [args.only] if args.only else MEASURES:
             for kind in KINDS:
                 seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)
                 value = _run_child(measure, kind, seconds)
                 results.setdefault((measure, kind), []).append(value)
                 print(f"round {round_index + 1} {measure:8} {kind:14} {value:10.1f}", flush=True)
     print()
-    single_rt = statistics.median(results[("pingpong", "single")])
+    nan = [float("nan")]
+    single_rt = statistics.median(results.get(("pingpong", "single"), nan))
     print(f"{'executor':40} {'round trips/s':>14} {'vs single':>10} {'largest gap':>12}")
     for kind, label in KINDS.items():
-        rts = results[("pingpong", kind)]
-        gaps = results[("gap", kind)]
+        rts = results.get(("pingpong", kind), nan)
+        gaps = results.get(("gap", kind), nan)
         rt = statistics.median(rts)
         print(
             f"{label:40} {rt:14.0f} {rt / single_rt:9.2f}x {statistics.median(gaps):10.0f} ms"

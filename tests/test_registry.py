@@ -1,0 +1,655 @@
+"""Plugin discovery through real distributions on disk.
+
+Each test writes ``<name>-<version>.dist-info`` folders and plugin modules into
+its own directories on ``sys.path``, under an entry point group of its own, so
+``importlib.metadata`` finds exactly these plugins and nothing installed.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import re
+import sys
+import textwrap
+from collections.abc import Callable, Iterator
+from dataclasses import FrozenInstanceError
+from pathlib import Path
+
+import pytest
+from rclpy.lifecycle import LifecycleNode
+
+from container._errors import LoadError, PluginError
+from container._hookspecs import hookimpl
+from container._registry import (
+    ENTRY_POINT_GROUP,
+    NodeType,
+    PluginRegistry,
+    ros_package_name,
+)
+
+GOOD = """
+from rclpy.lifecycle import LifecycleNode
+from container._hookspecs import hookimpl
+
+class Talker(LifecycleNode):
+    pass
+
+class FastListener(LifecycleNode):
+    pass
+
+@hookimpl
+def register_node_types(register):
+    register(Talker)
+    register(FastListener, name="Listener")
+"""
+
+MakeDist = Callable[..., None]
+
+
+@pytest.fixture(autouse=True)
+def _clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    for suffix in ("PLUGINS_BLOCK", "PLUGINS_ALLOW", "TRACE_HOOKS"):
+        monkeypatch.delenv(f"CONTAINER_{suffix}", raising=False)
+
+
+@pytest.fixture
+def group(request: pytest.FixtureRequest) -> str:
+    """An entry point group nobody else uses, so installed plugins stay out."""
+    return "container.test_plugins." + re.sub(r"\W+", "_", request.node.name)
+
+
+@pytest.fixture
+def make_dist(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, group: str
+) -> Iterator[MakeDist]:
+    """Install a distribution: ``make_dist(name, entry_points, **modules)``.
+
+    ``entry_points`` maps entry point names to ``module`` or ``module:attr``;
+    ``modules`` maps module names to their source. Each distribution gets a
+    ``sys.path`` entry of its own, after the previous ones, so discovery order
+    is creation order (the order inside one directory is the file system's).
+    """
+    monkeypatch.setattr(sys, "path", list(sys.path))
+
+    def make(
+        name: str,
+        entry_points: dict[str, str],
+        *,
+        ep_group: str | None = None,
+        **modules: str,
+    ) -> None:
+        site = tmp_path / f"site{len(list(tmp_path.iterdir()))}"
+        info = site / f"{name}-1.0.dist-info"
+        info.mkdir(parents=True)
+        (info / "METADATA").write_text(
+            f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n"
+        )
+        lines = [f"[{ep_group or group}]"]
+        lines += [f"{ep} = {target}" for ep, target in entry_points.items()]
+        (info / "entry_points.txt").write_text("\n".join(lines) + "\n")
+        for module, source in modules.items():
+            (site / f"{module}.py").write_text(textwrap.dedent(source))
+        sys.path.append(str(site))
+        importlib.invalidate_caches()
+
+    yield make
+    for module_name, module in list(sys.modules.items()):
+        if str(getattr(module, "__file__", None) or "").startswith(str(tmp_path)):
+            del sys.modules[module_name]
+
+
+# -- discovery and naming -----------------------------------------------------
+
+
+def test_good_plugin_registers_types_named_after_its_package(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist("Acme-Sensors.Extra", {"nodes": "acme_nodes"}, acme_nodes=GOOD)
+
+    registry = PluginRegistry(group=group)
+
+    assert registry.failures == []
+    assert sorted(registry.types) == [
+        "acme_sensors_extra::Listener",
+        "acme_sensors_extra::Talker",
+    ]
+    talker = registry.types["acme_sensors_extra::Talker"]
+    assert talker.package == "acme_sensors_extra"
+    assert talker.name == "Talker"
+    assert talker.distribution == "Acme-Sensors.Extra"
+    assert talker.node_class.__name__ == "Talker"
+    assert issubclass(talker.node_class, LifecycleNode)
+    assert registry.types["acme_sensors_extra::Listener"].node_class.__name__ == (
+        "FastListener"
+    )
+
+
+def test_package_name_follows_ros_spelling() -> None:
+    assert ros_package_name("My-Plugin.Nodes") == "my_plugin_nodes"
+    assert ros_package_name("my_plugin") == "my_plugin"
+    assert ros_package_name("a-.b") == "a_b"
+
+
+def test_packages_lists_full_type_names_sorted(make_dist: MakeDist, group: str) -> None:
+    make_dist("zeta", {"nodes": "zeta_nodes"}, zeta_nodes=GOOD)
+    make_dist("alpha", {"nodes": "alpha_nodes"}, alpha_nodes=GOOD)
+
+    registry = PluginRegistry(group=group)
+
+    assert registry.packages() == {
+        "alpha": ["alpha::Listener", "alpha::Talker"],
+        "zeta": ["zeta::Listener", "zeta::Talker"],
+    }
+    assert list(registry.packages()) == ["alpha", "zeta"]
+
+
+def test_default_group_is_container_plugins(
+    make_dist: MakeDist, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert ENTRY_POINT_GROUP == "container.plugins"
+    make_dist(
+        "default-group-probe",
+        {"nodes": "default_group_probe"},
+        ep_group="container.plugins",
+        default_group_probe=GOOD,
+    )
+
+    registry = PluginRegistry()
+
+    assert "default_group_probe::Talker" in registry.types
+
+
+def test_types_mapping_and_node_type_are_read_only(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+    registry = PluginRegistry(group=group)
+    talker = registry.types["good::Talker"]
+
+    with pytest.raises(TypeError):
+        registry.types["good::Other"] = talker  # type: ignore[index]
+    with pytest.raises(FrozenInstanceError):
+        talker.name = "Other"  # type: ignore[misc]
+    assert talker.full_name == "good::Talker"
+
+
+# -- broken plugins are reported and skipped ----------------------------------
+
+
+def test_import_error_is_reported_and_good_plugin_still_loads(
+    make_dist: MakeDist, group: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    make_dist(
+        "broken-plugin",
+        {"nodes": "broken_nodes"},
+        broken_nodes="import no_such_module_xyz\n",
+    )
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    with caplog.at_level(logging.WARNING, logger="container.plugins"):
+        registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert isinstance(failure, PluginError)
+    assert failure.distribution == "broken-plugin"
+    assert failure.entry_point == "nodes"
+    assert "no_such_module_xyz" in str(failure)
+    assert isinstance(failure.__cause__, ModuleNotFoundError)
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+    messages = [record.getMessage() for record in caplog.records]
+    assert any("broken-plugin" in m and "no_such_module_xyz" in m for m in messages)
+
+
+def test_misspelled_hook_argument_is_reported(make_dist: MakeDist, group: str) -> None:
+    make_dist(
+        "typo-plugin",
+        {"nodes": "typo_nodes"},
+        typo_nodes="""
+        from container._hookspecs import hookimpl
+
+        @hookimpl
+        def register_node_types(registr):
+            raise AssertionError("never called")
+        """,
+    )
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert failure.distribution == "typo-plugin"
+    assert "invalid hook implementation" in str(failure)
+    assert "registr" in str(failure)
+    assert "\n" not in str(failure)
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
+def test_unknown_hook_is_reported_before_any_hook_runs(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist(
+        "unknown-hook",
+        {"nodes": "unknown_hook_nodes"},
+        unknown_hook_nodes="""
+        from rclpy.node import Node
+        from container._hookspecs import hookimpl
+
+        class Orphan(Node):
+            pass
+
+        @hookimpl
+        def register_node_type(register):
+            pass
+
+        @hookimpl
+        def register_node_types(register):
+            register(Orphan)
+        """,
+    )
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert failure.distribution == "unknown-hook"
+    assert "register_node_type'" in str(failure)
+    assert "unknown_hook::Orphan" not in registry.types
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
+def test_duplicate_type_name_skips_the_later_plugin_entirely(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist(
+        "dup",
+        {"first": "dup_first", "second": "dup_second"},
+        dup_first="""
+        from rclpy.node import Node
+        from container._hookspecs import hookimpl
+
+        class Talker(Node):
+            pass
+
+        @hookimpl
+        def register_node_types(register):
+            register(Talker)
+        """,
+        dup_second="""
+        from rclpy.node import Node
+        from container._hookspecs import hookimpl
+
+        class Extra(Node):
+            pass
+
+        class Talker(Node):
+            pass
+
+        @hookimpl
+        def register_node_types(register):
+            register(Extra)
+            register(Talker)
+        """,
+    )
+
+    registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert failure.distribution == "dup"
+    assert failure.entry_point == "second"
+    assert "'dup::Talker' is already registered by distribution 'dup'" in str(failure)
+    assert list(registry.types) == ["dup::Talker"]
+    assert registry.types["dup::Talker"].node_class.__module__ == "dup_first"
+
+
+def test_register_hook_that_raises_is_reported_and_rolled_back(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist(
+        "raiser",
+        {"nodes": "raiser_nodes"},
+        raiser_nodes="""
+        from rclpy.node import Node
+        from container._hookspecs import hookimpl
+
+        class Early(Node):
+            pass
+
+        @hookimpl
+        def register_node_types(register):
+            register(Early)
+            raise RuntimeError("hardware library missing")
+        """,
+    )
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert failure.distribution == "raiser"
+    assert failure.entry_point == "nodes"
+    assert "RuntimeError: hardware library missing" in str(failure)
+    assert isinstance(failure.__cause__, RuntimeError)
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
+@pytest.mark.parametrize(
+    ("registration", "reason"),
+    [
+        ("register(42)", "not a class"),
+        ("register(dict)", "not a subclass of rclpy.node.Node"),
+        ("register(Fine, name='not-valid')", "must be a Python identifier"),
+        ("register(Fine, name='')", "must be a Python identifier"),
+        ("register(Fine); register(Fine)", "registered twice"),
+    ],
+)
+def test_invalid_registration_skips_the_plugin(
+    make_dist: MakeDist, group: str, registration: str, reason: str
+) -> None:
+    make_dist(
+        "invalid",
+        {"nodes": "invalid_nodes"},
+        invalid_nodes=f"""
+        from rclpy.node import Node
+        from container._hookspecs import hookimpl
+
+        class Fine(Node):
+            pass
+
+        class Other(Node):
+            pass
+
+        @hookimpl
+        def register_node_types(register):
+            register(Other)
+            {registration}
+        """,
+    )
+
+    registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert failure.distribution == "invalid"
+    assert reason in str(failure)
+    assert registry.types == {}
+
+
+def test_invalid_registration_fails_the_plugin_even_if_caught(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist(
+        "sloppy",
+        {"nodes": "sloppy_nodes"},
+        sloppy_nodes="""
+        from rclpy.node import Node
+        from container._hookspecs import hookimpl
+
+        class Fine(Node):
+            pass
+
+        @hookimpl
+        def register_node_types(register):
+            try:
+                register(object)
+            except Exception:
+                pass
+            register(Fine)
+        """,
+    )
+
+    registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert "not a subclass of rclpy.node.Node" in str(failure)
+    assert registry.types == {}
+
+
+def test_register_after_the_hook_returned_is_refused(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist(
+        "late",
+        {"nodes": "late_nodes"},
+        late_nodes="""
+        from rclpy.node import Node
+        from container._hookspecs import hookimpl
+
+        class Late(Node):
+            pass
+
+        kept = []
+
+        @hookimpl
+        def register_node_types(register):
+            kept.append(register)
+        """,
+    )
+    registry = PluginRegistry(group=group)
+    late_nodes = sys.modules["late_nodes"]
+
+    with pytest.raises(PluginError, match="after register_node_types returned"):
+        late_nodes.kept[0](late_nodes.Late)
+    assert registry.types == {}
+
+
+# -- block-list and allow-list ------------------------------------------------
+
+EXPLODES_ON_IMPORT = "raise RuntimeError('must not be imported')\n"
+
+
+def test_block_list_keyword_skips_without_importing(
+    make_dist: MakeDist, group: str
+) -> None:
+    make_dist(
+        "Blocked.Plugin", {"nodes": "blocked_nodes"}, blocked_nodes=EXPLODES_ON_IMPORT
+    )
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    registry = PluginRegistry(group=group, block=["blocked-plugin"])
+
+    assert registry.failures == []
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
+def test_block_list_from_environment(
+    make_dist: MakeDist, group: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    make_dist("blocked", {"nodes": "blocked_nodes"}, blocked_nodes=EXPLODES_ON_IMPORT)
+    make_dist("also-blocked", {"nodes": "also_nodes"}, also_nodes=EXPLODES_ON_IMPORT)
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+    monkeypatch.setenv("CONTAINER_PLUGINS_BLOCK", " blocked , also_blocked,")
+
+    registry = PluginRegistry(group=group)
+
+    assert registry.failures == []
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
+def test_allow_list_keyword_loads_only_listed(make_dist: MakeDist, group: str) -> None:
+    make_dist("other", {"nodes": "other_nodes"}, other_nodes=EXPLODES_ON_IMPORT)
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    registry = PluginRegistry(group=group, allow=["GOOD"])
+
+    assert registry.failures == []
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
+def test_allow_list_from_environment(
+    make_dist: MakeDist, group: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    make_dist("other", {"nodes": "other_nodes"}, other_nodes=EXPLODES_ON_IMPORT)
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+    monkeypatch.setenv("CONTAINER_PLUGINS_ALLOW", "good")
+
+    registry = PluginRegistry(group=group)
+
+    assert registry.failures == []
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
+def test_empty_allow_list_loads_nothing(
+    make_dist: MakeDist, group: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    assert PluginRegistry(group=group, allow=()).types == {}
+    monkeypatch.setenv("CONTAINER_PLUGINS_ALLOW", "")
+    assert PluginRegistry(group=group).types == {}
+
+
+def test_environment_only_narrows_the_configuration(
+    make_dist: MakeDist, group: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for name in ("one", "two", "three", "four", "five"):
+        make_dist(name, {"nodes": f"{name}_nodes"}, **{f"{name}_nodes": GOOD})
+    monkeypatch.setenv("CONTAINER_PLUGINS_ALLOW", "one,two,three,four")
+    monkeypatch.setenv("CONTAINER_PLUGINS_BLOCK", "three")
+
+    registry = PluginRegistry(
+        group=group, allow=["two", "three", "four", "five"], block=["four"]
+    )
+
+    assert list(registry.packages()) == ["two"]
+
+
+# -- tracing --------------------------------------------------------------------
+
+
+def trace_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == "container.hooks"]
+
+
+def test_tracing_off_by_default(
+    make_dist: MakeDist, group: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    with caplog.at_level(logging.DEBUG):
+        PluginRegistry(group=group)
+
+    assert trace_lines(caplog) == []
+
+
+def test_tracing_keyword_logs_each_plugins_hook_call(
+    make_dist: MakeDist, group: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+    make_dist("second", {"nodes": "second_nodes"}, second_nodes=GOOD)
+
+    with caplog.at_level(logging.DEBUG):
+        PluginRegistry(group=group, trace=True)
+
+    lines = trace_lines(caplog)
+    calls = [line for line in lines if "register_node_types [hook]" in line]
+    assert len(calls) == 2
+    assert "distribution 'good' entry point 'nodes'" in calls[0]
+    assert "distribution 'second' entry point 'nodes'" in calls[1]
+    assert any(line.strip().startswith("finish register_node_types") for line in lines)
+
+
+def test_tracing_from_environment(
+    make_dist: MakeDist,
+    group: str,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+    monkeypatch.setenv("CONTAINER_TRACE_HOOKS", "1")
+
+    with caplog.at_level(logging.DEBUG):
+        PluginRegistry(group=group)
+
+    assert any("register_node_types" in line for line in trace_lines(caplog))
+
+
+# -- resolve ------------------------------------------------------------------
+
+
+@pytest.fixture
+def registry(make_dist: MakeDist, group: str) -> PluginRegistry:
+    make_dist("demo-nodes", {"nodes": "demo_nodes"}, demo_nodes=GOOD)
+    make_dist("other", {"nodes": "other_nodes"}, other_nodes=GOOD)
+    return PluginRegistry(group=group)
+
+
+@pytest.mark.parametrize("plugin_name", ["demo_nodes::Talker", "Talker"])
+def test_resolve_accepts_full_and_bare_type_names(
+    registry: PluginRegistry, plugin_name: str
+) -> None:
+    node_type = registry.resolve("demo_nodes", plugin_name)
+
+    assert isinstance(node_type, NodeType)
+    assert node_type is registry.types["demo_nodes::Talker"]
+
+
+@pytest.mark.parametrize(
+    ("package", "plugin_name"),
+    [
+        ("demo_nodes_cpp", "demo_nodes_cpp::Talker"),
+        ("demo-nodes", "demo_nodes::Talker"),
+        ("json", "json::JSONDecoder"),
+        ("", ""),
+    ],
+)
+def test_resolve_unknown_package_uses_rclcpp_wording(
+    registry: PluginRegistry, package: str, plugin_name: str
+) -> None:
+    with pytest.raises(LoadError) as caught:
+        registry.resolve(package, plugin_name)
+
+    assert str(caught.value) == "Could not find requested resource in ament index"
+
+
+@pytest.mark.parametrize(
+    "plugin_name",
+    ["demo_nodes::Talkr", "Talkr", "other::Talker", "demo_nodes::FastListener", ""],
+)
+def test_resolve_unknown_type_uses_rclcpp_wording(
+    registry: PluginRegistry, plugin_name: str
+) -> None:
+    with pytest.raises(LoadError) as caught:
+        registry.resolve("demo_nodes", plugin_name)
+
+    assert str(caught.value) == "Failed to find class with the requested plugin name."
+
+
+# -- in-process plugins -------------------------------------------------------
+
+
+class Builtin(LifecycleNode):
+    pass
+
+
+class BuiltinPlugin:
+    @hookimpl
+    def register_node_types(self, register: Callable[..., None]) -> None:
+        register(Builtin)
+
+
+class BrokenBuiltinPlugin:
+    @hookimpl
+    def register_node_types(self, register: Callable[..., None]) -> None:
+        register(Builtin)
+        register(Builtin, name="no good")
+
+
+def test_add_plugin_registers_in_process_types(group: str) -> None:
+    registry = PluginRegistry(group=group)
+
+    registry.add_plugin(BuiltinPlugin(), distribution="lifecycle-container")
+
+    assert registry.resolve("lifecycle_container", "Builtin").node_class is Builtin
+
+
+def test_add_plugin_raises_and_keeps_nothing_when_broken(group: str) -> None:
+    registry = PluginRegistry(group=group)
+
+    with pytest.raises(PluginError, match="Python identifier") as caught:
+        registry.add_plugin(BrokenBuiltinPlugin(), distribution="lifecycle-container")
+
+    assert caught.value.distribution == "lifecycle-container"
+    assert registry.types == {}
+    assert registry.failures == []
+    registry.add_plugin(BuiltinPlugin(), distribution="lifecycle-container")
+    assert list(registry.types) == ["lifecycle_container::Builtin"]

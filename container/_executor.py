@@ -27,6 +27,7 @@ import types
 from collections.abc import Awaitable, Callable, Coroutine, Generator
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from rclpy.callback_groups import CallbackGroup
 from rclpy.context import Context
 from rclpy.executors import Executor
 from rclpy.task import Future as RclFuture
@@ -208,6 +209,60 @@ class AsyncioExecutor(Executor):
             self._tasks_lane().submit(_work(run))
         self._notify_progress()
         return result
+
+    def run_in_group(
+        self,
+        group: CallbackGroup,
+        call: Callable[[], Any],
+        *,
+        node: Node | None = None,
+    ) -> asyncio.Future[Any]:
+        """Run ``call`` as if it were a callback of ``group``; await its result.
+
+        Serialises container-driven work, such as lifecycle transitions, with
+        the node's own callbacks of that group. A coroutine function runs on
+        the loop; a plain one on the group's worker thread.
+
+        Must be called on the executor's loop thread.
+        """
+        loop = self.loop
+        outcome: asyncio.Future[Any] = loop.create_future()
+        is_async = inspect.iscoroutinefunction(call)
+        result: list[Any] = []
+
+        def capture() -> Any:
+            if is_async:
+
+                async def run_async() -> None:
+                    result.append(await call())
+
+                return run_async()
+            result.append(call())
+            return None
+
+        def settle(error: BaseException | None) -> None:
+            if outcome.done():
+                return
+            if error is not None:
+                outcome.set_exception(error)
+            else:
+                outcome.set_result(result[0] if result else None)
+
+        def done(work: Work, error: BaseException | None) -> None:
+            if is_async:
+                settle(error)
+            else:
+                self._post_to(loop, settle, error)
+
+        lane = self._dispatcher.lane_for(group, node)
+        lane.submit(Work(call, capture, is_async, 1 << 16, done))
+        return outcome
+
+    def _post_to(self, loop: asyncio.AbstractEventLoop, callback: Callable[..., object], *args: Any) -> None:
+        if loop is self._loop:
+            self._post(callback, *args)
+        else:
+            loop.call_soon_threadsafe(callback, *args)
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
         """Stop running callbacks, wait for running ones, release resources.
@@ -393,19 +448,24 @@ class AsyncioExecutor(Executor):
         future: RclFuture | asyncio.Future[Any] | Coroutine[Any, Any, Any],
         timeout_sec: float | None,
     ) -> None:
-        target: Awaitable[Any]
         if isinstance(future, RclFuture):
-            target = self._wrap_rcl_future(future)
-        elif inspect.iscoroutine(future):
-            target = self.loop.create_task(self.adapt(future))
-        else:
-            target = future
-        await self._bounded(target, timeout_sec)
+            await self._bounded(self._wrap_rcl_future(future), timeout_sec)
+            return
+        if not inspect.iscoroutine(future):
+            await self._bounded(asyncio.ensure_future(future), timeout_sec)
+            return
+        # A coroutine is ours to run, so its failure is the caller's to see.
+        task = self.loop.create_task(self.adapt(future))
+        await self._bounded(task, timeout_sec)
+        if not task.done():
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        elif not task.cancelled() and task.exception() is not None:
+            raise task.exception()  # type: ignore[misc]
 
-    async def _bounded(self, target: Awaitable[Any], timeout_sec: float | None) -> None:
+    async def _bounded(self, target: asyncio.Future[Any], timeout_sec: float | None) -> None:
         stopped = self._stopped_future()
-        work = asyncio.ensure_future(target)
-        waits: set[asyncio.Future[Any]] = {work, stopped}
+        waits: set[asyncio.Future[Any]] = {target, stopped}
         timeout = None if timeout_sec is None or timeout_sec < 0 else timeout_sec
         await asyncio.wait(waits, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
 

@@ -1,0 +1,45 @@
+"""The ``container`` command: ``run`` a container, and drive one from outside.
+
+Each sub-command lives in its own module with an ``add_parser(subparsers)``
+function that registers it and sets ``handler`` on its parser. Handlers
+return the process exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+from . import component, lifecycle, run
+
+__all__ = ["main"]
+
+#: Modules contributing sub-commands, in the order ``--help`` lists them.
+_COMMANDS: list[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], None]] = [
+    run.add_parser,
+    component.add_parser,
+    lifecycle.add_parser,
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="container",
+        description="A component container for ROS 2 lifecycle nodes, on one asyncio executor.",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in _COMMANDS:
+        add(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
+    handler = getattr(args, "handler", None)
+    if handler is None:
+        parser.print_help(sys.stderr)
+        return 2
+    code: int = handler(args)
+    return code

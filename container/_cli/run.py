@@ -1,0 +1,35 @@
+"""``container run CONFIG``: one container process hosting the configured nodes."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .._config import load_config
+from .._errors import ConfigError
+from .._runtime import configure_logging
+
+__all__ = ["add_parser"]
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser(
+        "run",
+        help="run a container with the nodes of a YAML file",
+        description="Run a container hosting the nodes a YAML file lists, until SIGINT or SIGTERM.",
+    )
+    parser.add_argument("config", help="the container's YAML file (see examples/)")
+    parser.add_argument("--verbose", action="store_true", help="log plugin loading in detail")
+    parser.set_defaults(handler=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    configure_logging(verbose=args.verbose)
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        print(f"container run: {exc}", file=sys.stderr)
+        return 2
+    from .._app import run_container
+
+    return run_container(config)

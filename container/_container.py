@@ -1,0 +1,284 @@
+"""The container node: loads registered node types, tracks and unloads them.
+
+``load`` is the one code path for every way a node enters the container: the
+YAML file of ``container run`` and the ``load_node`` service both call it.
+Error messages follow rclcpp's ComponentManager where it has one, since
+that is what ``ros2 component`` users read.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rclpy.exceptions import (
+    InvalidNamespaceException,
+    InvalidNodeNameException,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from . import _transitions
+from ._errors import ConfigError, LoadError, TransitionError
+from ._params import ParameterSource, node_parameters
+from ._registry import NodeType, PluginRegistry
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
+
+    from ._executor import AsyncioExecutor
+
+__all__ = ["ComponentManager", "LoadRequest", "LoadedNode"]
+
+#: Extra arguments rclcpp's container accepts, with their expected type.
+_EXTRA_ARGUMENTS: dict[str, type] = {"use_intra_process_comms": bool}
+
+#: rcl log severities a LoadNode request may carry (0 leaves the level alone).
+_LOG_LEVELS = {0, 10, 20, 30, 40, 50}
+
+
+@dataclass(frozen=True, slots=True)
+class LoadRequest:
+    """What to load: the fields of composition_interfaces/LoadNode, plus ``autostart``.
+
+    ``parameters`` holds rclpy parameters, inline mappings or parameter files
+    (resolved against ``base_dir``), later entries winning.
+    """
+
+    package: str
+    plugin: str
+    name: str | None = None
+    namespace: str | None = None
+    remap_rules: Sequence[str] = ()
+    parameters: Sequence[Parameter | ParameterSource] = ()
+    extra_arguments: Mapping[str, Any] = field(default_factory=dict)
+    log_level: int = 0
+    autostart: bool = False
+    base_dir: Path | None = None
+
+
+@dataclass(eq=False, slots=True)
+class LoadedNode:
+    """A node living in the container."""
+
+    unique_id: int
+    node: Node
+    node_type: NodeType
+    request: LoadRequest
+    full_name: str
+
+
+class ComponentManager(Node):
+    """The container's own node (``ComponentManager`` by default, like rclcpp's).
+
+    :param registry: the node types that may be loaded.
+    :param executor: where loaded nodes run.
+    :param unload_timeout: seconds each lifecycle step of an unload may take.
+    """
+
+    def __init__(
+        self,
+        *,
+        registry: PluginRegistry,
+        executor: AsyncioExecutor,
+        name: str = "ComponentManager",
+        namespace: str = "/",
+        context: Context | None = None,
+        parameter_overrides: Sequence[Parameter] = (),
+        unload_timeout: float = 5.0,
+    ) -> None:
+        super().__init__(
+            name,
+            namespace=namespace,
+            context=context,
+            parameter_overrides=list(parameter_overrides),
+            use_global_arguments=False,
+        )
+        self.registry = registry
+        self._host = executor
+        self.unload_timeout = unload_timeout
+        self._ids = itertools.count(1)
+        self._loaded: dict[int, LoadedNode] = {}
+
+    # -- queries ------------------------------------------------------------------
+    def loaded(self) -> list[LoadedNode]:
+        """Loaded nodes in load order."""
+        return list(self._loaded.values())
+
+    def find(self, unique_id: int) -> LoadedNode:
+        try:
+            return self._loaded[unique_id]
+        except KeyError:
+            raise LoadError(f"No node found with unique_id: {unique_id}") from None
+
+    # -- load -------------------------------------------------------------------
+    def load(self, request: LoadRequest) -> LoadedNode:
+        """Construct a registered node type and start running it.
+
+        Autostart, if asked, is left to :meth:`load_and_start`, which awaits it.
+
+        :raises LoadError: with a message fit for a LoadNode response.
+        """
+        node_type = self.registry.resolve(request.package, request.plugin)
+        extra = _check_extra_arguments(request.extra_arguments)
+        if request.log_level not in _LOG_LEVELS:
+            raise LoadError(f"Invalid log_level {request.log_level}: expected one of 0, 10, 20, 30, 40, 50")
+        remaps = [_check_remap(rule) for rule in request.remap_rules]
+        name = request.name or _default_name(node_type)
+        namespace = _absolute(request.namespace or "/")
+        full_name = f"{namespace.rstrip('/')}/{name}"
+        for other in self._loaded.values():
+            if other.full_name == full_name:
+                raise LoadError(
+                    f"A node named '{full_name}' is already loaded (unique_id {other.unique_id})"
+                )
+        try:
+            overrides = _overrides(request, full_name)
+        except ConfigError as exc:
+            raise LoadError(f"Invalid parameters: {exc}") from exc
+        cli_args = ["--ros-args", *(part for rule in remaps for part in ("-r", rule))] if remaps else None
+        try:
+            node = node_type.node_class(
+                name,
+                namespace=namespace,
+                context=self.context,
+                cli_args=cli_args,
+                use_global_arguments=False,
+                parameter_overrides=overrides,
+                **extra,
+            )
+        except (InvalidNodeNameException, InvalidNamespaceException) as exc:
+            raise LoadError(f"Invalid node name or namespace: {exc}") from exc
+        except Exception as exc:
+            raise LoadError(f"Component constructor threw an exception: {_one_line(exc)}") from exc
+        if request.log_level:
+            node.get_logger().set_level(request.log_level)
+        loaded = LoadedNode(
+            next(self._ids), node, node_type, request, node.get_fully_qualified_name()
+        )
+        self._loaded[loaded.unique_id] = loaded
+        self._host.add_node(node)
+        self.get_logger().info(
+            f"Loaded {node_type.full_name} as '{loaded.full_name}' (unique_id {loaded.unique_id})"
+        )
+        return loaded
+
+    async def load_and_start(self, request: LoadRequest, *, timeout: float) -> LoadedNode:
+        """:meth:`load`, then bring a lifecycle node up when ``autostart`` asks.
+
+        A node that fails to come up stays loaded, in the state it reached,
+        so that it can be inspected; the failure is raised.
+        """
+        loaded = self.load(request)
+        if request.autostart and _transitions.is_lifecycle(loaded.node):
+            await _transitions.bring_up(self._host, loaded.node, timeout=timeout)
+        return loaded
+
+    # -- unload -------------------------------------------------------------------
+    async def unload(self, unique_id: int) -> LoadedNode:
+        """Take the node down its lifecycle, then destroy it.
+
+        rclcpp destroys a component without running its shutdown; here a
+        lifecycle node is deactivated, cleaned up and shut down first, each
+        step bounded by ``unload_timeout``. A failing step is logged and the
+        node destroyed anyway: an unload always removes the node.
+
+        :raises LoadError: no node has ``unique_id``.
+        """
+        loaded = self.find(unique_id)
+        del self._loaded[unique_id]
+        node = loaded.node
+        if _transitions.is_lifecycle(node):
+            try:
+                await _transitions.bring_down(self._host, node, timeout=self.unload_timeout)
+            except TransitionError as exc:
+                self.get_logger().warning(f"Unloading '{loaded.full_name}' anyway: {exc}")
+        self._host.remove_node(node)
+        node.destroy_node()
+        self.get_logger().info(f"Unloaded '{loaded.full_name}' (unique_id {unique_id})")
+        return loaded
+
+    async def unload_all(self) -> None:
+        """Unload every node, the last loaded first."""
+        for unique_id in reversed(list(self._loaded)):
+            await self.unload(unique_id)
+
+
+def _check_extra_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
+    for key, value in arguments.items():
+        expected = _EXTRA_ARGUMENTS.get(key)
+        if expected is None:
+            raise LoadError(f"Extra component argument '{key}' is not supported")
+        if not isinstance(value, expected):
+            raise LoadError(
+                f"Extra component argument '{key}' must be a {expected.__name__}, not {value!r}"
+            )
+    # Intra-process communication does not exist in rclpy; accepted, as rclcpp
+    # users pass it out of habit, and without effect.
+    return {}
+
+
+_REMAP = re.compile(r"^[^:=]+:=[^:=]+$")
+
+
+def _check_remap(rule: str) -> str:
+    if not _REMAP.match(rule):
+        raise LoadError(f"Invalid remap rule '{rule}': expected 'from:=to'")
+    return rule
+
+
+def _absolute(namespace: str) -> str:
+    return namespace if namespace.startswith("/") else f"/{namespace}"
+
+
+def _default_name(node_type: NodeType) -> str:
+    default = getattr(node_type.node_class, "default_node_name", None)
+    if isinstance(default, str) and default:
+        return default
+    return re.sub(r"(?<!^)(?=[A-Z])", "_", node_type.name).lower()
+
+
+def _overrides(request: LoadRequest, full_name: str) -> list[Parameter]:
+    merged: dict[str, Parameter] = {}
+    sources: list[ParameterSource] = []
+
+    def flush() -> None:
+        for parameter in node_parameters(sources, full_name=full_name, base_dir=request.base_dir):
+            merged[parameter.name] = parameter
+        sources.clear()
+
+    for entry in request.parameters:
+        if isinstance(entry, Parameter):
+            flush()
+            merged[entry.name] = entry
+        else:
+            sources.append(entry)
+    flush()
+    return list(merged.values())
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def requests_from_specs(specs: Iterable[Any]) -> list[LoadRequest]:
+    """Turn the ``nodes`` of a container file into load requests."""
+    return [
+        LoadRequest(
+            package=spec.package,
+            plugin=spec.plugin,
+            name=spec.name,
+            namespace=spec.namespace,
+            remap_rules=spec.remap_rules,
+            parameters=spec.parameters,
+            extra_arguments=spec.extra_arguments,
+            autostart=spec.autostart,
+            base_dir=spec.base_dir,
+        )
+        for spec in specs
+    ]

@@ -1,0 +1,96 @@
+"""Driving a hosted lifecycle node through its transitions from the container.
+
+The container brings nodes up (``autostart``) and down (unload, shutdown)
+itself rather than through the nodes' ``change_state`` services: in-process,
+without DDS, and inside the node's own callback group so a transition never
+overlaps the node's callbacks or a ``change_state`` request from outside.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from rclpy.lifecycle import LifecycleNodeMixin, TransitionCallbackReturn
+
+from ._errors import TransitionError
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+
+    from ._executor import AsyncioExecutor
+
+__all__ = ["bring_down", "bring_up", "is_lifecycle", "state_of", "transition"]
+
+#: The transitions a node takes down from each primary state, towards finalized.
+_DOWN = {"active": "deactivate", "inactive": "cleanup", "unconfigured": "shutdown"}
+_UP = {"unconfigured": "configure", "inactive": "activate"}
+
+
+def is_lifecycle(node: Node) -> bool:
+    return isinstance(node, LifecycleNodeMixin)
+
+
+def state_of(node: Node) -> str:
+    """The label of the node's current state (``active``, ``configuring``, ...)."""
+    # rclpy keeps no public accessor for the state in Jazzy.
+    _, label = node._state_machine.current_state  # type: ignore[attr-defined]
+    return str(label)
+
+
+def _trigger(node: Node, label: str) -> Callable[[], Any]:
+    custom = getattr(node, "transition", None)
+    if custom is not None and inspect.iscoroutinefunction(custom):
+        # The project's node base runs its (possibly async) callbacks itself.
+        async def run_custom() -> bool:
+            return bool(await custom(label))
+
+        return run_custom
+    trigger = getattr(node, f"trigger_{label}")
+
+    def run() -> bool:
+        return bool(trigger() == TransitionCallbackReturn.SUCCESS)
+
+    return run
+
+
+async def transition(
+    executor: AsyncioExecutor, node: Node, label: str, *, timeout: float
+) -> None:
+    """Run one transition in the node's default callback group.
+
+    :raises TransitionError: the transition failed, raised, or timed out.
+    """
+    name = node.get_fully_qualified_name()
+    try:
+        ok = await asyncio.wait_for(
+            executor.run_in_group(node.default_callback_group, _trigger(node, label), node=node),
+            timeout,
+        )
+    except asyncio.TimeoutError:
+        raise TransitionError(f"no answer within {timeout:g} s", node=name, transition=label) from None
+    except Exception as exc:
+        raise TransitionError(f"{type(exc).__name__}: {exc}", node=name, transition=label) from exc
+    if not ok:
+        raise TransitionError(
+            f"failed; the node is now {state_of(node)}", node=name, transition=label
+        )
+
+
+async def bring_up(executor: AsyncioExecutor, node: Node, *, timeout: float) -> None:
+    """Configure and activate, from wherever the node stands."""
+    while (label := _UP.get(state_of(node))) is not None:
+        await transition(executor, node, label, timeout=timeout)
+
+
+async def bring_down(executor: AsyncioExecutor, node: Node, *, timeout: float) -> str:
+    """Deactivate, clean up and shut down, as the node's state needs.
+
+    :return: the state the node ended in (``finalized`` unless a step failed).
+    :raises TransitionError: a step failed; the node is left where it stopped.
+    """
+    while (label := _DOWN.get(state_of(node))) is not None:
+        await transition(executor, node, label, timeout=timeout)
+    return state_of(node)

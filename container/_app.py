@@ -10,7 +10,9 @@ executor, so the process exits with no thread left behind.
 from __future__ import annotations
 
 import asyncio
+import logging
 import signal
+import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
@@ -120,6 +122,11 @@ def run_container(config: ContainerConfig, *, extensions: tuple[Extension, ...] 
             app.executor.spin_until_future_complete(app.serve(extensions=extensions))
         finally:
             clean = app.close()
+        leftover = [t.name for t in threading.enumerate() if t is not threading.main_thread()]
+        if leftover:
+            # Daemon threads would die silently with the process; say so instead.
+            logging.getLogger(__name__).error(f"threads left behind: {', '.join(leftover)}")
+            return 1
         return 0 if clean else 1
     finally:
         rclpy.try_shutdown(context=context)

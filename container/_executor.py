@@ -106,6 +106,7 @@ class AsyncioExecutor(Executor):
         self._task_lane: Lane | None = None
         self._closed = False
         self._released: bool | None = None
+        self._release_lock = threading.Lock()
         self._idle = threading.Event()
         self._idle.set()
 
@@ -286,10 +287,12 @@ class AsyncioExecutor(Executor):
         return self._release(timeout)
 
     def _release(self, timeout: float) -> bool:
-        with self._state_lock:
-            if self._released is not None:
-                return self._released
-            self._released = False
+        with self._release_lock:
+            if self._released is None:
+                self._released = self._release_once(timeout)
+            return self._released
+
+    def _release_once(self, timeout: float) -> bool:
         joined = self._dispatcher.close(timeout=timeout)
         if self._task_lane is not None:
             joined = self._task_lane.close(timeout=timeout) and joined
@@ -298,7 +301,6 @@ class AsyncioExecutor(Executor):
             self._drain_owned_loop()
             self._loop.close()
         self._inbox.clear()
-        self._released = joined
         return joined
 
     def _inside_executor(self) -> bool:
@@ -385,11 +387,11 @@ class AsyncioExecutor(Executor):
             if foreign is not None:
                 foreign.close(timeout=self._shutdown_timeout)
             self._dispatcher.bind_loop_thread(None)
+            if self._closed:
+                self._release(self._shutdown_timeout)
             with self._state_lock:
                 self._spinning = False
             self._idle.set()
-            if self._closed:
-                self._release(self._shutdown_timeout)
 
     def _make_dispatcher(self, loop: asyncio.AbstractEventLoop) -> Dispatcher:
         return Dispatcher(
@@ -489,12 +491,17 @@ class AsyncioExecutor(Executor):
         return mirror
 
     def _drain_owned_loop(self) -> None:
+        """Let the owned loop's leftover tasks see their cancellation."""
+        self._selector.attach(None)
         pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]
         for task in pending:
             task.cancel()
+        if asyncio._get_running_loop() is not None:
+            # Released from inside another loop (spin_async on a foreign
+            # loop): the owned loop cannot run here, and has nothing to finish.
+            return
         if pending:
             self._loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
-        self._selector.attach(None)
         self._loop.run_until_complete(self._loop.shutdown_asyncgens())
 
     # -- stop / progress signalling --------------------------------------------

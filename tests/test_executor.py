@@ -1,0 +1,464 @@
+"""AsyncioExecutor: isolation, callback-group semantics, async callbacks, failures."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.task import Future as RclFuture
+from std_msgs.msg import Int64
+from std_srvs.srv import Trigger
+
+from container import AsyncioExecutor, ExecutorError
+
+
+@pytest.fixture
+def make_node(context: Context) -> Iterator[Callable[[str], Node]]:
+    nodes: list[Node] = []
+
+    def make(name: str) -> Node:
+        node = Node(name, context=context)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        node.destroy_node()
+
+
+def spin_in_thread(executor: AsyncioExecutor) -> threading.Thread:
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    return thread
+
+
+class Concurrency:
+    """Track how many callbacks run at once."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.now = 0
+        self.peak = 0
+        self.calls = 0
+
+    def __enter__(self) -> None:
+        with self._lock:
+            self.now += 1
+            self.calls += 1
+            self.peak = max(self.peak, self.now)
+
+    def __exit__(self, *exc: object) -> None:
+        with self._lock:
+            self.now -= 1
+
+
+def test_blocking_plain_callback_in_one_node_does_not_delay_another(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    blocker, ticker = make_node("blocker"), make_node("ticker")
+    blocking = threading.Event()
+    ticks: list[float] = []
+    enough = threading.Event()
+
+    def block() -> None:
+        blocking.set()
+        time.sleep(1.5)
+
+    def tick() -> None:
+        if blocking.is_set():
+            ticks.append(time.monotonic())
+            if len(ticks) >= 20:
+                enough.set()
+
+    blocker.create_timer(0.01, block)
+    ticker.create_timer(0.05, tick)
+    executor.add_node(blocker)
+    executor.add_node(ticker)
+    thread = spin_in_thread(executor)
+    assert enough.wait(10.0), "the ticker stalled behind the blocker"
+    executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    gaps = [b - a for a, b in zip(ticks, ticks[1:])]
+    # 20 ticks at 20 Hz all fell inside the blocker's 1.5 s callbacks.
+    assert max(gaps) < 0.25, gaps
+
+
+@pytest.mark.parametrize("kind", ["plain", "async"])
+def test_mutually_exclusive_group_never_overlaps(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], kind: str
+) -> None:
+    node = make_node(f"exclusive_{kind}")
+    group = MutuallyExclusiveCallbackGroup()
+    seen = Concurrency()
+    done = threading.Event()
+
+    def plain() -> None:
+        with seen:
+            time.sleep(0.02)
+        if seen.calls >= 20:
+            done.set()
+
+    async def coro() -> None:
+        with seen:
+            await asyncio.sleep(0.02)
+        if seen.calls >= 20:
+            done.set()
+
+    for _ in range(4):
+        node.create_timer(0.005, plain if kind == "plain" else coro, callback_group=group)
+    executor.add_node(node)
+    thread = spin_in_thread(executor)
+    assert done.wait(10.0)
+    executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    assert seen.peak == 1
+
+
+@pytest.mark.parametrize("kind", ["plain", "async"])
+def test_reentrant_group_runs_callbacks_concurrently_within_its_bound(
+    context: Context, make_node: Callable[[str], Node], kind: str
+) -> None:
+    executor = AsyncioExecutor(context=context, reentrant_limit=3)
+    node = make_node(f"reentrant_{kind}")
+    group = ReentrantCallbackGroup()
+    seen = Concurrency()
+    done = threading.Event()
+
+    def plain() -> None:
+        with seen:
+            time.sleep(0.1)
+        if seen.calls >= 12:
+            done.set()
+
+    async def coro() -> None:
+        with seen:
+            await asyncio.sleep(0.1)
+        if seen.calls >= 12:
+            done.set()
+
+    for _ in range(6):
+        node.create_timer(0.01, plain if kind == "plain" else coro, callback_group=group)
+    executor.add_node(node)
+    thread = spin_in_thread(executor)
+    try:
+        assert done.wait(10.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    assert seen.peak > 1, "a reentrant group ran its callbacks one at a time"
+    assert seen.peak <= 3, "the reentrant bound was not respected"
+
+
+def test_async_callback_awaits_asyncio_stream_io(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    node = make_node("streamer")
+    pub = node.create_publisher(Int64, "numbers", 10)
+    echoed: list[bytes] = []
+    done = threading.Event()
+
+    async def serve_echo(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(await reader.readline())
+        await writer.drain()
+        writer.close()
+
+    async def on_number(msg: Int64) -> None:
+        # Real asyncio I/O on the executor's loop, from inside a ROS callback.
+        server = await asyncio.start_server(serve_echo, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(f"{msg.data}\n".encode())
+        await writer.drain()
+        echoed.append(await reader.readline())
+        writer.close()
+        server.close()
+        await server.wait_closed()
+        done.set()
+
+    node.create_subscription(Int64, "numbers", on_number, 10)
+    node.create_timer(0.05, lambda: pub.publish(Int64(data=42)) if not done.is_set() else None)
+    executor.add_node(node)
+    thread = spin_in_thread(executor)
+    assert done.wait(10.0)
+    executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    assert echoed[0] == b"42\n"
+
+
+def test_async_callback_awaits_a_service_call_without_busy_waiting(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    server_node, client_node = make_node("trigger_server"), make_node("trigger_client")
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        time.sleep(0.3)  # keeps the caller waiting on an rclpy future
+        response.success = True
+        response.message = "pong"
+        return response
+
+    server_node.create_service(Trigger, "ping", answer)
+    client = client_node.create_client(Trigger, "ping")
+    replies: list[str] = []
+    done = threading.Event()
+    fired = threading.Event()
+
+    async def call_once() -> None:
+        if fired.is_set():
+            return
+        fired.set()
+        while not client.service_is_ready():
+            await asyncio.sleep(0.02)
+        started = time.process_time()
+        response = await client.call_async(Trigger.Request())
+        replies.append(response.message)
+        replies.append(f"cpu={time.process_time() - started:.3f}")
+        done.set()
+
+    client_node.create_timer(0.01, call_once)
+    executor.add_node(server_node)
+    executor.add_node(client_node)
+    thread = spin_in_thread(executor)
+    assert done.wait(10.0)
+    executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    assert replies[0] == "pong"
+    # Awaiting 0.3 s must not spin a core: a busy loop burns ~0.3 s of CPU.
+    assert float(replies[1].split("=")[1]) < 0.15, replies
+
+
+def test_async_service_callback_can_await(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    server_node, client_node = make_node("async_server"), make_node("async_client")
+
+    async def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        await asyncio.sleep(0.05)
+        response.success = True
+        response.message = "slept"
+        return response
+
+    server_node.create_service(Trigger, "nap", answer)
+    client = client_node.create_client(Trigger, "nap")
+    executor.add_node(server_node)
+    executor.add_node(client_node)
+    thread = spin_in_thread(executor)
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        response = client.call(Trigger.Request(), timeout_sec=10.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    assert response is not None and response.message == "slept"
+
+
+@pytest.mark.parametrize("kind", ["plain", "async"])
+def test_exception_in_callback_is_reported_and_executor_survives(
+    context: Context, make_node: Callable[[str], Node], kind: str
+) -> None:
+    reports: list[tuple[str, str]] = []
+    executor = AsyncioExecutor(
+        context=context,
+        on_callback_error=lambda node, entity, exc: reports.append(
+            (node.get_name(), str(exc))
+        ),
+    )
+    faulty, healthy = make_node(f"faulty_{kind}"), make_node(f"healthy_{kind}")
+    ticks = threading.Event()
+    count = [0]
+
+    def explode() -> None:
+        raise RuntimeError("boom")
+
+    async def explode_async() -> None:
+        await asyncio.sleep(0)
+        raise RuntimeError("boom")
+
+    def tick() -> None:
+        count[0] += 1
+        if count[0] >= 10 and len(reports) >= 3:
+            ticks.set()
+
+    faulty.create_timer(0.02, explode if kind == "plain" else explode_async)
+    healthy.create_timer(0.02, tick)
+    executor.add_node(faulty)
+    executor.add_node(healthy)
+    thread = spin_in_thread(executor)
+    try:
+        assert ticks.wait(10.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    assert reports[0] == (f"faulty_{kind}", "boom")
+
+
+def test_spin_until_future_complete_with_rclpy_future(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    node = make_node("future_setter")
+    future = RclFuture()
+    node.create_timer(0.05, lambda: future.set_result("done") if not future.done() else None)
+    executor.add_node(node)
+    executor.spin_until_future_complete(future, timeout_sec=10.0)
+    assert future.result() == "done"
+
+
+def test_spin_once_runs_one_callback(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    node = make_node("once")
+    calls: list[int] = []
+    node.create_timer(0.01, lambda: calls.append(1))
+    executor.add_node(node)
+    executor.spin_once(timeout_sec=10.0)
+    assert calls
+
+
+def test_rclpy_spin_helpers_accept_it(context: Context, make_node: Callable[[str], Node]) -> None:
+    executor = AsyncioExecutor(context=context)
+    node = make_node("drop_in")
+    future = RclFuture()
+    node.create_timer(0.02, lambda: future.set_result(7) if not future.done() else None)
+    rclpy.spin_until_future_complete(node, future, executor=executor, timeout_sec=10.0)
+    assert future.result() == 7
+    executor.shutdown(timeout_sec=5.0)
+
+
+def test_spin_async_on_a_foreign_event_loop(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    node = make_node("foreign")
+    pub = node.create_publisher(Int64, "foreign_topic", 10)
+    got: list[int] = []
+
+    async def main() -> None:
+        received = asyncio.Event()
+
+        async def on_message(msg: Int64) -> None:
+            got.append(msg.data)
+            received.set()
+
+        node.create_subscription(Int64, "foreign_topic", on_message, 10)
+        executor.add_node(node)
+        spinning = asyncio.ensure_future(executor.spin_async())
+        for _ in range(200):
+            pub.publish(Int64(data=5))
+            try:
+                await asyncio.wait_for(received.wait(), 0.05)
+                break
+            except asyncio.TimeoutError:
+                continue
+        executor.shutdown(timeout_sec=5.0)
+        await asyncio.wait_for(spinning, 10.0)
+
+    asyncio.run(main())
+    assert got and got[0] == 5
+
+
+def test_spin_from_inside_a_running_loop_is_refused(executor: AsyncioExecutor) -> None:
+    async def main() -> None:
+        with pytest.raises(ExecutorError, match="spin_async"):
+            executor.spin()
+
+    asyncio.run(main())
+
+
+def test_busy_subscription_keeps_its_qos_depth_of_newest_messages(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    node = make_node("slow_reader")
+    pub = node.create_publisher(Int64, "burst", 100)
+    received: list[int] = []
+    first = threading.Event()
+    release = threading.Event()
+    last = threading.Event()
+
+    def slow(msg: Int64) -> None:
+        received.append(msg.data)
+        first.set()
+        release.wait(10.0)
+        if msg.data == 49:
+            last.set()
+
+    node.create_subscription(Int64, "burst", slow, 5)
+    executor.add_node(node)
+    thread = spin_in_thread(executor)
+    try:
+        deadline = time.monotonic() + 10.0
+        while not first.is_set() and time.monotonic() < deadline:
+            pub.publish(Int64(data=-1))
+            first.wait(0.05)
+        assert first.is_set()
+        for value in range(50):
+            pub.publish(Int64(data=value))
+        release.set()
+        assert last.wait(10.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    after = [value for value in received if value >= 0]
+    # While the first callback blocked, at most the QoS depth (5) waited.
+    assert len(after) <= 5 + 1, after
+    assert after[-1] == 49
+
+
+def test_shutdown_leaves_no_thread_behind(
+    context: Context, make_node: Callable[[str], Node]
+) -> None:
+    before = {t.ident for t in threading.enumerate()}
+    executor = AsyncioExecutor(context=context)
+    node = make_node("threads")
+    ran = threading.Event()
+    node.create_timer(0.01, ran.set)
+    executor.add_node(node)
+    thread = spin_in_thread(executor)
+    assert ran.wait(10.0)
+    assert executor.threads(), "a plain callback should have started a lane thread"
+    assert executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    leftover = [t for t in threading.enumerate() if t.ident not in before and t.is_alive()]
+    assert leftover == []
+
+
+def test_removed_node_gets_no_more_callbacks_and_its_lane_ends(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    node, other = make_node("removed"), make_node("kept")
+    calls = [0]
+    ran = threading.Event()
+    other_ticks = threading.Event()
+
+    def count() -> None:
+        calls[0] += 1
+        ran.set()
+
+    node.create_timer(0.01, count)
+    executor.add_node(node)
+    executor.add_node(other)
+    thread = spin_in_thread(executor)
+    try:
+        assert ran.wait(10.0)
+        executor.remove_node(node)
+        node.destroy_node()
+        settled = calls[0]
+        # Keep the executor busy long enough for a stray timer to show up.
+        hits = [0]
+
+        def tick() -> None:
+            hits[0] += 1
+            if hits[0] >= 10:
+                other_ticks.set()
+
+        other.create_timer(0.01, tick)
+        assert other_ticks.wait(10.0)
+        assert calls[0] <= settled + 1
+        assert all("/removed" not in t.name for t in executor.threads())
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)

@@ -1,0 +1,101 @@
+"""``container run``: a real process hosting the demo nodes, and its shutdown."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO, ContainerProcess
+
+DEMO = """
+nodes:
+  - package: lifecycle_container
+    plugin: lifecycle_container::Talker
+    name: talker
+    parameters: [{rate: 20.0}]
+    autostart: true
+  - package: lifecycle_container
+    plugin: lifecycle_container::Listener
+    name: listener
+    autostart: true
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_container_runs_demo_and_exits_cleanly_on_signal(
+    run_container: Callable[..., ContainerProcess], sig: signal.Signals
+) -> None:
+    proc = run_container(DEMO)
+    proc.wait_for_line("I heard: [Hello World:")
+    code = proc.stop(sig=sig)
+    output = "\n".join(proc.lines)
+    assert code == 0, output
+    # Unloaded through their lifecycle, last loaded first.
+    assert output.index("Unloaded '/listener'") < output.index("Unloaded '/talker'")
+    assert "threads left behind" not in output
+
+
+def test_bad_entry_is_reported_and_the_rest_still_runs(
+    run_container: Callable[..., ContainerProcess],
+) -> None:
+    proc = run_container(
+        DEMO
+        + """
+  - package: no_such_package
+    plugin: no_such_package::Nothing
+"""
+    )
+    proc.wait_for_line("Could not find requested resource in ament index")
+    proc.wait_for_line("I heard: [Hello World:")
+    assert proc.stop() == 0
+
+
+def test_parameters_from_a_ros_parameter_file(
+    run_container: Callable[..., ContainerProcess], tmp_path: Path
+) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text("talker:\n  ros__parameters:\n    message: From the file\n", encoding="utf-8")
+    proc = run_container(
+        f"""
+nodes:
+  - package: lifecycle_container
+    plugin: lifecycle_container::Talker
+    name: talker
+    parameters: [{{rate: 20.0}}, {params}]
+    autostart: true
+  - package: lifecycle_container
+    plugin: lifecycle_container::Listener
+    autostart: true
+"""
+    )
+    proc.wait_for_line("I heard: [From the file:")
+    assert proc.stop() == 0
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ("nodes:\n  - package: a\n    plugin: a::B\n    nmae: typo\n", "unknown key(s) 'nmae'"),
+        ("nodes:\n  - plugin: a::B\n", "missing 'package'"),
+        ("container:\n  reentrant_limit: 0\n", "expected a positive integer"),
+        ("nodes: [\n", "not valid YAML"),
+        ("nodes:\n  - {package: a, plugin: b, remappings: [[x]]}\n", "remappings[0]"),
+    ],
+)
+def test_invalid_config_is_refused_with_its_place(tmp_path: Path, config: str, message: str) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(config, encoding="utf-8")
+    result = subprocess.run(
+        [sys.executable, "-m", "container", "run", str(path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert message in result.stderr

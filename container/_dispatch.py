@@ -198,7 +198,7 @@ class _WaitSet:
                 table.own_guards[gc.handle.pointer] = flag
                 guards.append(gc.handle)
         context = dispatcher.context
-        held.enter_context(context.handle)
+        held.enter_context(context.handle)  # type: ignore[arg-type]
         table.wait_set = _rclpy.WaitSet(
             len(table.handles["subscription"]) + extra.num_subscriptions,
             len(guards) + extra.num_guard_conditions,

@@ -192,7 +192,9 @@ class AsyncioExecutor(Executor):
         result = RclFuture(executor=self)
         loop = self.loop
         if inspect.iscoroutine(callback) or inspect.iscoroutinefunction(callback):
-            coro = callback if inspect.iscoroutine(callback) else callback(*args, **kwargs)
+            coro: Coroutine[Any, Any, Any] = (
+                callback if inspect.iscoroutine(callback) else callback(*args, **kwargs)
+            )
 
             def start() -> None:
                 task = loop.create_task(self.adapt(coro))
@@ -200,10 +202,11 @@ class AsyncioExecutor(Executor):
 
             self._call_soon(loop, start)
         else:
+            function: Callable[..., Any] = callback  # type: ignore[assignment]
 
             def run() -> None:
                 try:
-                    result.set_result(callback(*args, **kwargs))
+                    result.set_result(function(*args, **kwargs))
                 except Exception as exc:  # handed to the future's owner
                     result.set_exception(exc)
 
@@ -337,7 +340,7 @@ class AsyncioExecutor(Executor):
         coroutine until the executor next delivers a service response or
         schedules a done-callback (or a short poll interval passes).
         """
-        return _rcl_aware(coro, self._progress_future)  # type: ignore[return-value]
+        return _rcl_aware(coro, self._progress_future)
 
     # -- running the owned loop ------------------------------------------------
     def _run_owned(self, main: Coroutine[Any, Any, None]) -> None:
@@ -376,10 +379,9 @@ class AsyncioExecutor(Executor):
             yield
         finally:
             with self._state_lock:
+                foreign: Dispatcher | None = None
                 if self._dispatcher is not owned:
                     foreign, self._dispatcher = self._dispatcher, owned
-                else:
-                    foreign = None
                 self._running_loop = None
                 self._stopped = None
                 self._progress = None
@@ -395,7 +397,7 @@ class AsyncioExecutor(Executor):
 
     def _make_dispatcher(self, loop: asyncio.AbstractEventLoop) -> Dispatcher:
         return Dispatcher(
-            post=self._post if loop is self._loop else loop.call_soon_threadsafe,
+            post=self._post if loop is self._loop else _threadsafe_poster(loop),
             context=self._context,
             nodes=self.get_nodes,
             own_guards=self._own_guards,
@@ -590,6 +592,13 @@ class AsyncioExecutor(Executor):
             return self._task_lane
 
 
+def _threadsafe_poster(loop: asyncio.AbstractEventLoop) -> Callable[..., None]:
+    def post(callback: Callable[..., object], *args: Any) -> None:
+        loop.call_soon_threadsafe(callback, *args)
+
+    return post
+
+
 def _resolve(future: asyncio.Future[None]) -> None:
     if not future.done():
         future.set_result(None)
@@ -622,7 +631,8 @@ def _rcl_aware(
             else:
                 yielded = coro.send(value)
         except StopIteration as stop:
-            return stop.value  # type: ignore[no-any-return]
+            result: T = stop.value
+            return result
         value, error = None, None
         try:
             if yielded is None:

@@ -24,26 +24,33 @@ from ._config import ContainerConfig
 from ._container import ComponentManager, requests_from_specs
 from ._errors import ContainerError
 from ._executor import AsyncioExecutor
+from ._faults import contain_fault
 from ._params import node_parameters
 from ._registry import PluginRegistry
 from ._runtime import use_fast_discovery
+from ._services import ContainerServices
 
 __all__ = ["ContainerApp", "run_container"]
 
-#: Extensions started after the configured nodes load (the lifecycle manager,
-#: the container services); each returns a coroutine to await on shutdown.
+#: Extensions started after the configured nodes load (the lifecycle manager);
+#: each returns a coroutine to await on shutdown.
 Extension = Callable[["ContainerApp"], Awaitable[None]]
 
 
 @dataclass
 class ContainerApp:
-    """Everything one container process owns, built from its configuration."""
+    """Everything one container process owns, built from its configuration.
+
+    The container node serves the ``composition_interfaces`` services from
+    the start, so ``container load`` and ``ros2 component load`` work on it.
+    """
 
     config: ContainerConfig
     context: Context
     registry: PluginRegistry
     executor: AsyncioExecutor
     manager: ComponentManager
+    services: ContainerServices
     stopping: asyncio.Event = field(default_factory=asyncio.Event)
 
     @classmethod
@@ -51,7 +58,11 @@ class ContainerApp:
         registry = PluginRegistry(
             allow=config.plugins_allow, block=config.plugins_block, trace=config.trace_hooks
         )
-        executor = AsyncioExecutor(context=context, reentrant_limit=config.reentrant_limit)
+        executor = AsyncioExecutor(
+            context=context,
+            reentrant_limit=config.reentrant_limit,
+            on_callback_error=contain_fault,
+        )
         namespace = config.namespace if config.namespace.startswith("/") else f"/{config.namespace}"
         full_name = f"{namespace.rstrip('/')}/{config.name}"
         manager = ComponentManager(
@@ -65,10 +76,11 @@ class ContainerApp:
             ),
             unload_timeout=config.unload_timeout,
         )
+        services = ContainerServices(manager)
         executor.add_node(manager)
         for failure in registry.failures:
             manager.get_logger().error(f"Plugin skipped: {failure}")
-        return cls(config, context, registry, executor, manager)
+        return cls(config, context, registry, executor, manager, services)
 
     async def serve(self, *, extensions: tuple[Extension, ...] = ()) -> None:
         """Load the configured nodes, run until :meth:`stop`, then unload all."""
@@ -106,6 +118,7 @@ class ContainerApp:
 
         :return: ``False`` if a callback thread was still running.
         """
+        self.services.destroy()
         self.executor.remove_node(self.manager)
         self.manager.destroy_node()
         return self.executor.shutdown()

@@ -19,6 +19,7 @@ from rclpy.exceptions import (
     InvalidNamespaceException,
     InvalidNodeNameException,
 )
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -26,6 +27,8 @@ from . import _transitions
 from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
+
+_InvalidROSArgsError = _rclpy.RCLInvalidROSArgsError
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -36,6 +39,9 @@ __all__ = ["ComponentManager", "LoadRequest", "LoadedNode"]
 
 #: Extra arguments rclcpp's container accepts, with their expected type.
 _EXTRA_ARGUMENTS: dict[str, type] = {"use_intra_process_comms": bool}
+
+#: How rclcpp names the types in its refusals.
+_TYPE_WORDS: dict[type, str] = {bool: "boolean"}
 
 #: rcl log severities a LoadNode request may carry (0 leaves the level alone).
 _LOG_LEVELS = {0, 10, 20, 30, 40, 50}
@@ -131,11 +137,7 @@ class ComponentManager(Node):
         name = request.name or _default_name(node_type)
         namespace = _absolute(request.namespace or "/")
         full_name = f"{namespace.rstrip('/')}/{name}"
-        for other in self._loaded.values():
-            if other.full_name == full_name:
-                raise LoadError(
-                    f"A node named '{full_name}' is already loaded (unique_id {other.unique_id})"
-                )
+        self._refuse_duplicate(full_name)
         try:
             overrides = _overrides(request, full_name)
         except ConfigError as exc:
@@ -152,11 +154,19 @@ class ComponentManager(Node):
                 **extra,
             )
         except (InvalidNodeNameException, InvalidNamespaceException) as exc:
-            raise LoadError(f"Invalid node name or namespace: {exc}") from exc
+            raise LoadError(f"Invalid node name or namespace: {_one_line(exc)}") from exc
+        except _InvalidROSArgsError as exc:
+            raise LoadError(f"Invalid remap rules: {_one_line(exc)}") from exc
         except Exception as exc:
             raise LoadError(f"Component constructor threw an exception: {_one_line(exc)}") from exc
-        if request.log_level:
-            node.get_logger().set_level(request.log_level)
+        try:
+            # Remap rules (__node:=, __ns:=) or the class may have renamed it.
+            self._refuse_duplicate(node.get_fully_qualified_name())
+            if request.log_level:
+                node.get_logger().set_level(request.log_level)
+        except BaseException:
+            _destroy(node)
+            raise
         loaded = LoadedNode(
             next(self._ids), node, node_type, request, node.get_fully_qualified_name()
         )
@@ -166,6 +176,15 @@ class ComponentManager(Node):
             f"Loaded {node_type.full_name} as '{loaded.full_name}' (unique_id {loaded.unique_id})"
         )
         return loaded
+
+    def _refuse_duplicate(self, full_name: str) -> None:
+        if full_name == self.get_fully_qualified_name():
+            raise LoadError(f"A node named '{full_name}' is the container itself")
+        for other in self._loaded.values():
+            if other.full_name == full_name:
+                raise LoadError(
+                    f"A node named '{full_name}' is already loaded (unique_id {other.unique_id})"
+                )
 
     async def load_and_start(self, request: LoadRequest, *, timeout: float) -> LoadedNode:
         """:meth:`load`, then bring a lifecycle node up when ``autostart`` asks.
@@ -198,7 +217,7 @@ class ComponentManager(Node):
             except TransitionError as exc:
                 self.get_logger().warning(f"Unloading '{loaded.full_name}' anyway: {exc}")
         self._host.remove_node(node)
-        node.destroy_node()
+        _destroy(node)
         self.get_logger().info(f"Unloaded '{loaded.full_name}' (unique_id {unique_id})")
         return loaded
 
@@ -208,6 +227,17 @@ class ComponentManager(Node):
             await self.unload(unique_id)
 
 
+def _destroy(node: Node) -> None:
+    """Destroy ``node`` now, not whenever the garbage collector gets to it."""
+    node.destroy_node()
+    # rclpy's LifecycleNode keeps a C++ state machine that holds the rcl node
+    # (and its transition_event publisher); destroy_node leaves it, so the node
+    # would stay on the ROS graph until the Python object is collected.
+    machine = getattr(node, "_state_machine", None)
+    if machine is not None:
+        machine.destroy_when_not_in_use()
+
+
 def _check_extra_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
     for key, value in arguments.items():
         expected = _EXTRA_ARGUMENTS.get(key)
@@ -215,14 +245,15 @@ def _check_extra_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
             raise LoadError(f"Extra component argument '{key}' is not supported")
         if not isinstance(value, expected):
             raise LoadError(
-                f"Extra component argument '{key}' must be a {expected.__name__}, not {value!r}"
+                f"Extra component argument '{key}' must be a {_TYPE_WORDS[expected]}"
             )
     # Intra-process communication does not exist in rclpy; accepted, as rclcpp
     # users pass it out of habit, and without effect.
     return {}
 
 
-_REMAP = re.compile(r"^[^:=]+:=[^:=]+$")
+#: ``from:=to``, optionally node-specific (``node:from:=to``); rcl checks the rest.
+_REMAP = re.compile(r"^(?:[^:=\s]+:)?[^:=\s]+:=[^:=\s]+$")
 
 
 def _check_remap(rule: str) -> str:

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from rclpy.lifecycle import LifecycleNodeMixin, TransitionCallbackReturn
 
 from ._errors import TransitionError
+from ._node import LifecycleNode
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -27,6 +28,9 @@ __all__ = ["bring_down", "bring_up", "is_lifecycle", "state_of", "transition"]
 #: The transitions a node takes down from each primary state, towards finalized.
 _DOWN = {"active": "deactivate", "inactive": "cleanup", "unconfigured": "shutdown"}
 _UP = {"unconfigured": "configure", "inactive": "activate"}
+
+#: How long past its own timeout a node of our base may take to fail back.
+_FAIL_BACK_MARGIN_S = 1.0
 
 
 def is_lifecycle(node: Node) -> bool:
@@ -40,10 +44,17 @@ def state_of(node: Node) -> str:
     return str(label)
 
 
-def _trigger(node: Node, label: str) -> Callable[[], Any]:
+def _trigger(node: Node, label: str, timeout: float) -> Callable[[], Any]:
+    if isinstance(node, LifecycleNode):
+        # The node bounds its own callbacks, so a slow one fails back to its
+        # start state instead of being abandoned mid-transition.
+        async def run_bounded() -> bool:
+            return await node.transition(label, timeout=timeout)
+
+        return run_bounded
     custom = getattr(node, "transition", None)
     if custom is not None and inspect.iscoroutinefunction(custom):
-        # The project's node base runs its (possibly async) callbacks itself.
+        # Any other node that drives its own (possibly async) transitions.
         async def run_custom() -> bool:
             return bool(await custom(label))
 
@@ -64,10 +75,14 @@ async def transition(
     :raises TransitionError: the transition failed, raised, or timed out.
     """
     name = node.get_fully_qualified_name()
+    # Our node base times itself out; the margin lets its failure arrive first.
+    limit = timeout + _FAIL_BACK_MARGIN_S if isinstance(node, LifecycleNode) else timeout
     try:
         ok = await asyncio.wait_for(
-            executor.run_in_group(node.default_callback_group, _trigger(node, label), node=node),
-            timeout,
+            executor.run_in_group(
+                node.default_callback_group, _trigger(node, label, timeout), node=node
+            ),
+            limit,
         )
     except asyncio.TimeoutError:
         raise TransitionError(f"no answer within {timeout:g} s", node=name, transition=label) from None

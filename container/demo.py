@@ -4,18 +4,22 @@ They are registered through this distribution's own entry point, exactly
 like a third-party plugin's, and give ``container run`` something to host:
 ``lifecycle_container::Talker`` publishes ``std_msgs/String`` on ``chatter``
 while active; ``lifecycle_container::Listener`` logs what it hears.
+
+Both are built on the project's :class:`~container.LifecycleNode`: the
+talker's publisher and timer follow its state without any ``on_activate``.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from rclpy.lifecycle.publisher import LifecyclePublisher
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
+from rclpy.publisher import Publisher
 from rclpy.timer import Timer
 from std_msgs.msg import String
 
 from ._hookspecs import RegisterNodeType, hookimpl
+from ._node import LifecycleNode
 
 __all__ = ["Listener", "Talker", "register_node_types"]
 
@@ -29,7 +33,7 @@ class Talker(LifecycleNode):
         super().__init__(node_name, **kwargs)
         self.declare_parameter("rate", 2.0)
         self.declare_parameter("message", "Hello World")
-        self._publisher: LifecyclePublisher | None = None
+        self._publisher: Publisher | None = None
         self._timer: Timer | None = None
         self._count = 0
 
@@ -38,7 +42,7 @@ class Talker(LifecycleNode):
         if rate <= 0:
             self.get_logger().error(f"rate must be positive, not {rate}")
             return TransitionCallbackReturn.FAILURE
-        self._publisher = self.create_lifecycle_publisher(String, "chatter", 10)
+        self._publisher = self.create_publisher(String, "chatter", 10)
         self._timer = self.create_timer(1.0 / rate, self._publish)
         return TransitionCallbackReturn.SUCCESS
 
@@ -50,16 +54,20 @@ class Talker(LifecycleNode):
         self._release()
         return TransitionCallbackReturn.SUCCESS
 
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
     def _release(self) -> None:
         if self._timer is not None:
             self.destroy_timer(self._timer)
             self._timer = None
         if self._publisher is not None:
-            self.destroy_lifecycle_publisher(self._publisher)
+            self.destroy_publisher(self._publisher)
             self._publisher = None
 
     def _publish(self) -> None:
-        if self._publisher is None or not self._publisher.is_activated:
+        if self._publisher is None:
             return
         self._count += 1
         text = f"{self.get_parameter('message').value}: {self._count}"
@@ -73,20 +81,11 @@ class Listener(LifecycleNode):
 
     def __init__(self, node_name: str = default_node_name, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        self._active = False
         self.heard = 0
         self.create_subscription(String, "chatter", self._hear, 10)
 
-    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._active = True
-        return super().on_activate(state)
-
-    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._active = False
-        return super().on_deactivate(state)
-
     def _hear(self, message: String) -> None:
-        if self._active:
+        if self.lifecycle_state.label == "active":
             self.heard += 1
             self.get_logger().info(f"I heard: [{message.data}]")
 

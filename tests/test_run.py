@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, ContainerProcess
+from container_support import REPO, ContainerProcess
 
 DEMO = """
 nodes:

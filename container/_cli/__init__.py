@@ -11,7 +11,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
-from . import component, lifecycle, run
+from . import component, lifecycle, manager, run
 
 __all__ = ["main"]
 
@@ -20,6 +20,7 @@ _COMMANDS: list[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], 
     run.add_parser,
     component.add_parser,
     lifecycle.add_parser,
+    manager.add_parser,
 ]
 
 

@@ -1,11 +1,389 @@
-"""``container load|unload|list|types``: the ``ros2 component`` verbs."""
+"""``container load|unload|list|types``: the ``ros2 component`` verbs.
+
+Same arguments, output and exit codes as ros2cli's ``ros2 component``, against
+any container on the ROS domain: a node is a container if it serves the three
+``composition_interfaces`` services under ``<node>/_container/``, which is
+how ros2cli recognises rclcpp's containers too.
+
+There is no ros2 daemon here, so each command discovers the graph itself,
+bounded by ``--spin-time``. rclpy exposes no graph-change event (rclpy#929),
+so discovery is polled at a short interval until what the command needs has
+appeared, not slept through.
+"""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import os
+import sys
+import time
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from .._runtime import use_fast_discovery
+
+if TYPE_CHECKING:
+    from rclpy.client import Client
+    from rclpy.node import Node
 
 __all__ = ["add_parser"]
 
+T = TypeVar("T")
+
+#: How ros2cli spells what a container serves, relative to its full name.
+_SERVICES = {
+    "load_node": "composition_interfaces/srv/LoadNode",
+    "unload_node": "composition_interfaces/srv/UnloadNode",
+    "list_nodes": "composition_interfaces/srv/ListNodes",
+}
+#: Log level names ``--log-level`` takes besides numbers (rcutils severities).
+_LOG_LEVELS = {"unset": 0, "debug": 10, "info": 20, "warn": 30, "warning": 30, "error": 40, "fatal": 50}
+#: Interval between two looks at the discovered graph.
+_POLL_S = 0.02
+#: ``list`` without a container stops once the set of containers has been
+#: stable this long (it cannot know how many to expect).
+_SETTLE_S = 0.5
+#: How long a container may take to answer one request; an unload runs the
+#: node's lifecycle down, each step bounded by the container's own timeout.
+_RESPONSE_TIMEOUT_S = 60.0
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    """Register the component verbs (being written; see issue 3)."""
+    """Register ``load``, ``unload``, ``list`` and ``types``."""
+    load = subparsers.add_parser(
+        "load",
+        help="load a component into a container node",
+        description="Load a registered node type into a running container node.",
+    )
+    load.add_argument("container_node_name", help="container node name to load the component into")
+    load.add_argument("package_name", help="name of the package where the component is to be found")
+    load.add_argument("plugin_name", help="type name of the component to be loaded")
+    load.add_argument("-n", "--node-name", default=None, help="component node name")
+    load.add_argument("--node-namespace", default=None, help="component node namespace")
+    load.add_argument(
+        "--log-level", default=None, type=_log_level, help="component node log level (name or number)"
+    )
+    load.add_argument(
+        "-r", "--remap-rule", action="append", default=[], dest="remap_rules",
+        help="component node remapping rules, in the 'from:=to' form",
+    )
+    load.add_argument(
+        "-p", "--parameter", action="append", default=[], dest="parameters", type=_name_value,
+        help="component node parameters, in the 'name:=value' form",
+    )
+    load.add_argument(
+        "-e", "--extra-argument", action="append", default=[], dest="extra_arguments",
+        type=_name_value, help="extra arguments for the container, in the 'name:=value' form",
+    )
+    load.add_argument("-q", "--quiet", action="store_true", help="only print the component's unique ID")
+    _add_spin_time(load)
+    load.set_defaults(handler=_run_load)
+
+    unload = subparsers.add_parser(
+        "unload",
+        help="unload a component from a container node",
+        description="Unload components from a container node, through their lifecycle.",
+    )
+    unload.add_argument("container_node_name", help="container node name to unload components from")
+    unload.add_argument("component_uid", type=int, nargs="+", help="unique ID of the component to unload")
+    unload.add_argument("-q", "--quiet", action="store_true", help="only print component unique IDs")
+    _add_spin_time(unload)
+    unload.set_defaults(handler=_run_unload)
+
+    listing = subparsers.add_parser(
+        "list",
+        help="output a list of running containers and components",
+        description="List the container nodes on the ROS domain and the components they hold.",
+    )
+    listing.add_argument(
+        "container_node_name", nargs="?", default=None, help="container node to list components from"
+    )
+    listing.add_argument("--containers-only", action="store_true", help="list container nodes only")
+    _add_spin_time(listing)
+    listing.set_defaults(handler=_run_list)
+
+    types = subparsers.add_parser(
+        "types",
+        help="output a list of the installed component types",
+        description="List the node types the locally installed plugins register, by package.",
+    )
+    types.set_defaults(handler=_run_types)
+
+
+def _add_spin_time(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--spin-time", type=float, default=2.0,
+        help="seconds to wait for discovery of the container (default: %(default)s)",
+    )
+
+
+def _name_value(text: str) -> tuple[str, str]:
+    name, sep, value = text.partition(":=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected 'name:=value', not {text!r}")
+    return name, value
+
+
+def _log_level(text: str) -> int:
+    if text.lower() in _LOG_LEVELS:
+        return _LOG_LEVELS[text.lower()]
+    try:
+        return int(text)
+    except ValueError:
+        names = ", ".join(name.upper() for name in _LOG_LEVELS)
+        raise argparse.ArgumentTypeError(f"expected one of {names} or a number, not {text!r}") from None
+
+
+def _full_name(name: str) -> str:
+    return name if name.startswith("/") else f"/{name}"
+
+
+# -- verbs ------------------------------------------------------------------------
+def _run_load(args: argparse.Namespace) -> int:
+    from composition_interfaces.srv import LoadNode
+    from rcl_interfaces.msg import Parameter as ParameterMsg
+    from rclpy.parameter import get_parameter_value
+
+    request = LoadNode.Request(
+        package_name=args.package_name,
+        plugin_name=args.plugin_name,
+        node_name=args.node_name or "",
+        node_namespace=args.node_namespace or "",
+        log_level=args.log_level or 0,
+        remap_rules=list(args.remap_rules),
+        parameters=[
+            ParameterMsg(name=name, value=get_parameter_value(string_value=value))
+            for name, value in args.parameters
+        ],
+        extra_arguments=[
+            ParameterMsg(name=name, value=get_parameter_value(string_value=value))
+            for name, value in args.extra_arguments
+        ],
+    )
+
+    async def load(node: Node) -> int:
+        container = args.container_node_name
+        client = await _container_client(node, container, "load_node", LoadNode, args.spin_time)
+        if client is None:
+            return _fail(f"Unable to find container node '{container}'")
+        response = await _call(client, request)
+        if not response.success:
+            return _fail(f"Failed to load component: {response.error_message}")
+        if args.quiet:
+            print(response.unique_id)
+        else:
+            print(
+                f"Loaded component {response.unique_id} into '{container}' "
+                f"container node as '{response.full_node_name}'"
+            )
+        return 0
+
+    return _with_node(load)
+
+
+def _run_unload(args: argparse.Namespace) -> int:
+    from composition_interfaces.srv import UnloadNode
+
+    async def unload(node: Node) -> int:
+        container = args.container_node_name
+        client = await _container_client(node, container, "unload_node", UnloadNode, args.spin_time)
+        if client is None:
+            return _fail(f"Unable to find container node '{container}'")
+        for uid in args.component_uid:
+            response = await _call(client, UnloadNode.Request(unique_id=uid))
+            if not response.success:
+                return _fail(
+                    f"Failed to unload component {uid} from '{container}' container node\n"
+                    f"    {response.error_message}"
+                )
+            print(uid if args.quiet else f"Unloaded component {uid} from '{container}' container node")
+        return 0
+
+    return _with_node(unload)
+
+
+def _run_list(args: argparse.Namespace) -> int:
+    from composition_interfaces.srv import ListNodes
+
+    async def components(node: Node, container: str) -> list[str]:
+        client = node.create_client(ListNodes, f"{_full_name(container)}/_container/list_nodes")
+        try:
+            response = await _call(client, ListNodes.Request())
+        finally:
+            node.destroy_client(client)
+        return [f"{uid}  {name}" for uid, name in zip(response.unique_ids, response.full_node_names)]
+
+    async def listing(node: Node) -> int:
+        wanted = args.container_node_name
+        if wanted is not None:
+            client = await _container_client(node, wanted, "list_nodes", ListNodes, args.spin_time)
+            if client is None:
+                return _fail(f"Unable to find container node '{wanted}'")
+            node.destroy_client(client)
+            if not args.containers_only:
+                for line in await components(node, wanted):
+                    print(line)
+            return 0
+        for container in await _settled_containers(node, args.spin_time):
+            print(container)
+            if not args.containers_only:
+                for line in await components(node, container):
+                    print(f"  {line}")
+        return 0
+
+    return _with_node(listing)
+
+
+def _run_types(args: argparse.Namespace) -> int:
+    from .._registry import PluginRegistry
+
+    for package, type_names in PluginRegistry().packages().items():
+        print(package)
+        for type_name in type_names:
+            print(f"  {type_name}")
+    return 0
+
+
+# -- talking to containers ------------------------------------------------------------
+def _fail(message: str) -> int:
+    print(message, file=sys.stderr)
+    return 1
+
+
+def _with_node(main: Callable[[Node], Awaitable[int]]) -> int:
+    """Run ``main`` with a hidden client node on an AsyncioExecutor; return its code."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    from .._executor import AsyncioExecutor
+
+    use_fast_discovery()
+    context = Context()
+    # No args: rcl would read our own '-p name:=value' arguments as remap rules.
+    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        # A leading underscore hides the node from ``list`` and lifecycle tools.
+        node = Node(
+            f"_container_cli_{os.getpid()}",
+            context=context,
+            start_parameter_services=False,
+            enable_rosout=False,
+        )
+        executor = AsyncioExecutor(context=context)
+        executor.add_node(node)
+        codes: list[int] = []
+
+        async def run() -> None:
+            codes.append(await main(node))
+
+        try:
+            executor.spin_until_future_complete(run())
+        except _Failure as exc:
+            return _fail(str(exc))
+        except KeyboardInterrupt:
+            return 130
+        finally:
+            executor.shutdown()
+            node.destroy_node()
+        return codes[0] if codes else 1
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+async def _poll(condition: Callable[[], T | None], *, timeout: float) -> T | None:
+    """Return ``condition()``'s first non-``None`` value, or ``None`` after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value is not None or time.monotonic() >= deadline:
+            return value
+        await asyncio.sleep(_POLL_S)
+
+
+def _is_container(node: Node, name: str, namespace: str) -> bool:
+    from rclpy.node import NodeNameNonExistentError
+
+    try:
+        served = dict(node.get_service_names_and_types_by_node(name, namespace))
+    except NodeNameNonExistentError:
+        return False  # gone between listing and asking
+    base = f"{namespace.rstrip('/')}/{name}/_container/"
+    return all(type_name in served.get(base + service, []) for service, type_name in _SERVICES.items())
+
+
+def _containers(node: Node) -> list[str]:
+    return sorted(
+        f"{namespace.rstrip('/')}/{name}"
+        for name, namespace in node.get_node_names_and_namespaces()
+        if _is_container(node, name, namespace)
+    )
+
+
+async def _container_client(
+    node: Node, container: str, service: str, srv_type: Any, spin_time: float
+) -> Client | None:
+    """Wait for ``container`` to show up as a container and its ``service`` to be ready.
+
+    :return: a client of the service, or ``None`` if ``container`` is no
+        container node within ``spin_time`` seconds.
+    """
+    full_name = _full_name(container)
+    found = await _poll(lambda: True if full_name in _containers(node) else None, timeout=spin_time)
+    if found is None:
+        return None
+    client = node.create_client(srv_type, f"{full_name}/_container/{service}")
+    # Seen in the graph is not yet matched with our client's endpoints.
+    if await _poll(lambda: True if client.service_is_ready() else None, timeout=spin_time) is None:
+        node.destroy_client(client)
+        return None
+    return client
+
+
+async def _settled_containers(node: Node, spin_time: float) -> list[str]:
+    """The containers on the domain, once discovery has stopped finding new ones."""
+    deadline = time.monotonic() + spin_time
+    seen: list[str] = []
+    stable_since = time.monotonic()
+    while time.monotonic() < deadline:
+        now = _containers(node)
+        if now != seen:
+            seen, stable_since = now, time.monotonic()
+        elif seen and time.monotonic() - stable_since >= _SETTLE_S:
+            break
+        await asyncio.sleep(_POLL_S)
+    return seen
+
+
+async def _call(client: Client, request: Any) -> Any:
+    """Send ``request`` once the server is matched; wait for its response.
+
+    :raises _Failure: no server, or no response in time.
+    """
+    ready = await _poll(lambda: True if client.service_is_ready() else None, timeout=_RESPONSE_TIMEOUT_S)
+    if ready is None:
+        raise _Failure(f"No '{client.srv_name}' service found")
+    future = client.call_async(request)
+    loop = asyncio.get_running_loop()
+    answered: asyncio.Future[None] = loop.create_future()
+    # rclpy may run done-callbacks on another thread of the executor.
+    future.add_done_callback(lambda _: loop.call_soon_threadsafe(_resolve, answered))
+    try:
+        await asyncio.wait_for(answered, _RESPONSE_TIMEOUT_S)
+    except asyncio.TimeoutError:
+        client.remove_pending_request(future)
+        raise _Failure(
+            f"No response from '{client.srv_name}' within {_RESPONSE_TIMEOUT_S:g} s"
+        ) from None
+    return future.result()
+
+
+def _resolve(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_result(None)
+
+
+class _Failure(Exception):
+    """A verb cannot go on; the message is what the user reads."""

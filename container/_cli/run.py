@@ -27,9 +27,18 @@ def _run(args: argparse.Namespace) -> int:
     configure_logging(verbose=args.verbose)
     try:
         config = load_config(args.config)
+        settings = None
+        if config.manager is not None:
+            from .._manager import ManagerSettings
+
+            settings = ManagerSettings.from_mapping(config.manager, source=f"{args.config}: manager")
     except ConfigError as exc:
         print(f"container run: {exc}", file=sys.stderr)
         return 2
     from .._app import run_container
 
-    return run_container(config)
+    if settings is None:
+        return run_container(config)
+    from .._manager import manager_extension
+
+    return run_container(config, extensions=(manager_extension(settings),))

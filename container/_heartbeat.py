@@ -1,0 +1,193 @@
+"""Heartbeats between managed nodes and the lifecycle manager, as ``bond/Status``.
+
+Nav2 bonds its manager with each node through bondcpp, a handshake both sides
+must run. Only bond's wire format is kept here: every managed node publishes
+``bond/Status`` on ``/bond`` (``id`` = its full name, ``instance_id`` = one
+value per node object, so a respawned node is recognisable) and the manager
+listens. No handshake means a node is monitored whoever hosts it, and the
+manager can tell "silent" (crash, hang) from "said goodbye" (``active`` false,
+sent when the node is destroyed).
+
+The node side runs in the node's default callback group on purpose: a
+callback of that group that hangs silences the heartbeat too, which is how a
+hang is told from a slow but healthy node.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+
+if TYPE_CHECKING:
+    from rclpy.callback_groups import CallbackGroup
+    from rclpy.publisher import Publisher
+    from rclpy.subscription import Subscription
+    from rclpy.timer import Timer
+
+__all__ = [
+    "DEFAULT_HEARTBEAT_PERIOD",
+    "DEFAULT_HEARTBEAT_TIMEOUT",
+    "HEARTBEAT_TOPIC",
+    "Heartbeat",
+    "HeartbeatPublisher",
+    "HeartbeatWatch",
+    "status_type",
+]
+
+#: Absolute, so that nodes in any namespace reach one manager; ids are full names.
+HEARTBEAT_TOPIC = "/bond"
+#: Nav2 nodes beat every 0.1 s.
+DEFAULT_HEARTBEAT_PERIOD = 0.1
+#: bond's DEFAULT_HEARTBEAT_TIMEOUT; informational in the message.
+DEFAULT_HEARTBEAT_TIMEOUT = 4.0
+
+_QOS = QoSProfile(depth=10)
+
+
+def status_type() -> Any:
+    """``bond.msg.Status``, or ``None`` when the generated package is missing.
+
+    Imported late so that nodes still load (without heartbeats) in an
+    environment where the interface packages have not been built.
+    """
+    try:
+        from bond.msg import Status
+    except ImportError:
+        return None
+    return Status
+
+
+class HeartbeatPublisher:
+    """Publish a node's heartbeat every ``period`` seconds until :meth:`close`.
+
+    :param timeout: what the node advertises as its heartbeat timeout; the
+        manager applies its own ``bond_timeout``.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        *,
+        period: float = DEFAULT_HEARTBEAT_PERIOD,
+        timeout: float = DEFAULT_HEARTBEAT_TIMEOUT,
+        topic: str = HEARTBEAT_TOPIC,
+    ) -> None:
+        status = status_type()
+        if status is None:
+            raise ImportError("the 'bond' interface package is not installed")
+        self._node = node
+        self._status = status
+        self._id = node.get_fully_qualified_name()
+        self.instance_id = uuid.uuid4().hex
+        self.period = period
+        self.timeout = timeout
+        # Node.create_* directly: a lifecycle base would otherwise make these
+        # follow the node's state, and heartbeats must flow in every state.
+        self._publisher: Publisher | None = Node.create_publisher(node, status, topic, _QOS)
+        self._timer: Timer | None = Node.create_timer(node, period, self._beat)
+
+    async def _beat(self) -> None:
+        self._publish(active=True)
+
+    def _publish(self, *, active: bool) -> None:
+        if self._publisher is None:
+            return
+        message = self._status(
+            id=self._id,
+            instance_id=self.instance_id,
+            active=active,
+            heartbeat_timeout=float(self.timeout),
+            heartbeat_period=float(self.period),
+        )
+        message.header.stamp = self._node.get_clock().now().to_msg()
+        self._publisher.publish(message)
+
+    def close(self) -> None:
+        """Say goodbye (``active`` false) and stop beating."""
+        if self._timer is not None:
+            self._node.destroy_timer(self._timer)
+            self._timer = None
+        if self._publisher is not None:
+            self._publish(active=False)
+            Node.destroy_publisher(self._node, self._publisher)
+            self._publisher = None
+
+
+@dataclass(frozen=True, slots=True)
+class Heartbeat:
+    """The last heartbeat seen from one node."""
+
+    #: ``time.monotonic()`` when it arrived.
+    received: float
+    instance_id: str
+    active: bool
+
+
+class HeartbeatWatch:
+    """Remember the last heartbeat of every node on the heartbeat topic.
+
+    Must be used from the executor's event loop: the subscription callback
+    is ``async`` so that it runs there and may wake waiting coroutines.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        *,
+        callback_group: CallbackGroup | None = None,
+        topic: str = HEARTBEAT_TOPIC,
+    ) -> None:
+        status = status_type()
+        if status is None:
+            raise ImportError("the 'bond' interface package is not installed")
+        self._node = node
+        self._seen: dict[str, Heartbeat] = {}
+        self._changed: asyncio.Event | None = None
+        # rclpy's annotation knows no async callbacks; AsyncioExecutor runs them.
+        self._subscription: Subscription | None = node.create_subscription(
+            status,
+            topic,
+            self._receive,  # type: ignore[arg-type]
+            _QOS,
+            callback_group=callback_group,
+        )
+
+    async def _receive(self, message: Any) -> None:
+        self._seen[message.id] = Heartbeat(time.monotonic(), message.instance_id, message.active)
+        if self._changed is not None:
+            self._changed.set()
+            self._changed = None
+
+    def last(self, node_name: str) -> Heartbeat | None:
+        return self._seen.get(node_name)
+
+    async def wait(self, node_name: str, *, after: float, timeout: float) -> Heartbeat | None:
+        """Wait for a live heartbeat of ``node_name`` received after ``after``.
+
+        :return: the heartbeat, or ``None`` if none came within ``timeout``.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            seen = self._seen.get(node_name)
+            if seen is not None and seen.active and seen.received > after:
+                return seen
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            if self._changed is None:
+                self._changed = asyncio.Event()
+            try:
+                await asyncio.wait_for(self._changed.wait(), remaining)
+            except asyncio.TimeoutError:
+                return None
+
+    def close(self) -> None:
+        if self._subscription is not None:
+            self._node.destroy_subscription(self._subscription)
+            self._subscription = None

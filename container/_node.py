@@ -1,0 +1,480 @@
+"""The project's lifecycle node base: rclpy's LifecycleNode, made easy to get right.
+
+rclpy's :class:`rclpy.lifecycle.LifecycleNode` runs transition callbacks
+synchronously inside its ``change_state`` service, raises on a transition
+that is not available from the current state (rclpy#1209), and enables
+lifecycle publishers only if ``on_activate()`` remembers to call ``super()``.
+This base keeps rclpy's rcl state machine, its standard services and
+``transition_event``, and replaces how a transition is *driven*:
+
+* transition callbacks may be ``async def``; while one awaits, the event loop
+  and every other node keep running. Plain callbacks run on a short-lived
+  thread, so a blocking one delays only its own node;
+* each callback is bounded by ``transition_timeout``: past it, the transition
+  fails back to its start state (the rcl ``failure`` path);
+* an unavailable transition answers ``success=false`` and is logged;
+* publishers and timers created through the node follow its state: publishing
+  is a no-op and timers are paused unless the node is active;
+* the node publishes heartbeats (:mod:`container._heartbeat`) for a lifecycle
+  manager, in every state, every ``bond_heartbeat_period`` seconds.
+
+Transitions of one node never overlap, whoever asks for them (``change_state``,
+the container, :meth:`LifecycleNode.transition`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import threading
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+import lifecycle_msgs.msg
+import lifecycle_msgs.srv
+import rclpy.lifecycle
+from lifecycle_msgs.msg import State
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import CallbackGroup
+from rclpy.clock import Clock
+from rclpy.lifecycle import LifecyclePublisher, LifecycleState, TransitionCallbackReturn
+from rclpy.publisher import Publisher
+from rclpy.qos import QoSProfile
+from rclpy.timer import Timer
+
+from ._errors import TransitionError
+from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
+
+__all__ = ["LifecycleNode"]
+
+#: Which callback runs in which transition state.
+_CALLBACKS = {
+    State.TRANSITION_STATE_CONFIGURING: "on_configure",
+    State.TRANSITION_STATE_CLEANINGUP: "on_cleanup",
+    State.TRANSITION_STATE_SHUTTINGDOWN: "on_shutdown",
+    State.TRANSITION_STATE_ACTIVATING: "on_activate",
+    State.TRANSITION_STATE_DEACTIVATING: "on_deactivate",
+    State.TRANSITION_STATE_ERRORPROCESSING: "on_error",
+}
+
+SUCCESS = TransitionCallbackReturn.SUCCESS
+FAILURE = TransitionCallbackReturn.FAILURE
+ERROR = TransitionCallbackReturn.ERROR
+
+#: States in which managed publishers publish.
+_PUBLISHING = {"activating", "active"}
+
+
+class LifecycleNode(rclpy.lifecycle.LifecycleNode):
+    """A lifecycle node whose transition callbacks may be coroutines.
+
+    Override ``on_configure``, ``on_activate``, ... as in rclpy, with
+    ``def`` or ``async def``; return a :class:`TransitionCallbackReturn`.
+    An exception counts as ``ERROR`` (logged with its traceback; ``on_error``
+    runs). Calling ``super()`` is not needed for publishers and timers to
+    follow the node's state.
+
+    Parameters declared on every node: ``transition_timeout`` (seconds one
+    transition callback may take; ``<= 0`` waits forever) and
+    ``bond_heartbeat_period`` (seconds between heartbeats; ``<= 0`` turns
+    heartbeats off).
+
+    Transitions need the node to run on an :class:`~container.AsyncioExecutor`
+    (or any running asyncio loop) unless every callback is synchronous.
+
+    :param transition_timeout: default of the ``transition_timeout`` parameter.
+    :param heartbeat_period: default of the ``bond_heartbeat_period`` parameter.
+    """
+
+    def __init__(
+        self,
+        node_name: str,
+        *,
+        transition_timeout: float = 10.0,
+        heartbeat_period: float = DEFAULT_HEARTBEAT_PERIOD,
+        **kwargs: Any,
+    ) -> None:
+        # Node.__init__ creates /parameter_events through create_publisher;
+        # that one, and anything rclpy creates for itself, stays always-on.
+        self._entities_follow_state = False
+        super().__init__(node_name, **kwargs)
+        self._managed_timers: set[Timer] = set()
+        self._paused_timers: set[Timer] = set()
+        self._transition_lock = asyncio.Lock()
+        self._declare_seconds(
+            "transition_timeout",
+            transition_timeout,
+            "Seconds a transition callback may take before the transition fails "
+            "back to its start state; <= 0 waits forever.",
+        )
+        period = self._declare_seconds(
+            "bond_heartbeat_period",
+            heartbeat_period,
+            "Seconds between heartbeats on /bond for a lifecycle manager; <= 0 disables them.",
+        )
+        service = getattr(self, "_service_change_state", None)
+        if service is not None:
+            # rclpy binds its synchronous handler at construction; ours awaits.
+            service.callback = self._serve_change_state
+        self._heartbeat: HeartbeatPublisher | None = None
+        if period > 0:
+            if status_type() is None:
+                self.get_logger().warning(
+                    "Heartbeats disabled: the 'bond' interface package is not installed"
+                )
+            else:
+                self._heartbeat = HeartbeatPublisher(self, period=period)
+        self._entities_follow_state = True
+
+    def _declare_seconds(self, name: str, default: float, description: str) -> float:
+        # dynamic_typing: a YAML ``5`` (an integer) must be accepted for seconds.
+        descriptor = ParameterDescriptor(description=description, dynamic_typing=True)
+        value = self.declare_parameter(name, float(default), descriptor).value
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise TransitionError(
+                f"parameter {name!r} must be a number of seconds, not {value!r}",
+                node=self.get_fully_qualified_name(),
+                transition="create",
+            ) from None
+
+    # -- state ---------------------------------------------------------------
+    @property
+    def lifecycle_state(self) -> LifecycleState:
+        """The node's current state (primary or transition)."""
+        state_id, label = self._state_machine.current_state
+        return LifecycleState(label=label, state_id=state_id)
+
+    @property
+    def heartbeat(self) -> HeartbeatPublisher | None:
+        """The node's heartbeat publisher, if heartbeats are on."""
+        return self._heartbeat
+
+    # -- transitions -----------------------------------------------------------
+    async def transition(self, label: str, *, timeout: float | None = None) -> bool:
+        """Carry out one transition (``configure``, ``activate``, ``shutdown``, ...).
+
+        :param timeout: seconds each callback may take; the
+            ``transition_timeout`` parameter when ``None``.
+        :return: ``True`` when the callback succeeded and the node reached the
+            transition's goal; ``False`` on failure, error, timeout, or when
+            the transition is not available from the current state.
+        """
+        return await self._request(label, timeout=timeout) is SUCCESS
+
+    async def fail(self, error: BaseException | None = None) -> str:
+        """Send an active node through error processing; return the state it ends in.
+
+        The route is the one rcl offers out of ``active``: ``deactivate``
+        (without running ``on_deactivate``: the node is faulty), then the
+        error transition to ``errorprocessing``, where ``on_error`` decides
+        between ``unconfigured`` and ``finalized``. Each step appears on
+        ``transition_event``. A node that is not active is left alone.
+        """
+        async with self._transition_lock:
+            if self.lifecycle_state.label != "active":
+                return self.lifecycle_state.label
+            detail = f" after {type(error).__name__}: {error}" if error is not None else ""
+            self.get_logger().error(f"Entering error processing{detail}")
+            await self._carry_out(
+                lifecycle_msgs.msg.Transition.TRANSITION_DEACTIVATE,
+                timeout=self._timeout(None),
+                inline=False,
+                forced=ERROR,
+            )
+            final = self.lifecycle_state.label
+            self.get_logger().info(f"Error processing done: the node is {final}")
+            return final
+
+    async def _request(
+        self, request: str | int, *, timeout: float | None
+    ) -> TransitionCallbackReturn | None:
+        async with self._transition_lock:
+            transition_id = self._resolve(request)
+            if transition_id is None:
+                self._refuse(request)
+                return None
+            return await self._carry_out(
+                transition_id, timeout=self._timeout(timeout), inline=False
+            )
+
+    def _timeout(self, timeout: float | None) -> float | None:
+        if timeout is None:
+            value = self.get_parameter("transition_timeout").value
+            timeout = float(value) if value is not None else 0.0
+        return timeout if timeout > 0 else None
+
+    def _resolve(self, request: str | int) -> int | None:
+        """The id of the requested transition if available from the current state."""
+        for transition_id, label, *_ in self._state_machine.available_transitions:
+            if request == transition_id or request == label:
+                return int(transition_id)
+        return None
+
+    def _refuse(self, request: str | int) -> None:
+        available = ", ".join(
+            f"{label} [{tid}]" for tid, label, *_ in self._state_machine.available_transitions
+        )
+        self.get_logger().warning(
+            f"Transition {request!r} is not available from state "
+            f"'{self.lifecycle_state.label}'; available: {available or 'none'}"
+        )
+
+    async def _carry_out(
+        self,
+        transition_id: int,
+        *,
+        timeout: float | None,
+        inline: bool,
+        forced: TransitionCallbackReturn | None = None,
+    ) -> TransitionCallbackReturn:
+        machine = self._state_machine
+        start = self.lifecycle_state
+        machine.trigger_transition_by_id(transition_id, True)
+        middle = self.lifecycle_state
+        if start.label == "active":
+            self._pause_timers()
+        self._follow_state(middle)
+        try:
+            if forced is not None:
+                outcome = forced
+            else:
+                outcome = await self._invoke(middle, start, timeout=timeout, inline=inline)
+            machine.trigger_transition_by_label(outcome.to_label(), True)
+            if outcome == ERROR:
+                recovery = await self._invoke(
+                    self.lifecycle_state, start, timeout=timeout, inline=inline
+                )
+                machine.trigger_transition_by_label(recovery.to_label(), True)
+        except asyncio.CancelledError:
+            # Whoever waited gave up: never leave the node in a transition state.
+            self._fail_back()
+            raise
+        finally:
+            self._follow_state(self.lifecycle_state)
+        return outcome
+
+    def _fail_back(self) -> None:
+        machine = self._state_machine
+        if self.lifecycle_state.state_id >= State.TRANSITION_STATE_CONFIGURING:
+            machine.trigger_transition_by_label(FAILURE.to_label(), True)
+
+    async def _invoke(
+        self,
+        state: LifecycleState,
+        previous: LifecycleState,
+        *,
+        timeout: float | None,
+        inline: bool,
+    ) -> TransitionCallbackReturn:
+        """Run the callback of transition state ``state``; translate what it did."""
+        name = _CALLBACKS.get(state.state_id)
+        if name is None:
+            return SUCCESS
+        callback: Callable[[LifecycleState], Any] = getattr(self, name)
+        try:
+            if inline:
+                result = callback(previous)
+                if inspect.isawaitable(result):
+                    _discard(result)
+                    raise TypeError(f"{name}() is asynchronous; await node.transition() instead")
+            elif inspect.iscoroutinefunction(callback):
+                result = await asyncio.wait_for(callback(previous), timeout)
+            else:
+                result = await asyncio.wait_for(_in_thread(callback, previous, name), timeout)
+        except asyncio.TimeoutError:
+            self.get_logger().error(
+                f"{name}() did not finish within {timeout:g} s; the transition fails"
+            )
+            return FAILURE
+        except Exception as exc:
+            details = "".join(traceback.format_exception(exc)).rstrip()
+            self.get_logger().error(f"{name}() raised {type(exc).__name__}: {exc}\n{details}")
+            return ERROR
+        if not isinstance(result, TransitionCallbackReturn):
+            self.get_logger().error(
+                f"{name}() returned {result!r}, not a TransitionCallbackReturn"
+            )
+            return ERROR
+        return result
+
+    # -- rclpy's synchronous entry points -------------------------------------------
+    def trigger_configure(self) -> TransitionCallbackReturn:
+        return self._trigger_now("configure")
+
+    def trigger_cleanup(self) -> TransitionCallbackReturn:
+        return self._trigger_now("cleanup")
+
+    def trigger_activate(self) -> TransitionCallbackReturn:
+        return self._trigger_now("activate")
+
+    def trigger_deactivate(self) -> TransitionCallbackReturn:
+        return self._trigger_now("deactivate")
+
+    def trigger_shutdown(self) -> TransitionCallbackReturn:
+        return self._trigger_now("shutdown")
+
+    def _trigger_now(self, label: str) -> TransitionCallbackReturn:
+        """Run a transition to completion in the caller's thread (sync callbacks only).
+
+        :raises TransitionError: the transition is unavailable, another one is
+            running, or a callback is asynchronous.
+        """
+        name = self.get_fully_qualified_name()
+        if self._transition_lock.locked():
+            raise TransitionError("another transition is running", node=name, transition=label)
+        transition_id = self._resolve(label)
+        if transition_id is None:
+            raise TransitionError(
+                f"not available from state '{self.lifecycle_state.label}'",
+                node=name,
+                transition=label,
+            )
+        goal = next(t[4] for t in self._state_machine.available_transitions if t[0] == transition_id)
+        for callback_name in (_CALLBACKS[goal], "on_error"):
+            if inspect.iscoroutinefunction(getattr(self, callback_name)):
+                raise TransitionError(
+                    f"{callback_name}() is asynchronous; await node.transition({label!r})",
+                    node=name,
+                    transition=label,
+                )
+        # With synchronous callbacks run inline the coroutine never suspends.
+        step = self._carry_out(transition_id, timeout=None, inline=True)
+        try:
+            step.send(None)
+        except StopIteration as done:
+            outcome: TransitionCallbackReturn = done.value
+            return outcome
+        step.close()
+        raise TransitionError("a callback returned an awaitable", node=name, transition=label)
+
+    # -- the change_state service ------------------------------------------------
+    async def _serve_change_state(
+        self,
+        request: lifecycle_msgs.srv.ChangeState.Request,
+        response: lifecycle_msgs.srv.ChangeState.Response,
+    ) -> lifecycle_msgs.srv.ChangeState.Response:
+        # rclpy resolves a label first when one is given; so do we.
+        wanted: str | int = request.transition.label or request.transition.id
+        response.success = await self._request(wanted, timeout=None) is SUCCESS
+        return response
+
+    # -- entities that follow the state ---------------------------------------------
+    def create_publisher(
+        self,
+        msg_type: Any,
+        topic: str,
+        qos_profile: QoSProfile | int,
+        *,
+        managed: bool = True,
+        **kwargs: Any,
+    ) -> Publisher:
+        """Create a publisher that publishes only while the node is active.
+
+        :param managed: ``False`` for an ordinary, always-on publisher.
+        """
+        if managed and self._entities_follow_state and "publisher_class" not in kwargs:
+            publisher: Publisher = self.create_lifecycle_publisher(
+                msg_type, topic, qos_profile, **kwargs
+            )
+            return publisher
+        return super().create_publisher(msg_type, topic, qos_profile, **kwargs)
+
+    def create_lifecycle_publisher(self, *args: Any, **kwargs: Any) -> LifecyclePublisher:
+        publisher: LifecyclePublisher = super().create_lifecycle_publisher(*args, **kwargs)
+        state = self.lifecycle_state
+        if state.label in _PUBLISHING:
+            publisher.on_activate(state)
+        return publisher
+
+    def destroy_publisher(self, publisher: Publisher) -> bool:
+        self._managed_entities.discard(publisher)
+        return super().destroy_publisher(publisher)
+
+    def create_timer(
+        self,
+        timer_period_sec: float,
+        callback: Callable[..., Any],
+        callback_group: CallbackGroup | None = None,
+        clock: Clock | None = None,
+        autostart: bool = True,
+        *,
+        managed: bool = True,
+    ) -> Timer:
+        """Create a timer that runs only while the node is active.
+
+        :param managed: ``False`` for an ordinary timer that runs in every state.
+        """
+        if not (managed and self._entities_follow_state):
+            return super().create_timer(timer_period_sec, callback, callback_group, clock, autostart)
+        running = autostart and self.lifecycle_state.label == "active"
+        timer = super().create_timer(timer_period_sec, callback, callback_group, clock, running)
+        self._managed_timers.add(timer)
+        if autostart and not running:
+            self._paused_timers.add(timer)
+        return timer
+
+    def destroy_timer(self, timer: Timer) -> bool:
+        self._managed_timers.discard(timer)
+        self._paused_timers.discard(timer)
+        return super().destroy_timer(timer)
+
+    def _pause_timers(self) -> None:
+        for timer in self._managed_timers:
+            if not timer.is_canceled():
+                timer.cancel()
+                self._paused_timers.add(timer)
+
+    def _follow_state(self, state: LifecycleState) -> None:
+        enabled = state.label in _PUBLISHING
+        for entity in list(self._managed_entities):
+            if isinstance(entity, LifecyclePublisher) and entity.is_activated != enabled:
+                if enabled:
+                    entity.on_activate(state)
+                else:
+                    entity.on_deactivate(state)
+        if state.label == "active":
+            for timer in self._paused_timers:
+                timer.reset()
+            self._paused_timers.clear()
+
+    def destroy_node(self) -> None:
+        if self._heartbeat is not None:
+            self._heartbeat.close()
+            self._heartbeat = None
+        super().destroy_node()
+
+
+async def _in_thread(
+    callback: Callable[[LifecycleState], Any], previous: LifecycleState, name: str
+) -> Any:
+    """Run a plain callback on its own thread, so a blocking one stalls only its node."""
+    loop = asyncio.get_running_loop()
+    outcome: asyncio.Future[Any] = loop.create_future()
+
+    def settle(value: Any, error: BaseException | None) -> None:
+        if outcome.done():
+            return
+        if error is not None:
+            outcome.set_exception(error)
+        else:
+            outcome.set_result(value)
+
+    def run() -> None:
+        try:
+            value, error = callback(previous), None
+        except BaseException as exc:  # handed to the awaiting coroutine
+            value, error = None, exc
+        if not loop.is_closed():
+            loop.call_soon_threadsafe(settle, value, error)
+
+    threading.Thread(target=run, name=f"transition:{name}", daemon=True).start()
+    return await outcome
+
+
+def _discard(awaitable: Any) -> None:
+    close = getattr(awaitable, "close", None)
+    if close is not None:
+        close()

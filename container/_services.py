@@ -1,0 +1,125 @@
+"""The container services: ``~/_container/load_node``, ``unload_node``, ``list_nodes``.
+
+They are what makes a node a component container to ``ros2 component`` and
+``container load``: any client of ``composition_interfaces`` can drive this
+container exactly like rclcpp's. Every request goes through
+:meth:`ComponentManager.load` / :meth:`ComponentManager.unload`, the same code
+paths ``container run`` uses, and a bad request only ever costs its own
+``success=false`` answer: the container serves on.
+
+The callbacks are ``async def`` so they run on the executor's loop thread,
+where the container's bookkeeping lives; load and unload share one mutually
+exclusive group so that requests apply in the order they arrive, while
+``list_nodes`` has its own group and answers even during a slow unload.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.parameter import Parameter
+
+from ._container import LoadRequest
+from ._errors import ContainerError, LoadError
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from rclpy.service import Service
+
+    from ._container import ComponentManager
+
+__all__ = ["ContainerServices", "load_request_from_msg"]
+
+#: Names relative to the container node, as rclcpp serves them.
+LOAD_NODE = "~/_container/load_node"
+UNLOAD_NODE = "~/_container/unload_node"
+LIST_NODES = "~/_container/list_nodes"
+
+
+def load_request_from_msg(msg: LoadNode.Request) -> LoadRequest:
+    """Translate a LoadNode request into the container's :class:`LoadRequest`.
+
+    :raises LoadError: a parameter or extra argument carries an invalid type.
+    """
+    return LoadRequest(
+        package=msg.package_name,
+        plugin=msg.plugin_name,
+        name=msg.node_name or None,
+        namespace=msg.node_namespace or None,
+        remap_rules=tuple(msg.remap_rules),
+        parameters=_parameters(msg.parameters, what="parameter"),
+        extra_arguments={
+            p.name: p.value for p in _parameters(msg.extra_arguments, what="extra argument")
+        },
+        log_level=msg.log_level,
+    )
+
+
+def _parameters(messages: Sequence[ParameterMsg], *, what: str) -> tuple[Parameter, ...]:
+    parameters = []
+    for message in messages:
+        try:
+            parameters.append(Parameter.from_parameter_msg(message))
+        except (ValueError, TypeError) as exc:
+            # An out-of-range type id, or a value rclpy cannot hold.
+            raise LoadError(f"Invalid {what} '{message.name}': {exc}") from exc
+    return tuple(parameters)
+
+
+class ContainerServices:
+    """Serve LoadNode, UnloadNode and ListNodes on a :class:`ComponentManager`.
+
+    The services live as long as the container node, or until :meth:`destroy`.
+    """
+
+    def __init__(self, manager: ComponentManager) -> None:
+        self._manager = manager
+        changes = MutuallyExclusiveCallbackGroup()
+        self._services: list[Service] = [
+            manager.create_service(LoadNode, LOAD_NODE, self._load, callback_group=changes),
+            manager.create_service(UnloadNode, UNLOAD_NODE, self._unload, callback_group=changes),
+            manager.create_service(
+                ListNodes, LIST_NODES, self._list, callback_group=MutuallyExclusiveCallbackGroup()
+            ),
+        ]
+
+    def destroy(self) -> None:
+        """Stop serving (idempotent); the container node stays."""
+        for service in self._services:
+            self._manager.destroy_service(service)
+        self._services.clear()
+
+    async def _load(self, request: LoadNode.Request, response: LoadNode.Response) -> Any:
+        log = self._manager.get_logger()
+        try:
+            loaded = self._manager.load(load_request_from_msg(request))
+        except ContainerError as exc:
+            log.error(f"Refused to load {request.package_name}::{request.plugin_name}: {exc}")
+            response.success = False
+            response.error_message = str(exc)
+            return response
+        response.success = True
+        response.full_node_name = loaded.full_name
+        response.unique_id = loaded.unique_id
+        return response
+
+    async def _unload(self, request: UnloadNode.Request, response: UnloadNode.Response) -> Any:
+        try:
+            await self._manager.unload(request.unique_id)
+        except ContainerError as exc:
+            self._manager.get_logger().error(f"Refused to unload: {exc}")
+            response.success = False
+            response.error_message = str(exc)
+            return response
+        response.success = True
+        return response
+
+    async def _list(self, request: ListNodes.Request, response: ListNodes.Response) -> Any:
+        loaded = self._manager.loaded()
+        response.full_node_names = [entry.full_name for entry in loaded]
+        response.unique_ids = [entry.unique_id for entry in loaded]
+        return response

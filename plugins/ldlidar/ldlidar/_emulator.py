@@ -1,0 +1,326 @@
+"""A LiDAR you can run without one: a room, a packet generator, a pseudo-terminal.
+
+:class:`PacketGenerator` makes the byte stream a device in a :class:`Room`
+would send (real packet format, real rates, a 30,000 ms wrapping clock).
+:class:`Emulator` writes it to a pseudo-terminal in real time, with faults
+on demand; a pty ignores the baud rate, so the emulator paces itself at the
+model's packet rate.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+import tty
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ._bulk import crc_rows
+from ._errors import DeviceError, LidarError
+from ._protocol import (
+    ANGLE_UNITS,
+    HEADER,
+    PACKET_SIZE,
+    PACKET_TYPE,
+    POINTS_PER_PACKET,
+    TIMESTAMP_WRAP_MS,
+    Model,
+    encode_health,
+    get_model,
+)
+
+__all__ = ["Emulator", "PacketGenerator", "Room"]
+
+_State = Literal["unopened", "running", "unplugged", "closed"]
+
+
+@dataclass(frozen=True, slots=True)
+class Room:
+    """A rectangular room around the sensor and a round object pacing in it.
+
+    Coordinates are metres in the sensor's frame (x forward, y left); the
+    object moves along x at height *object_y*, back and forth over
+    *object_travel* metres every *object_period* seconds.
+    """
+
+    x_min: float = -2.0
+    x_max: float = 4.0
+    y_min: float = -1.5
+    y_max: float = 2.5
+    object_radius: float = 0.25
+    object_x: float = 1.5
+    object_y: float = -0.6
+    object_travel: float = 1.2
+    object_period: float = 8.0
+    noise_mm: float = 4.0
+    dropout: float = 0.004
+    max_range: float = 12.0
+
+    def object_centre(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        x = self.object_x + self.object_travel * np.sin(2 * math.pi * t / self.object_period)
+        return x, self.object_y
+
+    def measure(
+        self,
+        theta: NDArray[np.float64],
+        t: NDArray[np.float64],
+        rng: np.random.Generator,
+    ) -> tuple[NDArray[np.uint16], NDArray[np.uint8]]:
+        """Return distances (mm) and intensities seen along clockwise angles *theta* (degrees)."""
+        rad = np.radians(theta)
+        dx = np.cos(rad)
+        dy = -np.sin(rad)
+        with np.errstate(divide="ignore"):
+            tx = np.where(dx > 0, self.x_max / dx, np.where(dx < 0, self.x_min / dx, np.inf))
+            ty = np.where(dy > 0, self.y_max / dy, np.where(dy < 0, self.y_min / dy, np.inf))
+        wall = np.minimum(tx, ty)
+        cx, cy = self.object_centre(t)
+        along = dx * cx + dy * cy
+        disc = along**2 - (cx**2 + cy**2) + self.object_radius**2
+        hit = np.where(disc >= 0, along - np.sqrt(np.maximum(disc, 0)), np.inf)
+        hit = np.where(hit > 0, hit, np.inf)
+        on_object = hit < wall
+        dist = np.minimum(wall, hit) * 1000 + rng.normal(0, self.noise_mm, theta.shape)
+        intensity = np.where(on_object, 120, 200) + rng.integers(-8, 9, theta.shape)
+        lost = (dist > self.max_range * 1000) | (rng.random(theta.shape) < self.dropout)
+        dist = np.where(lost, 0, np.clip(dist, 0, 65535))
+        intensity = np.where(lost, 0, intensity)
+        return dist.astype(np.uint16), intensity.astype(np.uint8)
+
+
+class PacketGenerator:
+    """The packets a device in a room sends, in order, as bytes.
+
+    :param model: a :class:`Model` or its name.
+    :param room: the scene; a default :class:`Room` if not given.
+    :param scan_hz: rotation rate (the LD06's PWM-less default is about 10 Hz).
+    :param start_ms: the device clock at the first packet.
+    :param seed: noise seed, for reproducible streams.
+    """
+
+    def __init__(
+        self,
+        model: Model | str = "LD06",
+        *,
+        room: Room | None = None,
+        scan_hz: float | None = None,
+        start_ms: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        self.model = get_model(model) if isinstance(model, str) else model
+        self.room = room if room is not None else Room()
+        self.scan_hz = scan_hz if scan_hz is not None else self.model.scan_hz
+        self.start_ms = start_ms
+        self._rng = np.random.default_rng(seed)
+        self.count = 0
+
+    @property
+    def time(self) -> float:
+        """Device seconds at the next packet, since the generator started."""
+        return self.count / self.model.packets_per_second
+
+    def rows(self, count: int) -> NDArray[np.uint8]:
+        """Return the next *count* packets as a ``(count, 47)`` array."""
+        pps = self.model.packets_per_second
+        point_dt = 1 / self.model.points_per_second
+        t = (self.count + np.arange(count)) / pps
+        self.count += count
+        tp = t[:, None] + point_dt * np.arange(POINTS_PER_PACKET)
+        theta = (360.0 * self.scan_hz * tp) % 360.0
+        dist, inten = self.room.measure(theta, tp, self._rng)
+        start = np.rint(theta[:, 0] * 100).astype(np.int64) % ANGLE_UNITS
+        end = np.rint(theta[:, -1] * 100).astype(np.int64) % ANGLE_UNITS
+        stamp = np.rint(t * 1000 + self.start_ms).astype(np.int64) % TIMESTAMP_WRAP_MS
+
+        rows = np.zeros((count, PACKET_SIZE), dtype=np.uint8)
+        rows[:, 0] = HEADER
+        rows[:, 1] = PACKET_TYPE
+        _put_u16(rows, 2, np.full(count, round(360 * self.scan_hz)))
+        _put_u16(rows, 4, start)
+        for k in range(POINTS_PER_PACKET):
+            _put_u16(rows, 6 + 3 * k, dist[:, k])
+            rows[:, 8 + 3 * k] = inten[:, k]
+        _put_u16(rows, 42, end)
+        _put_u16(rows, 44, stamp)
+        rows[:, 46] = crc_rows(rows)
+        return rows
+
+    def packets(self, count: int) -> bytes:
+        """Return the next *count* packets as a byte string."""
+        return self.rows(count).tobytes()
+
+
+def _put_u16(rows: NDArray[np.uint8], at: int, values: NDArray[np.integer]) -> None:
+    rows[:, at] = values & 0xFF
+    rows[:, at + 1] = (values >> 8) & 0xFF
+
+
+class Emulator:
+    """An emulated LiDAR on a pseudo-terminal, paced in real time.
+
+    Use as ``async with Emulator(model="LD06") as emu:`` and open
+    :attr:`link` (stable across :meth:`unplug` / :meth:`replug`) or
+    :attr:`port` (the current ``/dev/pts/N``).
+
+    :param model: a :class:`Model` or its name.
+    :param room: the scene.
+    :param start_ms: device clock at start (set near 30,000 to see a wrap soon).
+    :param link_dir: where to put the stable symlink; a temporary directory
+        (removed on :meth:`stop`) if not given.
+    :param tick: seconds between writes; packets due in a tick go together.
+    """
+
+    def __init__(
+        self,
+        *,
+        model: Model | str = "LD06",
+        room: Room | None = None,
+        scan_hz: float | None = None,
+        start_ms: float = 0.0,
+        seed: int = 0,
+        link_dir: str | None = None,
+        tick: float = 0.005,
+    ) -> None:
+        self.generator = PacketGenerator(model, room=room, scan_hz=scan_hz, start_ms=start_ms, seed=seed)
+        self.model = self.generator.model
+        self._tick = tick
+        self._own_dir = link_dir is None
+        self._dir = link_dir
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._port: str | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._injected = bytearray()
+        self.state: _State = "unopened"
+        self.packets_sent = 0
+        self.bytes_dropped = 0
+
+    @property
+    def port(self) -> str:
+        """The current pseudo-terminal, e.g. ``/dev/pts/3``."""
+        if self._port is None:
+            raise LidarError(f"emulator is {self.state}: no port")
+        return self._port
+
+    @property
+    def link(self) -> str:
+        """A symlink to :attr:`port` that survives :meth:`replug`."""
+        if self._dir is None:
+            raise LidarError(f"emulator is {self.state}: no link")
+        return os.path.join(self._dir, f"ldlidar-{self.model.name.lower()}")
+
+    async def __aenter__(self) -> Emulator:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    async def start(self) -> None:
+        """Open the pty and start sending."""
+        if self.state != "unopened":
+            raise LidarError(f"emulator is {self.state}; start() needs a new one")
+        if self._dir is None:
+            self._dir = tempfile.mkdtemp(prefix="ldlidar-emu-")
+        self._plug()
+        self.state = "running"
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="ldlidar-emulator")
+
+    async def stop(self) -> None:
+        """Stop sending and close the pty; safe to call twice."""
+        if self.state == "closed":
+            return
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        self._unplug()
+        if self._own_dir and self._dir is not None:
+            shutil.rmtree(self._dir, ignore_errors=True)
+        self.state = "closed"
+
+    def inject(self, data: bytes) -> None:
+        """Send *data* raw, between two packets, at the next tick."""
+        self._injected += data
+
+    def inject_garbage(self, count: int, *, seed: int | None = None) -> bytes:
+        """Send *count* random bytes; return them."""
+        data = np.random.default_rng(seed).integers(0, 256, count, dtype=np.uint8).tobytes()
+        self.inject(data)
+        return data
+
+    def inject_health(self, code: int = 0) -> None:
+        """Send a health frame with error *code*."""
+        self.inject(encode_health(code))
+
+    async def unplug(self) -> None:
+        """Close the pty as a pulled USB adapter would; the link disappears."""
+        if self.state != "running":
+            raise LidarError(f"emulator is {self.state}; cannot unplug")
+        self._unplug()
+        self.state = "unplugged"
+
+    async def replug(self) -> None:
+        """Open a new pty behind the same :attr:`link`."""
+        if self.state != "unplugged":
+            raise LidarError(f"emulator is {self.state}; cannot replug")
+        self._plug()
+        self.state = "running"
+
+    def _plug(self) -> None:
+        try:
+            master, slave = os.openpty()
+        except OSError as exc:
+            raise DeviceError(f"cannot open a pseudo-terminal: {exc}", device="emulator") from exc
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self._port = os.ttyname(slave)
+        tmp = self.link + ".new"
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        os.symlink(self._port, tmp)
+        os.replace(tmp, self.link)
+
+    def _unplug(self) -> None:
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                os.close(fd)
+        self._master = self._slave = None
+        self._port = None
+        if self._dir is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.link)
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        pps = self.model.packets_per_second
+        begin = loop.time()
+        while True:
+            due = int((loop.time() - begin) * pps) - self.generator.count
+            if due > 0:
+                data = bytes(self._injected) + self.generator.packets(due)
+                self._injected.clear()
+                if self._master is None:
+                    self.bytes_dropped += len(data)
+                else:
+                    self.packets_sent += due
+                    self._write(data)
+            await asyncio.sleep(self._tick)
+
+    def _write(self, data: bytes) -> None:
+        """Write without blocking; a device without a listener loses bytes too."""
+        assert self._master is not None
+        try:
+            written = os.write(self._master, data)
+        except (BlockingIOError, OSError):
+            written = 0
+        self.bytes_dropped += len(data) - written

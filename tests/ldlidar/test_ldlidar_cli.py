@@ -1,0 +1,139 @@
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ldlidar import PacketGenerator, ScanAssembler, StreamParser, encode_png, render_scan
+from ldlidar._cli import main
+from ldlidar_support import PLUGIN
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "ldlidar", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONPATH": str(PLUGIN)},
+    )
+
+
+def test_decode_prints_the_capture_summary(capture: Path) -> None:
+    out = run_cli("decode", str(capture))
+    assert out.returncode == 0, out.stderr
+    lines = dict(line.split(":", 1) for line in out.stdout.splitlines())
+    assert lines["packets"].strip() == "863"
+    assert lines["crc errors"].strip() == "0"
+    assert lines["revolutions"].strip() == "22"
+    assert lines["scan rate"].strip().startswith("10.0")
+    assert "packets/s" in lines["packet rate"]
+
+
+def test_decode_json_is_one_object(capture: Path) -> None:
+    out = run_cli("decode", "--json", str(capture))
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout)
+    assert summary["packets"] == 863
+    assert summary["crc_errors"] == 0
+    assert summary["revolutions"] == 22
+    assert summary["resyncs"] == 2 and summary["skipped_bytes"] == 49
+    assert summary["packet_rate_hz"] == pytest.approx(379, abs=2)
+    assert summary["scan_rate_hz"] == pytest.approx(10, abs=0.1)
+
+
+def test_decode_counts_faults(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    data = PacketGenerator("STL27L").packets(2000)
+    broken = data[:4720] + b"\x00garbage" + data[4730:]  # packet 100 loses bytes 20..29
+    path = tmp_path / "broken.bin"
+    path.write_bytes(broken)
+    assert main(["decode", "--json", str(path)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["packets"] == 1999
+    assert summary["crc_errors"] >= 1 and summary["resyncs"] == 1
+    assert summary["revolutions"] == 10
+
+
+@pytest.mark.parametrize("json_flag", [[], ["--json"]])
+def test_decode_missing_file_exits_2_with_a_message(tmp_path: Path, json_flag: list[str]) -> None:
+    out = run_cli("decode", *json_flag, str(tmp_path / "nope.bin"))
+    assert out.returncode == 2
+    assert out.stdout == ""
+    assert "nope.bin" in out.stderr and "No such file" in out.stderr
+
+
+def test_decode_unreadable_path_exits_2(tmp_path: Path) -> None:
+    out = run_cli("decode", str(tmp_path))  # a directory
+    assert out.returncode == 2
+    assert "cannot read capture" in out.stderr
+
+
+def read_png(data: bytes) -> np.ndarray:
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos = 8
+    idat = b""
+    header = None
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind = data[pos + 4 : pos + 8]
+        body = data[pos + 8 : pos + 8 + length]
+        (crc,) = struct.unpack(">I", data[pos + 8 + length : pos + 12 + length])
+        assert zlib.crc32(kind + body) == crc
+        if kind == b"IHDR":
+            header = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + length
+    assert header is not None
+    width, height, depth, colour = header[:4]
+    assert (depth, colour) == (8, 2)
+    raw = np.frombuffer(zlib.decompress(idat), dtype=np.uint8).reshape(height, 1 + 3 * width)
+    assert np.all(raw[:, 0] == 0)
+    return raw[:, 1:].reshape(height, width, 3)
+
+
+def test_png_round_trips() -> None:
+    image = np.random.default_rng(0).integers(0, 256, (7, 5, 3), dtype=np.uint8)
+    assert np.array_equal(read_png(encode_png(image)), image)
+
+
+def test_render_puts_walls_where_the_room_is() -> None:
+    parser = StreamParser()
+    assembler = ScanAssembler(bins=720)
+    scans = [s for p in parser.feed(PacketGenerator("LD06").packets(100)) for s in assembler.push(p)]
+    image = render_scan(scans[0], size=400, extent=5.0)
+    blue = np.all(image == (20, 60, 200), axis=2)
+    scale = (400 / 2 - 4) / 5.0
+    # The default room's front wall is 4 m ahead (up) and its right wall 1.5 m to the right.
+    front_row = round(200 - 4.0 * scale)
+    right_col = round(200 + 1.5 * scale)
+    assert blue[front_row - 2 : front_row + 3, 190:210].any()
+    assert blue[190:210, right_col - 2 : right_col + 3].any()
+    assert not blue[front_row - 2 : front_row + 3, right_col + 20 :].any()  # nothing outside the room
+
+
+def test_render_command_writes_a_png(tmp_path: Path, capture: Path) -> None:
+    out = tmp_path / "scan.png"
+    result = run_cli("render", str(capture), "-o", str(out), "--revolution", "3", "--size", "300")
+    assert result.returncode == 0, result.stderr
+    image = read_png(out.read_bytes())
+    assert image.shape == (300, 300, 3)
+    assert np.count_nonzero(np.all(image == (20, 60, 200), axis=2)) > 200
+
+
+def test_render_from_the_emulator(tmp_path: Path) -> None:
+    out = tmp_path / "emu.png"
+    assert main(["render", "emu:STL27L", "-o", str(out), "--size", "200"]) == 0
+    assert read_png(out.read_bytes()).shape == (200, 200, 3)
+
+
+def test_render_asks_for_a_revolution_that_is_not_there(tmp_path: Path, capture: Path) -> None:
+    result = run_cli("render", str(capture), "-o", str(tmp_path / "x.png"), "--revolution", "99")
+    assert result.returncode == 2
+    assert "22 complete revolutions" in result.stderr

@@ -1,0 +1,69 @@
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import ldlidar
+from ldlidar_support import CAPTURE, PLUGIN
+
+EXPECTED = {
+    "HEADER", "HEALTH_SIZE", "HEALTH_TYPE", "INFO_SIZE", "INFO_TYPE", "MODELS",
+    "PACKET_SIZE", "PACKET_TYPE", "POINTS_PER_PACKET", "TIMESTAMP_WRAP_MS",
+    "DecodedStream", "DeviceClock", "DeviceError", "Direction", "Emulator", "Lidar",
+    "LidarError", "Model", "Packet", "PacketGenerator", "ParserStats", "ProtocolError",
+    "ReplaySource", "Room", "Scan", "ScanAssembler", "SerialSource", "Source",
+    "StreamParser", "crc8", "decode_bytes", "decode_file", "decode_packet",
+    "encode_health", "encode_info", "encode_packet", "encode_png", "get_model",
+    "open_source", "render_scan",
+}
+
+
+def test_public_names_are_exactly_the_curated_set() -> None:
+    assert set(ldlidar.__all__) == EXPECTED
+
+
+def test_every_public_name_resolves() -> None:
+    for name in ldlidar.__all__:
+        assert getattr(ldlidar, name) is not None, name
+
+
+def test_unknown_attribute_raises() -> None:
+    try:
+        ldlidar.nope  # type: ignore[attr-defined]  # noqa: B018
+    except AttributeError as exc:
+        assert "nope" in str(exc)
+    else:
+        raise AssertionError("no AttributeError")
+
+
+def test_errors_form_one_hierarchy() -> None:
+    assert issubclass(ldlidar.ProtocolError, ldlidar.LidarError)
+    assert issubclass(ldlidar.DeviceError, ldlidar.LidarError)
+    err = ldlidar.DeviceError("gone", device="/dev/ttyUSB0")
+    assert err.device == "/dev/ttyUSB0" and "gone" in str(err)
+
+
+def test_decode_command_imports_neither_asyncio_serial_nor_rclpy(tmp_path) -> None:
+    capture = CAPTURE if CAPTURE.is_file() else tmp_path / "empty.bin"
+    capture.touch(exist_ok=True)
+    script = (
+        "import sys, runpy, io, contextlib\n"
+        f"sys.argv = ['ldlidar', 'decode', '--json', {str(capture)!r}]\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    try:\n"
+        "        runpy.run_module('ldlidar', run_name='__main__')\n"
+        "    except SystemExit as exc:\n"
+        "        assert exc.code == 0, exc.code\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('asyncio', 'serial', 'serial_asyncio', 'rclpy'))\n"
+        "print(bad)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONPATH": str(PLUGIN)},
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

@@ -1,0 +1,166 @@
+"""``container load|unload|list|types``: ``ros2 component``'s output and exit codes.
+
+Each command runs as its own process against a ``container run`` process,
+as a user would type it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from container_support import REPO, ContainerProcess
+
+EMPTY = "container:\n  name: ComponentManager\n"
+PLUGIN_SOURCE = REPO / "examples" / "thirdparty_plugin"
+
+
+def container_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "container", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
+
+
+def test_load_list_unload_like_ros2_component(run_container: Callable[..., ContainerProcess]) -> None:
+    run_container(EMPTY)
+    result = container_cli("list")
+    assert (result.returncode, result.stdout) == (0, "/ComponentManager\n"), result.stderr
+
+    result = container_cli("load", "/ComponentManager", "lifecycle_container", "lifecycle_container::Talker")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == "Loaded component 1 into '/ComponentManager' container node as '/talker'\n"
+
+    result = container_cli(
+        "load", "/ComponentManager", "lifecycle_container", "Listener",
+        "-n", "ear", "--node-namespace", "/demo", "--log-level", "DEBUG",
+        "-r", "chatter:=/elsewhere", "-p", "unused:=3", "-e", "use_intra_process_comms:=true",
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == "Loaded component 2 into '/ComponentManager' container node as '/demo/ear'\n"
+
+    result = container_cli("load", "-q", "/ComponentManager", "lifecycle_container", "Talker", "-n", "quiet")
+    assert (result.returncode, result.stdout) == (0, "3\n"), result.stderr
+
+    result = container_cli("list", "/ComponentManager")
+    assert (result.returncode, result.stdout) == (0, "1  /talker\n2  /demo/ear\n3  /quiet\n"), result.stderr
+
+    result = container_cli("list")
+    assert result.stdout == "/ComponentManager\n  1  /talker\n  2  /demo/ear\n  3  /quiet\n", result.stderr
+
+    result = container_cli("list", "--containers-only")
+    assert (result.returncode, result.stdout) == (0, "/ComponentManager\n"), result.stderr
+
+    result = container_cli("unload", "/ComponentManager", "1", "3")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == (
+        "Unloaded component 1 from '/ComponentManager' container node\n"
+        "Unloaded component 3 from '/ComponentManager' container node\n"
+    )
+    result = container_cli("list", "/ComponentManager")
+    assert (result.returncode, result.stdout) == (0, "2  /demo/ear\n"), result.stderr
+
+
+def test_refusals_print_the_reason_and_exit_1(run_container: Callable[..., ContainerProcess]) -> None:
+    proc = run_container(EMPTY)
+    result = container_cli("load", "/ComponentManager", "no_such_package", "no_such_package::X")
+    assert result.returncode == 1
+    assert result.stdout == ""
+    assert result.stderr == "Failed to load component: Could not find requested resource in ament index\n"
+
+    result = container_cli(
+        "load", "/ComponentManager", "lifecycle_container", "Talker", "-e", "bogus:=true"
+    )
+    assert result.returncode == 1
+    assert result.stderr == "Failed to load component: Extra component argument 'bogus' is not supported\n"
+
+    result = container_cli("load", "/ComponentManager", "lifecycle_container", "Talker", "-p", "rate:=fast")
+    assert result.returncode == 1
+    assert "Failed to load component: Component constructor threw an exception" in result.stderr
+
+    result = container_cli("unload", "/ComponentManager", "5")
+    assert result.returncode == 1
+    assert result.stderr == (
+        "Failed to unload component 5 from '/ComponentManager' container node\n"
+        "    No node found with unique_id: 5\n"
+    )
+    # The container served on: the next load succeeds, with the first id.
+    result = container_cli("load", "/ComponentManager", "lifecycle_container", "Talker")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("Loaded component 1 ")
+    assert proc.process.poll() is None
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("load", "/x", "lifecycle_container", "Talker"),
+        ("unload", "/x", "1"),
+        ("list", "/x"),
+    ],
+)
+def test_missing_container(args: tuple[str, ...]) -> None:
+    result = container_cli(*args, "--spin-time", "1")
+    assert result.returncode == 1
+    assert result.stdout == ""
+    assert result.stderr == "Unable to find container node '/x'\n"
+
+
+def test_malformed_parameter_is_a_usage_error() -> None:
+    result = container_cli("load", "/c", "pkg", "Type", "-p", "no_separator")
+    assert result.returncode == 2
+    assert "expected 'name:=value'" in result.stderr
+
+
+def test_types_lists_the_installed_plugins() -> None:
+    result = container_cli("types")
+    assert result.returncode == 0, result.stderr
+    assert "lifecycle_container\n  lifecycle_container::Listener\n  lifecycle_container::Talker\n" in result.stdout
+
+
+@pytest.fixture(scope="module")
+def plugin_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """examples/thirdparty_plugin, installed with pip into a directory of its own."""
+    site = tmp_path_factory.mktemp("thirdparty-site")
+    subprocess.run(
+        [
+            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
+            "--target", str(site), str(PLUGIN_SOURCE),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    return site
+
+
+def test_pip_installed_plugin_appears_in_types_and_loads_from_the_command_line(
+    plugin_site: Path,
+    run_container: Callable[..., ContainerProcess],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join(filter(None, [str(plugin_site), os.environ.get("PYTHONPATH")]))
+    )
+    result = container_cli("types")
+    assert result.returncode == 0, result.stderr
+    assert "greeter_nodes\n  greeter_nodes::Greeter\n" in result.stdout
+
+    proc = run_container(EMPTY)
+    result = container_cli(
+        "load", "/ComponentManager", "greeter_nodes", "greeter_nodes::Greeter", "-p", "name:=tests"
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == "Loaded component 1 into '/ComponentManager' container node as '/greeter'\n"
+    result = container_cli("unload", "/ComponentManager", "1")
+    assert result.returncode == 0, result.stderr
+    proc.wait_for_line("Unloaded '/greeter'")

@@ -1,0 +1,191 @@
+"""Container services from another process: load, list, unload, and every refusal.
+
+The container runs as ``container run`` in a child process; this process is
+the client, over DDS, exactly like ``ros2 component``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from rcl_interfaces.srv import GetParameters
+from rclpy.context import Context
+from rclpy.node import Node
+
+from component_support import (
+    TESTS,
+    ContainerClient,
+    graph_nodes,
+    install_test_plugin,
+    load_request,
+    parameter,
+    wait_until,
+)
+from container_support import ContainerProcess
+from container import AsyncioExecutor
+
+EMPTY = "container:\n  name: ComponentManager\n"
+
+
+@pytest.fixture
+def container(
+    run_container: Callable[..., ContainerProcess],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> ContainerProcess:
+    """An empty ``container run`` that also sees the ``test-nodes`` plugin."""
+    site = install_test_plugin(tmp_path / "site")
+    path = os.pathsep.join([str(site), str(TESTS), os.environ.get("PYTHONPATH", "")])
+    monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
+    return run_container(EMPTY)
+
+
+@pytest.fixture
+def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
+    node = Node("services_test_client", context=context)
+    executor.add_node(node)
+    yield node
+    executor.remove_node(node)
+    node.destroy_node()
+
+
+@pytest.fixture
+def client(container: ContainerProcess, client_node: Node, executor: AsyncioExecutor) -> ContainerClient:
+    return ContainerClient(client_node, executor)
+
+
+def test_load_list_unload_round_trip(
+    client: ContainerClient, client_node: Node, executor: AsyncioExecutor
+) -> None:
+    response = client.load(load_request())
+    assert (response.success, response.error_message) == (True, "")
+    assert (response.unique_id, response.full_node_name) == (1, "/talker")
+    assert client.list() == [(1, "/talker")]
+    assert wait_until(executor, lambda: "/talker" in graph_nodes(client_node))
+
+    response = client.unload(1)
+    assert (response.success, response.error_message) == (True, "")
+    assert client.list() == []
+    assert wait_until(executor, lambda: "/talker" not in graph_nodes(client_node))
+
+
+def test_load_honours_name_namespace_remaps_parameters_and_extras(
+    client: ContainerClient, client_node: Node, executor: AsyncioExecutor
+) -> None:
+    response = client.load(
+        load_request(
+            plugin="lifecycle_container::Listener",
+            name="ear",
+            namespace="demo",
+            remap_rules=["chatter:=/elsewhere"],
+            extra_arguments=[parameter("use_intra_process_comms", True)],
+            log_level=10,
+        )
+    )
+    assert response.success, response.error_message
+    assert response.full_node_name == "/demo/ear"
+    assert wait_until(
+        executor,
+        lambda: "/demo/ear" in graph_nodes(client_node)
+        and any(
+            topic == "/elsewhere"
+            for topic, _ in client_node.get_subscriber_names_and_types_by_node("ear", "/demo")
+        ),
+    ), "the remapped subscription never showed up"
+
+    response = client.load(
+        load_request(name="speaker", parameters=[parameter("message", "Remote"), parameter("rate", 7.5)])
+    )
+    assert response.success, response.error_message
+    get = client_node.create_client(GetParameters, "/speaker/get_parameters")
+    assert get.wait_for_service(timeout_sec=20.0)
+    values = client.call(get, GetParameters.Request(names=["message", "rate"])).values
+    assert (values[0].string_value, values[1].double_value) == ("Remote", 7.5)
+
+
+def test_unique_ids_count_from_one_and_are_never_reused(client: ContainerClient) -> None:
+    ids = []
+    for _ in range(3):
+        response = client.load(load_request(name="again"))
+        assert response.success, response.error_message
+        ids.append(response.unique_id)
+        assert client.unload(response.unique_id).success
+    assert ids == [1, 2, 3]
+
+
+#: (what is wrong, request, words the error message must contain)
+BAD_LOADS = [
+    ("unknown package", load_request("no_such_package", "no_such_package::X"),
+     "Could not find requested resource in ament index"),
+    ("unknown type", load_request(plugin="lifecycle_container::NoSuchType"),
+     "Failed to find class with the requested plugin name."),
+    ("type of another package", load_request(plugin="test_nodes::Busy"),
+     "Failed to find class with the requested plugin name."),
+    ("constructor that raises", load_request("test_nodes", "test_nodes::Exploding"),
+     "Component constructor threw an exception: RuntimeError: boom from the constructor"),
+    ("duplicate name", load_request(name="first"), "'/first' is already loaded (unique_id 1)"),
+    ("duplicate through remap", load_request(name="other", remap_rules=["__node:=first"]),
+     "'/first' is already loaded"),
+    ("the container's own name", load_request(name="ComponentManager"), "is the container itself"),
+    ("parameter of the wrong type", load_request(name="typed", parameters=[parameter("rate", "fast")]),
+     "InvalidParameterTypeException"),
+    ("unknown extra argument", load_request(name="extra", extra_arguments=[parameter("bogus", True)]),
+     "Extra component argument 'bogus' is not supported"),
+    ("extra argument of the wrong type",
+     load_request(name="extra", extra_arguments=[parameter("use_intra_process_comms", 1)]),
+     "Extra component argument 'use_intra_process_comms' must be a boolean"),
+    ("invalid node name", load_request(name="not a name!"), "Invalid node name"),
+    ("invalid namespace", load_request(name="ok", namespace="/bad//ns"), "Invalid node name or namespace"),
+    ("invalid remap rule", load_request(name="remapped", remap_rules=["nonsense"]), "Invalid remap rule"),
+    ("invalid log level", load_request(name="logged", log_level=7), "Invalid log_level 7"),
+]
+
+
+def test_every_bad_request_is_refused_and_the_container_keeps_serving(
+    client: ContainerClient, container: ContainerProcess
+) -> None:
+    first = client.load(load_request(name="first"))
+    assert (first.success, first.unique_id) == (True, 1)
+    good_ids = [1]
+    for index, (what, request, message) in enumerate(BAD_LOADS):
+        response = client.load(request)
+        assert not response.success, f"{what}: loaded as {response.full_node_name}"
+        assert message in response.error_message, f"{what}: {response.error_message!r}"
+        assert (response.unique_id, response.full_node_name) == (0, ""), what
+        # Still serving: the next good request succeeds.
+        good = client.load(load_request(name=f"good{index}"))
+        assert good.success, f"after {what}: {good.error_message}"
+        good_ids.append(good.unique_id)
+    # Refusals use no unique id.
+    assert good_ids == list(range(1, len(BAD_LOADS) + 2))
+    assert [uid for uid, _ in client.list()] == good_ids
+    assert container.process.poll() is None
+
+
+def test_unknown_unique_id_is_refused_with_rclcpp_wording(client: ContainerClient) -> None:
+    response = client.unload(42)
+    assert (response.success, response.error_message) == (False, "No node found with unique_id: 42")
+    loaded = client.load(load_request())
+    assert client.unload(loaded.unique_id).success
+    again = client.unload(loaded.unique_id)
+    assert (again.success, again.error_message) == (
+        False,
+        f"No node found with unique_id: {loaded.unique_id}",
+    )
+    assert client.load(load_request()).success
+
+
+def test_unload_takes_the_node_down_its_lifecycle(
+    client: ContainerClient, container: ContainerProcess
+) -> None:
+    loaded = client.load(load_request("test_nodes", "test_nodes::Busy"))
+    assert loaded.success, loaded.error_message
+    start = len(container.lines)
+    assert client.unload(loaded.unique_id).success
+    unloaded = container.wait_for_line("Unloaded '/busy'", start=start)
+    shutdown = container.wait_for_line("[busy]: shutting down from unconfigured", start=start)
+    assert container.lines.index(shutdown) < container.lines.index(unloaded)
+    assert client.list() == []

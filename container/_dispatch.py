@@ -26,6 +26,7 @@ rebuild whenever a group becomes busy or idle.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import inspect
@@ -138,6 +139,9 @@ def _is_hot_waitable(waitable: object) -> bool:
 #: See :meth:`_WaitSet._events_due`.
 _EVENT_CHECK_EVERY = 64
 
+#: Longest wait without QoS events in the wait set (ns).
+_EVENT_SKIP_MAX_NS = 50_000_000
+
 _HOT = ("subscription", "timer", "client", "guard_condition")
 _COLD = ("service",)
 
@@ -162,6 +166,7 @@ class _WaitSet:
         self._lock = threading.Lock()
         self._closed = False
         self._waits_since_events = 0
+        self._busy = False
 
     def invalidate(self) -> None:
         self._dirty = True
@@ -249,8 +254,13 @@ class _WaitSet:
         add = wait_set.add_service
         for handle in handles["service"]:
             add(handle)
-        add = wait_set.add_event
-        indices = [add(event) for event, _ in table.events]
+        events = table.events if self._events_due() else ()
+        if events:
+            add = wait_set.add_event
+            indices = [add(event) for event, _ in events]
+        elif table.events and not 0 <= timeout_ns <= _EVENT_SKIP_MAX_NS:
+            # Blocking without the events: the next wait (with them) comes soon.
+            timeout_ns = _EVENT_SKIP_MAX_NS
         for entry in table.waitables:
             entry.entity.add_to_wait_set(wait_set)
         wait_set.wait(timeout_ns)
@@ -271,39 +281,43 @@ class _WaitSet:
             for pointer in wait_set.get_ready_entities("timer"):
                 dispatcher.take_timer(by_pointer["timer"][pointer])
         messages = wait_set.get_ready_entities("subscription") if handles["subscription"] else ()
-        for pointer in messages:
-            dispatcher.take_message(by_pointer["subscription"][pointer])
+        if messages:
+            take = dispatcher.take_message
+            subscriptions = by_pointer["subscription"]
+            for pointer in messages:
+                take(subscriptions[pointer])
         if handles["client"]:
             for pointer in wait_set.get_ready_entities("client"):
                 dispatcher.take_response(by_pointer["client"][pointer])
         if handles["service"]:
             for pointer in wait_set.get_ready_entities("service"):
                 dispatcher.take_request(by_pointer["service"][pointer])
-        if not self._events_due(bool(guards_ready or messages)):
-            return flags
-        is_ready = wait_set.is_ready
-        for index, (_, entry) in zip(indices, table.events):
-            if is_ready("event", index):
-                # Hand over to rclpy's own handler for the rare ready path.
-                entry.entity._event_index = index
-                if entry.entity.is_ready(wait_set):
-                    dispatcher.take_waitable(entry)
+        self._busy = bool(guards_ready or messages)
+        if events:
+            is_ready = wait_set.is_ready
+            for index, (_, entry) in zip(indices, events):
+                if is_ready("event", index):
+                    # Hand over to rclpy's own handler for the rare ready path.
+                    entry.entity._event_index = index
+                    if entry.entity.is_ready(wait_set):
+                        dispatcher.take_waitable(entry)
         for entry in table.waitables:
             if entry.entity.is_ready(wait_set):
                 dispatcher.take_waitable(entry)
         return flags
 
-    def _events_due(self, busy: bool) -> bool:
-        """Whether to look at QoS events after this wait.
+    def _events_due(self) -> bool:
+        """Whether this wait should include QoS events.
 
-        Looking costs a call per event per wait, and events are rare. A ready
-        event left untaken makes the next wait return at once (rcl wait sets
-        are level-triggered), so it is enough to look after a wait that
-        nothing else explains, and at least every ``_EVENT_CHECK_EVERY``
-        waits so that steady traffic cannot starve an event.
+        Adding and checking them costs a call per event per wait, and events
+        are rare. A wait that may block (the last one found no traffic)
+        always includes them, so a ready event wakes an idle executor; under
+        steady traffic they are included every ``_EVENT_CHECK_EVERY`` waits,
+        and rcl wait sets are level-triggered, so a ready event waits at
+        most that many waits and is never lost.
         """
         self._waits_since_events += 1
-        if busy and self._waits_since_events < _EVENT_CHECK_EVERY:
+        if self._busy and self._waits_since_events < _EVENT_CHECK_EVERY:
             return False
         self._waits_since_events = 0
         return True
@@ -370,6 +384,10 @@ class Dispatcher:
             own_guards=lambda: [(self._cold_wake, WOKEN)],
         )
         self._cold_thread: threading.Thread | None = None
+        # Async work found by the current hot wait on the loop thread, started
+        # eagerly once the wait set's lock is released (see ``Lane.run_eager``).
+        self._dispatching = False
+        self._eager: collections.deque[tuple[Lane, Work]] = collections.deque()
         self._active = threading.Event()
         self._closed = False
 
@@ -445,7 +463,24 @@ class Dispatcher:
         """Wait on the hot wait set and dispatch; see :class:`_WaitSet`."""
         if self._hot._dirty:
             self._retire_lanes()
-        return self._hot.wait_and_dispatch(timeout_ns)
+        eager = self._on_loop_thread()
+        self._dispatching = eager
+        try:
+            flags = self._hot.wait_and_dispatch(timeout_ns)
+        finally:
+            self._dispatching = False
+        if eager:
+            queue = self._eager
+            while queue:
+                lane, work = queue.popleft()
+                lane.run_eager(work)
+        return flags
+
+    def _defer_eager(self, lane: Lane, work: Work) -> bool:
+        if not self._dispatching:
+            return False
+        self._eager.append((lane, work))
+        return True
 
     # -- taking ---------------------------------------------------------------
     def take_timer(self, entry: _Entry) -> None:
@@ -555,6 +590,7 @@ class Dispatcher:
                 on_loop_thread=self._on_loop_thread,
                 post=self._post,
                 progress=self._progress,
+                defer=self._defer_eager,
             )
             self._lanes[key] = (group, lane)
             return lane

@@ -11,6 +11,14 @@ than one new task each: creating an asyncio task costs about 7 us on Python
 callback's dispatch. Inside a runner, ``asyncio.current_task()`` is the
 runner, so ``asyncio.timeout()`` and cancellation work as in any task.
 
+Work dispatched on the loop thread starts *eagerly*, as Python 3.12's eager
+tasks do: its first step runs right after the wait that found it, with an
+idle runner entered as the current task and in that runner's context. Most
+callbacks finish in that step (take, compute, publish) and never touch the
+task machinery; one that suspends is handed to that same runner to finish.
+Python 3.11 has no eager tasks, so this uses asyncio's own
+``_enter_task``/``_leave_task``, which its tasks call around every step.
+
 Work waiting for a busy lane is kept per entity with a bound, like a DDS
 keep-last history: a subscription keeps its QoS depth of messages, a timer
 or a guard condition at most one pending firing. Without that bound a
@@ -21,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextvars
 import queue
 import threading
 import time
@@ -33,6 +42,13 @@ __all__: list[str] = []
 
 #: Runs ``callback(*args)`` on the event loop's thread soon; callable from any thread.
 Post = Callable[..., None]
+
+#: Takes async work to start eagerly after the current wait, or declines it
+#: (returns ``False``) when no wait is being dispatched on this thread.
+Defer = Callable[["Lane", "Work"], bool]
+
+_enter_task = asyncio.tasks._enter_task
+_leave_task = asyncio.tasks._leave_task
 
 
 @dataclass(eq=False, slots=True)
@@ -52,6 +68,24 @@ class Work:
     done: Callable[[Work, BaseException | None], None] = field(repr=False)
 
 
+@dataclass(eq=False, slots=True)
+class _Resume:
+    """Async work whose first step ran eagerly and suspended on ``yielded``."""
+
+    work: Work
+    coro: Any
+    yielded: Any
+
+
+@dataclass(eq=False, slots=True)
+class _Runner:
+    """A runner task, the future it idles on, and the context it runs in."""
+
+    task: asyncio.Task[None]
+    context: contextvars.Context
+    idle: asyncio.Future[Work | _Resume | None] | None = None
+
+
 class Lane:
     """Run one callback group's work within its concurrency limit.
 
@@ -68,8 +102,10 @@ class Lane:
         on_loop_thread: Callable[[], bool],
         post: Post,
         progress: Callable[[], asyncio.Future[None]],
+        defer: Defer | None = None,
     ) -> None:
         self.name = name
+        self._defer = defer
         self._post = post
         self._progress = progress
         self.limit = limit
@@ -86,8 +122,8 @@ class Lane:
         self._threads: list[threading.Thread] = []
         self._inbox: queue.SimpleQueue[Work | None] = queue.SimpleQueue()
         # Async side, touched on the loop thread only.
-        self._runners: set[asyncio.Task[None]] = set()
-        self._idle_runners: list[asyncio.Future[Work | None]] = []
+        self._runners: dict[asyncio.Task[None], _Runner] = {}
+        self._idle_runners: list[_Runner] = []
 
     # -- submission -------------------------------------------------------
     def submit(self, work: Work) -> None:
@@ -138,7 +174,8 @@ class Lane:
         if not work.is_async:
             self._hand_to_thread(work)
         elif self._on_loop_thread():
-            self._hand_to_runner(work)
+            if self._defer is None or not self._defer(self, work):
+                self._hand_to_runner(work)
         else:
             self._post(self._hand_to_runner, work)
 
@@ -179,18 +216,102 @@ class Lane:
                 self._idle_threads += 1
 
     # -- async callbacks: runner tasks -----------------------------------------
-    def _hand_to_runner(self, work: Work) -> None:
+    def _hand_to_runner(self, item: Work | _Resume) -> None:
         if self._closed:
             return
-        if self._idle_runners:
-            self._idle_runners.pop().set_result(work)
-            return
-        runner = self._loop.create_task(self._run(work), name=f"lane:{self.name}")
-        self._runners.add(runner)
-        runner.add_done_callback(self._runners.discard)
+        while self._idle_runners:
+            if self._wake(self._idle_runners.pop(), item):
+                return
+        context = contextvars.copy_context()
+        task = self._loop.create_task(self._run(item), name=f"lane:{self.name}", context=context)
+        self._runners[task] = _Runner(task, context)
+        task.add_done_callback(self._forget_runner)
+
+    def _forget_runner(self, task: asyncio.Task[None]) -> None:
+        runner = self._runners.pop(task, None)
+        if runner is not None and runner in self._idle_runners:
+            self._idle_runners.remove(runner)
+
+    @staticmethod
+    def _wake(runner: _Runner, item: Work | _Resume) -> bool:
+        """Hand ``item`` to an idle runner; ``False`` if it was cancelled meanwhile."""
+        idle, runner.idle = runner.idle, None
+        if idle is None or idle.done():
+            return False
+        idle.set_result(item)
+        return True
+
+    def run_eager(self, work: Work) -> None:
+        """Run async ``work``, whose slot is taken, up to its first suspension.
+
+        Called on the loop thread outside any task. Pending work of the lane
+        follows eagerly too, until one suspends or a plain one needs a thread.
+        """
+        item: Work | None = work
+        while item is not None:
+            if self._closed:
+                return
+            if not self._idle_runners:
+                self._hand_to_runner(item)
+                return
+            runner = self._idle_runners[-1]
+            if runner.idle is None or runner.idle.done():
+                self._idle_runners.pop()  # cancelled while idle; its task ends
+                continue
+            done, error, resume = runner.context.run(self._first_step, runner.task, item)
+            if not done:
+                assert resume is not None
+                self._idle_runners.pop()
+                if not self._wake(runner, resume):
+                    self._hand_to_runner(resume)
+                return
+            item.done(item, error)
+            item = self._next_pending()
+            if item is not None and not item.is_async:
+                self._hand_to_thread(item)
+                return
+
+    def _first_step(
+        self, task: asyncio.Task[None], work: Work
+    ) -> tuple[bool, BaseException | None, _Resume | None]:
+        _enter_task(self._loop, task)
+        try:
+            coro = work.call()
+            try:
+                yielded = coro.send(None)
+            except StopIteration:
+                return True, None, None
+            return False, None, _Resume(work, coro, yielded)
+        except asyncio.CancelledError:
+            return True, None, None  # a callback's own cancellation ends that callback only
+        except Exception as exc:  # reported, never fatal to the lane
+            return True, exc, None
+        finally:
+            _leave_task(self._loop, task)
+
+    def _drive(self, coro: Any, yielded: Any, thrown: BaseException | None) -> Generator[Any, Any, None]:
+        """Carry a callback's coroutine on from a suspension at ``yielded``."""
+        while True:
+            value: Any = None
+            if thrown is None:
+                try:
+                    if yielded is None:
+                        yield from self._progress()
+                    else:
+                        value = yield yielded
+                except BaseException as exc:  # forwarded into the callback
+                    thrown = exc
+            try:
+                if thrown is None:
+                    yielded = coro.send(value)
+                else:
+                    error, thrown = thrown, None
+                    yielded = coro.throw(error)
+            except StopIteration:
+                return
 
     @types.coroutine
-    def _run(self, work: Work | None) -> Generator[Any, Any, None]:
+    def _run(self, item: Work | _Resume | None) -> Generator[Any, Any, None]:
         """Run async work, one callback after another, inside one task.
 
         A generator-based coroutine rather than ``async def``, so that it can
@@ -199,28 +320,21 @@ class Lane:
         once", a busy loop. Such a yield parks the callback on the
         executor's progress future instead (see ``AsyncioExecutor``).
         """
-        while work is not None:
+        thrown: BaseException | None = None
+        while item is not None:
+            work = item if isinstance(item, Work) else item.work
             error: BaseException | None = None
             try:
-                coro = work.call()
-                value: Any = None
-                thrown: BaseException | None = None
-                while True:
+                if isinstance(item, Work):
+                    coro = work.call()
                     try:
-                        if thrown is None:
-                            yielded = coro.send(value)
-                        else:
-                            yielded = coro.throw(thrown)
+                        first = coro.send(None)
                     except StopIteration:
-                        break
-                    value = thrown = None
-                    try:
-                        if yielded is None:
-                            yield from self._progress()
-                        else:
-                            value = yield yielded
-                    except BaseException as exc:  # forwarded into the callback
-                        thrown = exc
+                        pass
+                    else:
+                        yield from self._drive(coro, first, None)
+                else:
+                    yield from self._drive(item.coro, item.yielded, thrown)
             except asyncio.CancelledError:
                 if self._closed:
                     raise
@@ -230,15 +344,31 @@ class Lane:
                     task.uncancel()
             except Exception as exc:  # reported, never fatal to the lane
                 error = exc
+            thrown = None
             work.done(work, error)
-            work = self._next_pending()
-            if work is not None and not work.is_async:
-                self._hand_to_thread(work)
-                work = None
-            if work is None and not self._closed:
-                idle: asyncio.Future[Work | None] = self._loop.create_future()
-                self._idle_runners.append(idle)
-                work = yield from idle
+            nxt = self._next_pending()
+            if nxt is not None and not nxt.is_async:
+                self._hand_to_thread(nxt)
+                nxt = None
+            item = nxt
+            if item is None and not self._closed:
+                task = asyncio.current_task()
+                runner = self._runners.get(task) if task is not None else None
+                if runner is None:
+                    return
+                idle: asyncio.Future[Work | _Resume | None] = self._loop.create_future()
+                runner.idle = idle
+                self._idle_runners.append(runner)
+                try:
+                    item = yield from idle
+                except asyncio.CancelledError as exc:
+                    # Cancelled (an expired asyncio.timeout) just after being
+                    # handed a suspended callback: the callback gets it.
+                    if self._closed or not idle.done() or idle.cancelled():
+                        raise
+                    item, thrown = idle.result(), exc
+                    if not isinstance(item, _Resume):
+                        raise
 
     # -- closing --------------------------------------------------------------
     def close(self, *, timeout: float) -> bool:

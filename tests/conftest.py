@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-os.environ["ROS_DOMAIN_ID"] = str(random.Random().randint(1, 101))
+os.environ["ROS_DOMAIN_ID"] = str(random.Random().randint(1, 200))
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 from container._runtime import use_fast_discovery  # noqa: E402

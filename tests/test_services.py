@@ -69,7 +69,9 @@ def test_load_list_unload_round_trip(
     response = client.unload(1)
     assert (response.success, response.error_message) == (True, "")
     assert client.list() == []
-    assert wait_until(executor, lambda: "/talker" not in graph_nodes(client_node))
+    assert wait_until(executor, lambda: "/talker" not in graph_nodes(client_node)), graph_nodes(
+        client_node
+    )
 
 
 def test_load_honours_name_namespace_remaps_parameters_and_extras(

@@ -63,6 +63,13 @@ def status_type() -> Any:
     return Status
 
 
+def _require_status_type() -> Any:
+    status = status_type()
+    if status is None:
+        raise ImportError("the 'bond' interface package is not installed")
+    return status
+
+
 class HeartbeatPublisher:
     """Publish a node's heartbeat every ``period`` seconds until :meth:`close`.
 
@@ -78,9 +85,7 @@ class HeartbeatPublisher:
         timeout: float = DEFAULT_HEARTBEAT_TIMEOUT,
         topic: str = HEARTBEAT_TOPIC,
     ) -> None:
-        status = status_type()
-        if status is None:
-            raise ImportError("the 'bond' interface package is not installed")
+        status = _require_status_type()
         self._node = node
         self._status = status
         self._id = node.get_fully_qualified_name()
@@ -143,9 +148,7 @@ class HeartbeatWatch:
         callback_group: CallbackGroup | None = None,
         topic: str = HEARTBEAT_TOPIC,
     ) -> None:
-        status = status_type()
-        if status is None:
-            raise ImportError("the 'bond' interface package is not installed")
+        status = _require_status_type()
         self._node = node
         self._seen: dict[str, Heartbeat] = {}
         self._changed: asyncio.Event | None = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -190,6 +191,43 @@ def test_async_callback_awaits_asyncio_stream_io(
     executor.shutdown(timeout_sec=5.0)
     thread.join(5.0)
     assert echoed[0] == b"42\n"
+
+
+_where: contextvars.ContextVar[str] = contextvars.ContextVar("where", default="unset")
+
+
+def test_async_callback_is_a_task_with_one_context_across_its_awaits(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    """The eager first step runs as a task: asyncio.timeout works, context persists."""
+    node = make_node("timeouts")
+    pub = node.create_publisher(Int64, "ticks", 10)
+    seen: list[tuple[bool, str, str]] = []
+    done = threading.Event()
+
+    async def on_tick(msg: Int64) -> None:
+        in_task = asyncio.current_task() is not None
+        _where.set(f"tick {msg.data}")
+        outcome = "finished"
+        try:
+            async with asyncio.timeout(0.02):  # raises RuntimeError outside a task
+                await asyncio.sleep(5.0)
+        except TimeoutError:
+            outcome = "timed out"
+        seen.append((in_task, outcome, _where.get()))
+        if len(seen) >= 3:
+            done.set()
+
+    node.create_subscription(Int64, "ticks", on_tick, 10)
+    node.create_timer(0.05, lambda: pub.publish(Int64(data=len(seen))) if not done.is_set() else None)
+    executor.add_node(node)
+    thread = spin_in_thread(executor)
+    assert done.wait(10.0)
+    executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    for in_task, outcome, where in seen[:3]:
+        assert (in_task, outcome) == (True, "timed out")
+        assert where.startswith("tick ")
 
 
 def test_async_callback_awaits_a_service_call_without_busy_waiting(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -224,3 +225,124 @@ async def test_lidar_without_reopen_raises_on_unplug() -> None:
             async for _ in lidar.scans():
                 await emu.unplug()
         assert lidar.state == "closed"
+
+
+@pytest.mark.asyncio
+async def test_close_during_a_read_ends_scans_without_reopening() -> None:
+    async with asyncio.timeout(LIMIT), Emulator() as emu:
+        lidar = Lidar(emu.link, reopen_interval=0.01)
+        await lidar.open()
+        scans = []
+
+        async def consume() -> None:
+            async for scan in lidar.scans():
+                scans.append(scan)
+
+        task = asyncio.ensure_future(consume())
+        while not scans:
+            await asyncio.sleep(0.01)
+        await lidar.close()
+        await asyncio.wait_for(task, 2.0)
+    assert lidar.state == "closed"
+    assert lidar.reopens == 0
+
+
+@pytest.mark.asyncio
+async def test_reopen_attempts_back_off_up_to_the_maximum(monkeypatch: pytest.MonkeyPatch) -> None:
+    async with asyncio.timeout(LIMIT), Emulator() as emu:
+        lidar = Lidar(emu.link, reopen_interval=0.05, reopen_max_interval=0.2)
+        await lidar.open()
+        loop = asyncio.get_running_loop()
+        attempts: list[float] = []
+        connect = lidar._connect
+
+        async def counted() -> None:
+            attempts.append(loop.time())
+            await connect()
+
+        async def replug_after_six_attempts() -> None:
+            while len(attempts) < 6:
+                await asyncio.sleep(0.01)
+            await emu.replug()
+
+        monkeypatch.setattr(lidar, "_connect", counted)
+        await emu.unplug()
+        replug = asyncio.ensure_future(replug_after_six_attempts())
+        async for _ in lidar.scans():
+            if lidar.reopens:
+                break
+        await lidar.close()
+        await replug
+    gaps = [b - a for a, b in zip(attempts, attempts[1:])]
+    assert len(attempts) >= 6
+    for gap, least in zip(gaps, [0.1, 0.2, 0.2, 0.2, 0.2]):
+        assert gap >= least * 0.99, gaps
+    assert lidar.last_error is not None
+
+
+@pytest.mark.asyncio
+async def test_polled_source_reads_everything_in_few_large_chunks() -> None:
+    async with asyncio.timeout(LIMIT), Emulator() as emu:
+        source = SerialSource(emu.port, baudrate=230400, poll_interval=0.05)
+        await source.open()
+        try:
+            parser = StreamParser()
+            while not parser.feed(await source.read()):
+                pass
+            loop = asyncio.get_running_loop()
+            begin, reads, count = loop.time(), 0, 0
+            while loop.time() - begin < 1.0:
+                count += len(parser.feed(await source.read()))
+                reads += 1
+        finally:
+            await source.close()
+    assert count == pytest.approx(375, rel=0.15)
+    assert 10 <= reads <= 22  # one read per 50 ms, not one per burst (about 180)
+    assert parser.stats.crc_errors == 0
+
+
+@pytest.mark.asyncio
+async def test_polled_source_reports_an_unplug() -> None:
+    async with asyncio.timeout(LIMIT), Emulator() as emu:
+        source = SerialSource(emu.link, baudrate=230400, poll_interval=0.01)
+        await source.open()
+        assert await source.read()
+        await emu.unplug()
+        with pytest.raises(DeviceError, match="port failed") as info:
+            while True:
+                await source.read()
+        assert info.value.device == emu.link
+        assert source.state == "closed"
+    with pytest.raises(ValueError):
+        SerialSource("/dev/null", baudrate=230400, poll_interval=0)
+
+
+@pytest.mark.asyncio
+async def test_polled_source_reads_early_when_something_is_due() -> None:
+    async with asyncio.timeout(LIMIT), Emulator() as emu:
+        async with SerialSource(emu.port, baudrate=230400, poll_interval=0.5) as source:
+            loop = asyncio.get_running_loop()
+            await source.read()
+            begin = loop.time()
+            assert await source.read(due=begin + 0.05)
+            early = loop.time() - begin
+            begin = loop.time()
+            assert await source.read()
+            regular = loop.time() - begin
+    assert 0.04 <= early < 0.25
+    assert regular >= 0.45
+
+
+@pytest.mark.asyncio
+async def test_polled_lidar_yields_each_revolution_soon_after_it_completes() -> None:
+    """Polling every 30 ms, a turn still comes out within a few ms of its last packet."""
+    async with asyncio.timeout(LIMIT), Emulator() as emu:
+        async with Lidar(emu.link, poll_interval=0.03) as lidar:
+            delays: list[float] = []
+            async for scan in lidar.scans():
+                # stamp + scan_time: the next turn's first ray, i.e. this one's end.
+                delays.append(time.time() - (scan.stamp + scan.scan_time))
+                if len(delays) == 25:
+                    break
+    delays = sorted(delays[5:])  # the clock mapping settles over the first turns
+    assert delays[len(delays) // 2] < 0.012, delays  # polling alone: about 15 ms + the emulator's 5 ms

@@ -273,3 +273,29 @@ def test_long_host_gap_restarts_the_clock_and_the_turn() -> None:
 def test_bad_parameters_are_rejected(kwargs: dict) -> None:  # type: ignore[type-arg]
     with pytest.raises(ValueError):
         ScanAssembler(**kwargs)
+
+
+def test_due_predicts_when_the_packet_completing_a_turn_arrives() -> None:
+    latency = 0.004  # seconds from a packet's last point to its read
+    packets = packets_for(lambda a: 1000, turns=4)
+    point_time = 0.1 / POINTS
+    assembler = ScanAssembler()
+    assert assembler.due is None
+    predictions: list[float] = []
+    completed_at: list[float] = []
+    for packet in packets:
+        read_at = 1000.0 + packet.timestamp / 1000 + 11 * point_time + latency
+        if assembler.push(packet, host_time=read_at):
+            completed_at.append(read_at)
+        due = assembler.due
+        assert due is not None
+        predictions.append(due)
+    # Every prediction made while a turn was in progress names the read that
+    # completes it, to the timestamps' 1 ms rounding.
+    for done in completed_at[1:]:
+        made = [p for p in predictions if done - 0.05 < p < done + 0.05]
+        assert len(made) >= 30  # about 38 packets a turn
+        for prediction in made:
+            assert prediction == pytest.approx(done, abs=0.0015)
+    assembler.reset()
+    assert assembler.due is None

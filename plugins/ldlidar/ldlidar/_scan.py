@@ -184,12 +184,27 @@ class ScanAssembler:
         self.clock = clock if clock is not None else DeviceClock()
         self._turn: _Turn | None = None
         self._last_end: int | None = None
+        self._due: float | None = None
 
     def reset(self) -> None:
         """Drop the revolution in progress and the clock (after a reopen)."""
         self._turn = None
         self._last_end = None
+        self._due = None
         self.clock.reset()
+
+    @property
+    def due(self) -> float | None:
+        """Host time by which the packet completing the current revolution can be read.
+
+        Extrapolated from the last packet's end angle and rotation speed and
+        mapped through :attr:`clock`, so a reader may sleep until then
+        instead of polling; ``None`` until a packet with a speed arrived
+        with its ``host_time``.
+        """
+        if self._due is None or self.clock.offset is None:
+            return None
+        return self.clock.to_host(self._due)
 
     def push(self, packet: Packet, *, host_time: float | None = None) -> list[Scan]:
         """Add one packet; return the revolutions it completed (usually none).
@@ -213,6 +228,15 @@ class ScanAssembler:
         if base + span * (POINTS_PER_PACKET - 1) >= TURN_SUBUNITS:
             splits.append(-((base - TURN_SUBUNITS) // span))
         self._last_end = packet.end_angle % ANGLE_UNITS
+        if span:
+            # Points to come until one reaches 360 degrees; the turn completes
+            # with the last point of the packet holding it.
+            remaining = (ANGLE_UNITS - self._last_end) % ANGLE_UNITS or ANGLE_UNITS
+            points = -(-remaining * SUBUNITS // span)
+            packets = -(-points // POINTS_PER_PACKET)
+            self._due = device + dt * (POINTS_PER_PACKET - 1 + POINTS_PER_PACKET * packets)
+        else:
+            self._due = None
         positions = [(base + span * k) % TURN_SUBUNITS for k in range(POINTS_PER_PACKET)]
 
         scans: list[Scan] = []

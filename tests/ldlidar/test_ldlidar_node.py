@@ -1,0 +1,630 @@
+"""The ``ldlidar::LdLidarNode`` lifecycle node: real rclpy, real DDS, real pseudo-terminals."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from ldlidar import Emulator, PacketGenerator, ScanAssembler, StreamParser
+from ldlidar.plugin import SCAN_QOS, LdLidarNode, find_serial_ports, to_laser_scan
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rcl_interfaces.msg import Log
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import LaserScan
+
+from container import AsyncioExecutor, PluginRegistry
+from container_support import REPO, ContainerProcess
+from lifecycle_support import run
+
+EXAMPLE = REPO / "examples" / "lidar.yaml"
+ROSOUT_QOS = QoSProfile(
+    depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
+
+
+# -- helpers ---------------------------------------------------------------------------
+@pytest.fixture
+def host(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[..., Any]]:
+    """Create a node on the test context and add it to the executor."""
+    nodes: list[Node] = []
+
+    def make(cls: type[Node], name: str, **kwargs: Any) -> Any:
+        node = cls(name, context=context, **kwargs)
+        executor.add_node(node)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        executor.remove_node(node)
+        node.destroy_node()
+        # A lifecycle node's rcl state machine holds the rcl node, and with it
+        # the node's /rosout registration, until collected; release it now.
+        machine = getattr(node, "_state_machine", None)
+        if machine is not None:
+            machine.destroy_when_not_in_use()
+
+
+def lidar_parameters(port: str, **more: Any) -> list[Parameter]:
+    """Overrides for an LD06 on ``port``; keyword names use ``__`` for ``.``."""
+    values = {"comm.serial_port": port, **{k.replace("__", "."): v for k, v in more.items()}}
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+@dataclass(frozen=True)
+class Received:
+    at: float
+    msg: Any
+
+
+class Recorder:
+    """Everything that arrives on one topic, with its monotonic arrival time."""
+
+    def __init__(self, observer: Node, msg_type: Any, topic: str, qos: QoSProfile | int) -> None:
+        self.items: list[Received] = []
+        self._lock = threading.Lock()
+        self.subscription = observer.create_subscription(msg_type, topic, self._record, qos)
+
+    def _record(self, msg: Any) -> None:
+        with self._lock:
+            self.items.append(Received(time.monotonic(), msg))
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self.items)
+
+    def since(self, index: int) -> list[Received]:
+        with self._lock:
+            return self.items[index:]
+
+    def messages(self) -> list[Any]:
+        with self._lock:
+            return [item.msg for item in self.items]
+
+
+async def until(predicate: Callable[[], bool], what: str, *, timeout: float = 10.0) -> None:
+    """Wait on the executor's loop until ``predicate()`` holds; fail after ``timeout``."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not predicate():
+        if loop.time() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        await asyncio.sleep(0.01)
+
+
+def logged(rosout: Recorder, node: str) -> list[str]:
+    return [msg.msg for msg in rosout.messages() if msg.name == node]
+
+
+def check_scan_fields(scans: list[LaserScan], *, bins: int = 455) -> None:
+    for scan in scans:
+        assert scan.header.frame_id == "ldlidar_link"
+        assert len(scan.ranges) == bins == len(scan.intensities)
+        span = scan.angle_max - scan.angle_min
+        assert scan.angle_increment * (len(scan.ranges) - 1) == pytest.approx(span, rel=1e-5)
+        assert scan.angle_min == pytest.approx(-math.pi)
+        assert scan.scan_time == pytest.approx(0.1, abs=0.005)
+        assert scan.time_increment == pytest.approx(scan.scan_time / bins, rel=1e-3)
+        assert (scan.range_min, scan.range_max) == pytest.approx((0.03, 15.0))
+        finite = [r for r in scan.ranges if math.isfinite(r)]
+        assert len(finite) > 0.8 * bins  # the emulated room has walls all round
+    stamps = [s.header.stamp.sec + s.header.stamp.nanosec * 1e-9 for s in scans]
+    steps = np.diff(stamps)
+    assert np.all(steps > 0)
+    assert np.all(np.abs(steps - 0.1) < 0.01), steps
+
+
+# -- the plugin ------------------------------------------------------------------------------
+def test_plugin_is_found_through_its_entry_point() -> None:
+    registry = PluginRegistry()
+    assert registry.types["ldlidar::LdLidarNode"].node_class is LdLidarNode
+    assert not [f for f in registry.failures if f.distribution == "ldlidar"]
+    out = subprocess.run(
+        [sys.executable, "-m", "container", "types"], capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    assert "ldlidar\n  ldlidar::LdLidarNode\n" in out.stdout
+
+
+def test_laser_scan_conversion_keeps_every_field() -> None:
+    generator = PacketGenerator("LD06")
+    parser, assembler = StreamParser(), ScanAssembler(bins=0)
+    scans = [s for p in parser.feed(generator.packets(120)) for s in assembler.push(p, host_time=1e9)]
+    scan = scans[0]
+    msg = to_laser_scan(scan, frame_id="laser")
+    assert msg.header.frame_id == "laser"
+    assert msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 == pytest.approx(scan.stamp, abs=1e-6)
+    assert 0 <= msg.header.stamp.nanosec < 1_000_000_000
+    assert list(msg.ranges) == pytest.approx(scan.ranges.tolist())
+    assert list(msg.intensities) == pytest.approx(scan.intensities.tolist())
+    assert msg.angle_increment * (len(msg.ranges) - 1) == pytest.approx(msg.angle_max - msg.angle_min)
+    assert (msg.scan_time, msg.time_increment) == pytest.approx((scan.scan_time, scan.time_increment))
+
+
+def test_stamp_just_below_a_whole_second_rounds_up_cleanly() -> None:
+    generator = PacketGenerator("LD06")
+    parser, assembler = StreamParser(), ScanAssembler()
+    scan = [s for p in parser.feed(generator.packets(120)) for s in assembler.push(p)][0]
+    stamp = to_laser_scan(dataclasses.replace(scan, stamp=41.9999999999), frame_id="x").header.stamp
+    assert (stamp.sec, stamp.nanosec) == (42, 0)
+
+
+# -- the lifecycle -------------------------------------------------------------------------------
+def test_full_lifecycle_streams_ten_hertz_and_deactivate_keeps_reading(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    observer = host(Node, "observer")
+    scans = Recorder(observer, LaserScan, "/lidar/scan", SCAN_QOS)
+
+    async def scenario() -> None:
+        async with Emulator() as emu:
+            node: LdLidarNode = host(LdLidarNode, "lidar", parameter_overrides=lidar_parameters(emu.link))
+            assert await node.transition("configure")
+            lidar = node.lidar
+            assert lidar is not None and lidar.state == "open" and node.port == emu.link
+            assert node.emulator is None
+            await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+            # Reading starts at configure, publishing only at activate.
+            start = lidar.stats.packets
+            await until(lambda: lidar.stats.packets > start + 100, "packets while inactive")
+            assert len(scans) == 0 and node.scans_published == 0
+
+            assert await node.transition("activate")
+            await until(lambda: len(scans) >= 21, "21 scans", timeout=5)
+            first = scans.since(0)[:21]
+            rate = 20 / (first[-1].at - first[0].at)
+            assert rate == pytest.approx(10.0, rel=0.15)
+            check_scan_fields([r.msg for r in first])
+            now = time.time()
+            last = first[-1].msg.header.stamp
+            assert 0 < now - (last.sec + last.nanosec * 1e-9) < 2.0  # a host-clock time, in the past
+
+            assert await node.transition("deactivate")
+            assert lidar.state == "open"
+            mark = lidar.stats.packets
+            # Anything published before the deactivation has landed by now.
+            await until(lambda: lidar.stats.packets > mark + 40, "packets after deactivate")
+            held, published = len(scans), node.scans_published
+            await until(lambda: lidar.stats.packets > mark + 230, "half a second of packets")
+            assert len(scans) == held and node.scans_published == published
+            assert lidar.stats.crc_errors == 0
+
+            assert await node.transition("activate")
+            await until(lambda: len(scans) >= held + 5, "scans after reactivation", timeout=5)
+            check_scan_fields([r.msg for r in scans.since(held)][:5])
+
+            assert await node.transition("deactivate")
+            assert await node.transition("cleanup")
+            assert node.lidar is None and lidar.closed
+            await until(lambda: scans.subscription.get_publisher_count() == 0, "the publisher to go")
+            assert await node.transition("shutdown")
+            assert node.lifecycle_state.label == "finalized"
+
+    run(executor, scenario(), timeout=40)
+
+
+def test_configure_fails_on_a_missing_port_and_can_be_retried(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    observer = host(Node, "observer")
+    rosout = Recorder(observer, Log, "/rosout", ROSOUT_QOS)
+    change = observer.create_client(ChangeState, "/nowhere/change_state")
+    get = observer.create_client(GetState, "/nowhere/get_state")
+
+    async def scenario() -> None:
+        node: LdLidarNode = host(
+            LdLidarNode, "nowhere", parameter_overrides=lidar_parameters("/dev/does-not-exist")
+        )
+        await until(lambda: change.service_is_ready() and get.service_is_ready(), "the lifecycle services")
+        # Asked the way `ros2 lifecycle set` asks.
+        response = await change.call_async(ChangeState.Request(transition=Transition(label="configure")))
+        assert response.success is False
+        state = await get.call_async(GetState.Request())
+        assert state.current_state.label == "unconfigured"
+        assert node.lidar is None
+        await until(
+            lambda: any("/dev/does-not-exist: cannot open" in m for m in logged(rosout, "nowhere")),
+            "the logged reason",
+        )
+        async with Emulator() as emu:
+            node.set_parameters(lidar_parameters(emu.link))
+            assert await node.transition("configure")
+            assert await node.transition("cleanup")
+
+    run(executor, scenario())
+
+
+@pytest.mark.parametrize(
+    ("parameter", "value", "words"),
+    [
+        ("lidar.model", "LD99", "unknown LiDAR model 'LD99'"),
+        ("lidar.rot_verse", "UP", "must be 'CW' or 'CCW'"),
+        ("lidar.bins", -1, "must be >= 0"),
+        ("lidar.range_max", 0.01, "must be above lidar.range_min"),
+        ("comm.baudrate", "fast", "must be an integer"),
+        ("comm.timeout_msec", 0, "must be positive"),
+        ("comm.poll_msec", 100, "must be within [0, 30]"),
+        ("lidar.frame_id", "", "non-empty string"),
+    ],
+)
+def test_configure_refuses_a_bad_parameter_naming_it(
+    executor: AsyncioExecutor, host: Callable[..., Any], parameter: str, value: Any, words: str
+) -> None:
+    observer = host(Node, "observer")
+    rosout = Recorder(observer, Log, "/rosout", ROSOUT_QOS)
+    name = f"picky_{parameter.replace('.', '_')}"  # rcl keys /rosout by node name, process-wide
+
+    async def scenario() -> None:
+        node: LdLidarNode = host(
+            LdLidarNode, name, parameter_overrides=[Parameter(parameter, value=value)]
+        )
+        assert not await node.transition("configure")
+        assert node.lifecycle_state.label == "unconfigured"
+        assert node.lidar is None and node.emulator is None  # refused before opening anything
+        await until(
+            lambda: any(f"parameter {parameter!r}" in m and words in m for m in logged(rosout, name)),
+            f"a log line naming {parameter}",
+        )
+
+    run(executor, scenario())
+
+
+def test_angle_crop_outside_a_turn_is_refused(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    async def scenario() -> None:
+        node: LdLidarNode = host(
+            LdLidarNode,
+            "cropped",
+            parameter_overrides=lidar_parameters(
+                "/dev/unused", lidar__enable_angle_crop=True, lidar__angle_crop_min=400
+            ),
+        )
+        assert not await node.transition("configure")
+
+    run(executor, scenario())
+
+
+def test_configure_times_out_on_a_silent_port(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    master, slave = os.openpty()
+
+    async def scenario() -> float:
+        node: LdLidarNode = host(
+            LdLidarNode,
+            "silent",
+            parameter_overrides=lidar_parameters(os.ttyname(slave), comm__timeout_msec=300),
+        )
+        began = time.monotonic()
+        assert not await node.transition("configure")
+        elapsed = time.monotonic() - began
+        assert node.lifecycle_state.label == "unconfigured" and node.lidar is None
+        assert openers(os.ttyname(slave)) == 1  # the test's own: the node closed its port
+        return elapsed
+
+    try:
+        elapsed = run(executor, scenario())
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert 0.3 <= elapsed < 2.0
+
+
+def openers(path: str) -> int:
+    """File descriptors of this process open on ``path``."""
+    count = 0
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            count += os.readlink(f"/proc/self/fd/{fd}") == path
+        except OSError:
+            continue
+    return count
+
+
+def test_configure_cut_short_by_transition_timeout_leaves_the_port_closed(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+
+    async def scenario() -> None:
+        node: LdLidarNode = host(
+            LdLidarNode,
+            "hasty",
+            parameter_overrides=[
+                # poll_msec 0: pyserial-asyncio's transport keeps a forgotten
+                # port open (a polled one would close when collected).
+                *lidar_parameters(path, comm__timeout_msec=5000, comm__poll_msec=0),
+                Parameter("transition_timeout", value=0.3),
+            ],
+        )
+        assert openers(path) == 1  # the test's own
+        assert not await node.transition("configure")
+        assert node.lifecycle_state.label == "unconfigured" and node.lidar is None
+        assert openers(path) == 1
+
+    try:
+        run(executor, scenario())
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_auto_without_a_device_runs_the_emulator_until_cleanup(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    class Unplugged(LdLidarNode):
+        auto_port_patterns = ()
+
+    async def scenario() -> None:
+        node: LdLidarNode = host(Unplugged, "auto_emu")
+        assert await node.transition("configure")
+        emulator = node.emulator
+        assert emulator is not None
+        running = emulator.state
+        assert node.port == emulator.link and os.path.exists(emulator.link)
+        assert await node.transition("activate")
+        await until(lambda: node.scans_published >= 3, "scans from the emulator")
+        assert await node.transition("deactivate")
+        assert await node.transition("cleanup")
+        assert running == "running" and emulator.state == "closed" and node.emulator is None
+        assert not os.path.lexists(emulator.link)
+
+    run(executor, scenario())
+
+
+def test_auto_prefers_an_attached_device(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    async def scenario() -> None:
+        async with Emulator() as emu:
+
+            class Attached(LdLidarNode):
+                auto_port_patterns = ("/dev/no-such-lidar*", emu.link)
+
+            node: LdLidarNode = host(Attached, "auto_dev")
+            assert await node.transition("configure")
+            assert node.port == emu.link and node.emulator is None
+            assert await node.transition("cleanup")
+
+    assert find_serial_ports(("/dev/no-such-lidar*",)) == []
+    run(executor, scenario())
+
+
+# -- trouble while active ----------------------------------------------------------------------
+@pytest.mark.parametrize("poll_msec", [10, 0], ids=["polled", "on-arrival"])
+def test_unplug_while_active_reports_an_error_then_resumes(
+    executor: AsyncioExecutor, host: Callable[..., Any], poll_msec: int
+) -> None:
+    observer = host(Node, "observer")
+    scans = Recorder(observer, LaserScan, "/plugged/scan", SCAN_QOS)
+    diagnostics = Recorder(observer, DiagnosticArray, "/diagnostics", 10)
+
+    def statuses() -> list[DiagnosticStatus]:
+        return [s for a in diagnostics.messages() for s in a.status if s.name == "plugged: LiDAR"]
+
+    async def scenario() -> None:
+        async with Emulator() as emu:
+            node: LdLidarNode = host(
+                LdLidarNode,
+                "plugged",
+                parameter_overrides=lidar_parameters(emu.link, comm__timeout_msec=500, comm__poll_msec=poll_msec),
+            )
+            assert await node.transition("configure")
+            await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+            assert await node.transition("activate")
+            await until(lambda: len(scans) >= 3, "scans before the unplug")
+            assert node.reconnects == 0
+
+            await emu.unplug()
+            lidar = node.lidar
+            assert lidar is not None
+            await until(lambda: lidar.state == "reconnecting", "the node to notice")
+            seen = len(statuses())
+            await until(
+                lambda: any(s.level == DiagnosticStatus.ERROR for s in statuses()[seen:]),
+                "an ERROR diagnostic while unplugged",
+                timeout=5,
+            )
+            held = len(scans)
+            await emu.replug()
+            await until(lambda: node.reconnects == 1, "the reopen", timeout=5)
+            await until(lambda: len(scans) >= held + 5, "scans after the replug", timeout=5)
+            check_scan_fields([r.msg for r in scans.since(held)][1:5])
+            assert lidar.state == "open"
+            seen = len(statuses())
+            await until(
+                lambda: any(
+                    s.level == DiagnosticStatus.OK and dict((v.key, v.value) for v in s.values)["reconnects"] == "1"
+                    for s in statuses()[seen:]
+                ),
+                "an OK diagnostic counting the reconnect",
+                timeout=5,
+            )
+            assert await node.transition("deactivate")
+            assert await node.transition("cleanup")
+
+    run(executor, scenario(), timeout=40)
+
+
+def test_a_reader_failure_while_active_goes_through_error_processing(
+    executor: AsyncioExecutor, host: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async def scenario() -> None:
+        async with Emulator() as emu:
+            node: LdLidarNode = host(LdLidarNode, "fragile", parameter_overrides=lidar_parameters(emu.link))
+            assert await node.transition("configure")
+            assert await node.transition("activate")
+            await until(lambda: node.scans_published >= 2, "scans")
+            lidar = node.lidar
+            assert lidar is not None
+
+            def boom(scan: Any) -> None:
+                raise RuntimeError("injected")
+
+            monkeypatch.setattr(node, "_on_scan", boom)
+            await until(lambda: node.lifecycle_state.label == "unconfigured", "error processing")
+            assert lidar.closed and node.lidar is None
+            monkeypatch.undo()
+            assert await node.transition("configure")  # recovered: the node can start over
+            assert await node.transition("cleanup")
+
+    run(executor, scenario())
+
+
+def test_diagnostics_report_rates_and_state(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    observer = host(Node, "observer")
+    diagnostics = Recorder(observer, DiagnosticArray, "/diagnostics", 10)
+
+    def values_of(level: bytes, words: str) -> list[dict[str, str]]:
+        return [
+            {v.key: v.value for v in s.values}
+            for a in diagnostics.messages()
+            for s in a.status
+            if s.name == "healthy: LiDAR" and s.level == level and words in s.message
+        ]
+
+    async def scenario() -> None:
+        async with Emulator() as emu:
+            node: LdLidarNode = host(LdLidarNode, "healthy", parameter_overrides=lidar_parameters(emu.link))
+            assert await node.transition("configure")
+            await until(
+                lambda: len(values_of(DiagnosticStatus.OK, "not publishing (node inactive)")) >= 2,
+                "diagnostics while inactive",
+                timeout=5,
+            )
+            assert await node.transition("activate")
+            await until(
+                lambda: len(values_of(DiagnosticStatus.OK, "streaming, publishing")) >= 2,
+                "diagnostics while active",
+                timeout=5,
+            )
+            values = values_of(DiagnosticStatus.OK, "streaming, publishing")[-1]
+            assert float(values["packet rate (Hz)"]) == pytest.approx(375, rel=0.15)
+            assert float(values["scan rate (Hz)"]) == pytest.approx(10, rel=0.25)
+            assert values["port"] == emu.link and values["emulated"] == "no"
+            assert values["crc errors"] == values["reconnects"] == "0"
+            assert int(values["scans published"]) > 0
+
+            emu.inject_garbage(300, seed=3)
+            emu.inject(b"\x54\x2c" + bytes(45))  # a data packet's header, then a bad CRC
+            await until(
+                lambda: bool(values_of(DiagnosticStatus.WARN, "line noise")), "a WARN for line noise", timeout=5
+            )
+            warned = values_of(DiagnosticStatus.WARN, "line noise")[-1]
+            assert int(warned["skipped bytes"]) >= 347 and int(warned["resyncs"]) >= 1
+            assert int(warned["crc errors"]) >= 1
+            assert await node.transition("deactivate")
+            assert await node.transition("cleanup")
+
+    run(executor, scenario(), timeout=30)
+
+
+def test_blocking_neighbour_does_not_delay_scans(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    """A plain callback that blocks for 1 s, in the same container, costs the LiDAR nothing."""
+    observer = host(Node, "observer")
+    scans = Recorder(observer, LaserScan, "/steady/scan", SCAN_QOS)
+    blocker = host(Node, "blocker")
+    blocks: list[tuple[float, float]] = []
+
+    def block() -> None:
+        began = time.monotonic()
+        time.sleep(1.0)
+        blocks.append((began, time.monotonic()))
+
+    async def scenario() -> tuple[float, float]:
+        async with Emulator() as emu:
+            node: LdLidarNode = host(LdLidarNode, "steady", parameter_overrides=lidar_parameters(emu.link))
+            assert await node.transition("configure")
+            await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+            assert await node.transition("activate")
+            await until(lambda: len(scans) >= 2, "the first scans")
+            blocker.create_timer(0.05, block)
+            await until(lambda: len(blocks) >= 1, "the first blocking callback", timeout=5)
+            window_start = blocks[0][0]
+            await until(lambda: time.monotonic() > window_start + 3.0, "a 3 s window", timeout=6)
+            window_end = time.monotonic()
+            assert await node.transition("deactivate")
+            assert await node.transition("cleanup")
+            return window_start, window_end
+
+    window_start, window_end = run(executor, scenario(), timeout=30)
+    inside = [r.at for r in scans.since(0) if window_start <= r.at <= window_end]
+    completed = [b for b in blocks if b[1] <= window_end]
+    assert len(completed) >= 2, blocks
+    assert all(end - began >= 0.99 for began, end in completed)
+    gaps = np.diff([window_start, *inside, window_end])
+    assert len(inside) >= 25
+    assert gaps.max() < 0.25, f"largest gap {gaps.max() * 1000:.0f} ms"
+
+
+# -- across processes and from a capture --------------------------------------------------------
+def test_container_run_example_streams_scans_to_another_process(
+    run_container: Callable[..., ContainerProcess],
+    executor: AsyncioExecutor,
+    host: Callable[..., Any],
+) -> None:
+    if find_serial_ports():
+        pytest.skip("a serial device is attached: 'auto' would use it instead of the emulator")
+    proc = run_container(EXAMPLE.read_text(encoding="utf-8"))
+    proc.wait_for_line("started the built-in LD06 emulator")
+    observer = host(Node, "remote_observer")
+    scans = Recorder(observer, LaserScan, "/ldlidar/scan", 10)
+
+    async def scenario() -> None:
+        await until(lambda: len(scans) >= 21, "21 scans from the container process", timeout=20)
+
+    run(executor, scenario(), timeout=30)
+    received = scans.since(0)
+    check_scan_fields([r.msg for r in received[-21:]])
+    assert 20 / (received[-1].at - received[-21].at) == pytest.approx(10.0, rel=0.15)
+    code = proc.stop()
+    output = "\n".join(proc.lines)
+    assert code == 0, output
+    assert "Unloaded '/ldlidar'" in output and "Stopped the built-in emulator" in output
+    assert "threads left behind" not in output
+
+
+@pytest.mark.shared
+def test_replay_of_a_real_capture_through_the_node(
+    executor: AsyncioExecutor, host: Callable[..., Any], capture: Path
+) -> None:
+    observer = host(Node, "observer")
+    scans = Recorder(observer, LaserScan, "/replay/scan", SCAN_QOS)
+
+    async def scenario() -> int:
+        node: LdLidarNode = host(LdLidarNode, "replay", parameter_overrides=lidar_parameters(f"file://{capture}"))
+        assert await node.transition("configure")
+        await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+        assert await node.transition("activate")
+        lidar = node.lidar
+        assert lidar is not None
+        await until(lambda: lidar.closed, "the end of the capture", timeout=10)
+        assert lidar.stats.packets == 863 and lidar.stats.crc_errors == 0
+        published = node.scans_published
+        await until(lambda: len(scans) == published, "every published scan")
+        assert await node.transition("deactivate")
+        assert await node.transition("cleanup")
+        return published
+
+    published = run(executor, scenario(), timeout=30)
+    assert published >= 15  # about 23 revolutions, less what went by before activation
+    messages = scans.messages()
+    for msg in messages:
+        assert len(msg.ranges) == 455
+        assert msg.scan_time == pytest.approx(0.1, abs=0.01)  # 3588..3613 deg/s
+        assert sum(math.isfinite(r) for r in msg.ranges) > 300
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in messages]
+    assert np.all(np.diff(stamps) > 0)

@@ -14,11 +14,18 @@ Run: ``python tests/benchmarks/bench_decode.py [--packets 2600000] [--rounds 5]`
 Printed: packets per second, as a multiple of the STL-27L line rate (1,800
 packets/s), and the ratio to the peer. Also the interpreter's bare start-up
 and ``import numpy`` times, since at this size they are a visible share.
+
+To compare versions side by side, give ``--plugin DIR`` once per copy of
+``plugins/ldlidar`` (e.g. one checked out from git into a temp directory):
+the rounds alternate between them, so a busy machine slows all alike, and
+each must report the same summary. ``--busy`` keeps one core spinning in
+another process while timing, for the figure on a shared machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -26,7 +33,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 HERE = Path(__file__).resolve()
 PLUGIN = HERE.parents[2] / "plugins" / "ldlidar"
@@ -104,14 +113,54 @@ def timed(cmd: list[str], env: dict[str, str]) -> tuple[float, str]:
     return elapsed, out.stdout
 
 
+@contextlib.contextmanager
+def busy_core(enabled: bool) -> Iterator[None]:
+    """Keep one core busy in another process (a spinning interpreter) meanwhile."""
+    if not enabled:
+        yield
+        return
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        yield
+    finally:
+        spinner.kill()
+        spinner.wait()
+
+
+def report(label: str, times: list[float], summary: dict[str, Any]) -> float:
+    """Print one variant's figures; return its best time."""
+    packets = int(summary["packets"])
+    best, median = min(times), statistics.median(times)
+    print(f"\n{label}")
+    print(
+        f"  decode --json: {packets:,} packets, {summary['crc_errors']} CRC errors, "
+        f"{summary['resyncs']} resyncs, {summary['revolutions']:,} revolutions, {summary['points']:,} points"
+    )
+    print(
+        f"  whole process: best {best:.3f} s, median {median:.3f} s "
+        f"over {len(times)} rounds ({', '.join(f'{t:.3f}' for t in times)})"
+    )
+    print(
+        f"  => {packets / best / 1e6:.2f} M packets/s best ({packets / best / LINE_RATE:,.0f}x STL-27L line rate), "
+        f"{packets / median / 1e6:.2f} M packets/s median ({packets / median / LINE_RATE:,.0f}x)"
+    )
+    return best
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--packets", type=int, default=2_600_000)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--python", action="append", default=None, help="interpreter(s) to time; default: this one")
+    parser.add_argument(
+        "--plugin", action="append", default=None, type=Path,
+        help="plugins/ldlidar copies to compare, rounds interleaved; default: this checkout's",
+    )
+    parser.add_argument("--busy", action="store_true", help="keep one core busy in another process while timing")
     parser.add_argument("--no-peer", action="store_true")
     args = parser.parse_args()
     pythons = args.python or [sys.executable]
+    plugins = [p.resolve() for p in args.plugin] if args.plugin else [PLUGIN]
 
     path = Path(tempfile.gettempdir()) / f"ldlidar-bench-{args.packets}.bin"
     if not path.exists():
@@ -121,39 +170,38 @@ def main() -> None:
         tmp.replace(path)
     size = path.stat().st_size
     print(f"capture: {path} ({size / 1e6:.1f} MB, {args.packets:,} packets generated, a few corrupted spots)")
-    env = {**os.environ, "PYTHONPATH": str(PLUGIN)}
+    if args.busy:
+        print("one core kept busy by another process while timing")
 
-    for python in pythons:
-        start = min(timed([python, "-c", "pass"], env)[0] for _ in range(5))
-        numpy = min(timed([python, "-c", "import numpy"], env)[0] for _ in range(5))
-        print(f"\n{python}: bare start {start * 1000:.0f} ms, start + import numpy {numpy * 1000:.0f} ms")
-        times = []
-        summary: dict[str, object] = {}
+    variants = [(python, plugin) for python in pythons for plugin in plugins]
+    times: dict[tuple[str, Path], list[float]] = {v: [] for v in variants}
+    summaries: dict[tuple[str, Path], dict[str, Any]] = {}
+    with busy_core(args.busy):
+        for python in pythons:
+            env = {**os.environ, "PYTHONPATH": str(plugins[0])}
+            start = min(timed([python, "-c", "pass"], env)[0] for _ in range(5))
+            numpy = min(timed([python, "-c", "import numpy"], env)[0] for _ in range(5))
+            print(f"{python}: bare start {start * 1000:.0f} ms, start + import numpy {numpy * 1000:.0f} ms")
         for _ in range(args.rounds):
-            elapsed, out = timed([python, "-m", "ldlidar", "decode", "--json", str(path)], env)
-            times.append(elapsed)
-            summary = json.loads(out)
-        packets = int(summary["packets"])  # type: ignore[call-overload]
-        best, median = min(times), statistics.median(times)
-        print(
-            f"  decode --json: {packets:,} packets, {summary['crc_errors']} CRC errors, "
-            f"{summary['resyncs']} resyncs, {summary['revolutions']:,} revolutions, {summary['points']:,} points"
+            for python, plugin in variants:
+                env = {**os.environ, "PYTHONPATH": str(plugin)}
+                elapsed, out = timed([python, "-m", "ldlidar", "decode", "--json", str(path)], env)
+                times[python, plugin].append(elapsed)
+                summaries[python, plugin] = json.loads(out)
+        best = min(
+            report(f"{python} with {plugin}", times[python, plugin], summaries[python, plugin])
+            for python, plugin in variants
         )
-        print(
-            f"  whole process: best {best:.3f} s, median {median:.3f} s "
-            f"over {args.rounds} rounds ({', '.join(f'{t:.3f}' for t in times)})"
-        )
-        print(
-            f"  => {packets / best / 1e6:.2f} M packets/s best ({packets / best / LINE_RATE:,.0f}x STL-27L line rate), "
-            f"{packets / median / 1e6:.2f} M packets/s median ({packets / median / LINE_RATE:,.0f}x)"
-        )
+        first = next(iter(summaries.values()))
+        if any(summary != first for summary in summaries.values()):
+            raise SystemExit("the variants disagree on the summary")
 
-    if not args.no_peer:
-        elapsed, out = timed([pythons[0], "-c", PEER, str(path)], env)
-        good, bad = (int(x) for x in out.split())
-        print(f"\npeer (pure-Python CRC scanner, whole process): {good:,} packets in {elapsed:.2f} s")
-        print(f"  => {good / elapsed / 1e6:.2f} M packets/s ({good / elapsed / LINE_RATE:,.0f}x line rate)")
-        print(f"  decode is {elapsed / best:.1f}x faster than the peer (best), {elapsed / median:.1f}x (median)")
+        if not args.no_peer:
+            elapsed, out = timed([pythons[0], "-c", PEER, str(path)], {**os.environ})
+            good, bad = (int(x) for x in out.split())
+            print(f"\npeer (pure-Python CRC scanner, whole process): {good:,} packets in {elapsed:.2f} s")
+            print(f"  => {good / elapsed / 1e6:.2f} M packets/s ({good / elapsed / LINE_RATE:,.0f}x line rate)")
+            print(f"  the fastest decode is {elapsed / best:.1f}x faster than the peer (best)")
 
 
 if __name__ == "__main__":

@@ -7,15 +7,15 @@ The pieces, bottom up: the wire format (:func:`decode_packet`,
 sources (:class:`SerialSource`, :class:`ReplaySource`), a device facade that
 reopens after unplugs (:class:`Lidar`) and an emulator (:class:`Emulator`).
 
-The asyncio-based names are imported on first use, so that ``python -m
-ldlidar decode`` starts without asyncio or pyserial.
+The asyncio-based and NumPy-based names are imported on first use, so that
+``python -m ldlidar decode`` starts without asyncio or pyserial and loads
+only the modules it needs (and can tune NumPy before loading it).
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from ._bulk import DecodedStream, decode_bytes, decode_file
 from ._errors import DeviceError, LidarError, ProtocolError
 from ._parser import ParserStats, StreamParser
 from ._protocol import (
@@ -38,12 +38,13 @@ from ._protocol import (
     encode_packet,
     get_model,
 )
-from ._render import encode_png, render_scan
-from ._scan import DeviceClock, Direction, Scan, ScanAssembler
 
 if TYPE_CHECKING:
+    from ._bulk import DecodedStream, decode_bytes, decode_file
     from ._emulator import Emulator, PacketGenerator, Room
     from ._lidar import Lidar
+    from ._render import encode_png, render_scan
+    from ._scan import DeviceClock, Direction, Scan, ScanAssembler
     from ._sources import ReplaySource, SerialSource, Source, open_source
 
 __all__ = [
@@ -90,6 +91,15 @@ __all__ = [
 ]
 
 _LAZY = {
+    "DecodedStream": "_bulk",
+    "decode_bytes": "_bulk",
+    "decode_file": "_bulk",
+    "encode_png": "_render",
+    "render_scan": "_render",
+    "DeviceClock": "_scan",
+    "Direction": "_scan",
+    "Scan": "_scan",
+    "ScanAssembler": "_scan",
     "Emulator": "_emulator",
     "PacketGenerator": "_emulator",
     "Room": "_emulator",

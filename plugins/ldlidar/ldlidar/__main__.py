@@ -1,5 +1,11 @@
+import os
 import sys
 
-from ._cli import main
+# No command calls BLAS, yet OpenBLAS starts a thread per core as NumPy loads
+# (tens of ms of CPU, taken from the decoder's own threads). This only takes
+# effect because importing the package does not load NumPy.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from ._cli import main  # noqa: E402
 
 sys.exit(main())

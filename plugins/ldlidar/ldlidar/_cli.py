@@ -29,26 +29,23 @@ def _summary(path: str) -> dict[str, Any]:
     from ._bulk import decode_file
 
     decoded = decode_file(path)
-    angles = decoded.point_angles()
-    valid = decoded.distances != 0
-    times = decoded.device_times()
+    # Figures from spans and extremes, not from (n, 12) angle or per-packet
+    # time arrays: on a large capture, fresh memory is a visible cost.
+    angles = decoded.angle_range()
     wraps = decoded.wraps() // 12  # packet index of each wrap
     out: dict[str, Any] = {"file": path, "bytes": decoded.size}
     out.update(decoded.stats.as_dict())
     out["revolutions"] = max(len(wraps) - 1, 0)
     out["points"] = int(decoded.distances.size)
-    out["valid_points"] = int(np.count_nonzero(valid))
+    out["valid_points"] = int(np.count_nonzero(decoded.distances))
     out["max_range_m"] = float(decoded.distances.max()) / 1000 if len(decoded) else None
-    out["angle_min_deg"] = float(angles.min()) if len(decoded) else None
-    out["angle_max_deg"] = float(angles.max()) if len(decoded) else None
-    duration = float(times[-1]) / 1000 if len(decoded) else 0.0
+    out["angle_min_deg"] = angles[0] if angles else None
+    out["angle_max_deg"] = angles[1] if angles else None
+    duration = decoded.device_elapsed() / 1000
     out["device_duration_s"] = duration
     out["packet_rate_hz"] = (len(decoded) - 1) / duration if duration > 0 else None
-    out["scan_rate_hz"] = (
-        (len(wraps) - 1) / (float(times[wraps[-1]] - times[wraps[0]]) / 1000)
-        if len(wraps) > 1 and times[wraps[-1]] > times[wraps[0]]
-        else None
-    )
+    turns = decoded.device_elapsed(int(wraps[0]), int(wraps[-1])) if len(wraps) > 1 else 0
+    out["scan_rate_hz"] = (len(wraps) - 1) / (turns / 1000) if turns > 0 else None
     out["speed_min_deg_s"] = int(decoded.speed.min()) if len(decoded) else None
     out["speed_max_deg_s"] = int(decoded.speed.max()) if len(decoded) else None
     return out

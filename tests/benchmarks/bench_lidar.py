@@ -208,8 +208,13 @@ class Listener:
         self.records.append((info["source_timestamp"], info["received_timestamp"], 0.0, 0.0))
 
     def _spin(self) -> None:
-        while self.context.ok():
-            self.executor.spin_once(timeout_sec=0.1)
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.1)
+        except ExternalShutdownException:
+            pass  # close() shut the context down: the end of the window
 
     def close(self) -> None:
         import rclpy

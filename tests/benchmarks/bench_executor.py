@@ -207,6 +207,13 @@ def main() -> None:
             f"{label:40} {rt:14.0f} {rt / single_rt:9.2f}x {statistics.median(gaps):10.0f} ms"
             f"   (round trips {min(rts):.0f}-{max(rts):.0f}; gaps {min(gaps):.0f}-{max(gaps):.0f} ms)"
         )
+    singles = results.get(("pingpong", "single"), [])
+    if singles:
+        print("\nround by round, vs that round's SingleThreadedExecutor:")
+        for kind, label in KINDS.items():
+            ratios = [rt / one for rt, one in zip(results.get(("pingpong", kind), []), singles)]
+            listed = " ".join(f"{r:.2f}x" for r in ratios)
+            print(f"{label:40} {listed}   (min {min(ratios):.2f}x)")
 
 
 if __name__ == "__main__":

@@ -19,11 +19,13 @@ hands async work over with ``call_soon_threadsafe``: correct, just slower.
 from __future__ import annotations
 
 import asyncio
+import atexit
 import collections
 import contextlib
 import inspect
 import threading
 import types
+import weakref
 from collections.abc import Awaitable, Callable, Coroutine, Generator
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -109,6 +111,7 @@ class AsyncioExecutor(Executor):
         self._release_lock = threading.Lock()
         self._idle = threading.Event()
         self._idle.set()
+        _live.add(self)
 
     # -- public surface ---------------------------------------------------------
     @property
@@ -641,3 +644,17 @@ def _rcl_aware(
                 value = yield yielded
         except BaseException as exc:  # forwarded into the coroutine
             error = exc
+
+
+#: Executors not yet shut down. Their waiter threads sit in ``rcl_wait``; one
+#: still there when the interpreter tears rclpy's C++ objects down aborts the
+#: process ("terminate called without an active exception"), so whatever a
+#: program forgot to shut down is shut down at exit.
+_live: weakref.WeakSet[AsyncioExecutor] = weakref.WeakSet()
+
+
+@atexit.register
+def _shutdown_forgotten_executors() -> None:
+    for executor in list(_live):
+        with contextlib.suppress(Exception):
+            executor.shutdown(timeout_sec=1.0)

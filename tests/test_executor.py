@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 import rclpy
@@ -500,3 +503,23 @@ def test_removed_node_gets_no_more_callbacks_and_its_lane_ends(
     finally:
         executor.shutdown(timeout_sec=5.0)
         thread.join(5.0)
+
+
+def test_program_that_forgets_shutdown_still_exits_cleanly(tmp_path: Path) -> None:
+    """A waiter thread left in rcl_wait at exit would abort the process (exit 134)."""
+    script = tmp_path / "forgetful.py"
+    script.write_text(
+        "import rclpy\n"
+        "from rclpy.node import Node\n"
+        "from container import AsyncioExecutor\n"
+        "rclpy.init()\n"
+        "executor = AsyncioExecutor()\n"
+        "executor.add_node(Node('forgetful'))\n"
+        "executor.spin_once(timeout_sec=0.1)\n"
+        "print('done', flush=True)\n",
+        encoding="utf-8",
+    )
+    result = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert (result.returncode, result.stdout) == (0, "done\n"), result.stderr[-2000:]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import random
 from collections.abc import Callable, Iterator
+from typing import Any
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,7 @@ use_fast_discovery()
 
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
+from rclpy.node import Node  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
@@ -49,6 +51,28 @@ def executor(context: Context) -> Iterator[AsyncioExecutor]:
         yield ex
     finally:
         ex.shutdown(timeout_sec=5.0)
+
+
+@pytest.fixture
+def host(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[..., Any]]:
+    """Create nodes on the test context, on ``executor``; destroyed afterwards."""
+    nodes: list[Node] = []
+
+    def make(cls: type[Node], name: str, **kwargs: Any) -> Any:
+        node = cls(name, context=context, **kwargs)
+        executor.add_node(node)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        executor.remove_node(node)
+        node.destroy_node()
+        # A lifecycle node's rcl state machine holds the rcl node, and with it
+        # the node's /rosout registration, until collected; release it now.
+        machine = getattr(node, "_state_machine", None)
+        if machine is not None:
+            machine.destroy_when_not_in_use()
 
 
 @pytest.fixture

@@ -34,29 +34,14 @@ ERROR_ROUTE = [
 
 
 @pytest.fixture
-def guarded(context: Context) -> Iterator[AsyncioExecutor]:
-    """An executor whose callback errors go to fault containment."""
+def executor(context: Context) -> Iterator[AsyncioExecutor]:
+    """An executor whose callback errors go to fault containment (as in a container)."""
     executor = AsyncioExecutor(context=context, on_callback_error=contain_fault)
     try:
         yield executor
     finally:
         executor.shutdown(timeout_sec=5.0)
 
-
-@pytest.fixture
-def host(context: Context, guarded: AsyncioExecutor) -> Iterator[Callable[..., Any]]:
-    nodes: list[Node] = []
-
-    def make(cls: type[Node], name: str, **kwargs: Any) -> Any:
-        node = cls(name, context=context, **kwargs)
-        guarded.add_node(node)
-        nodes.append(node)
-        return node
-
-    yield make
-    for node in nodes:
-        guarded.remove_node(node)
-        node.destroy_node()
 
 
 class Faulty(LifecycleNode):
@@ -80,7 +65,7 @@ class Faulty(LifecycleNode):
 
 @pytest.mark.parametrize(("recover", "final"), [(SUCCESS, "unconfigured"), (FAILURE, "finalized")])
 def test_raising_active_node_goes_through_error_processing_while_neighbours_publish(
-    guarded: AsyncioExecutor,
+    executor: AsyncioExecutor,
     host: Callable[..., Any],
     capfd: pytest.CaptureFixture[str],
     recover: TransitionCallbackReturn,
@@ -111,7 +96,7 @@ def test_raising_active_node_goes_through_error_processing_while_neighbours_publ
         await heard_at_least(after_fault + 10)
         return after_fault
 
-    run(guarded, scenario())
+    run(executor, scenario())
     assert faulty.lifecycle_state.label == final
     assert talker.lifecycle_state.label == "active"
     assert faulty.errors == ["active"]
@@ -135,7 +120,7 @@ class PlainFaulty(RclpyLifecycleNode):
 
 
 def test_plain_rclpy_lifecycle_node_is_contained_too(
-    guarded: AsyncioExecutor, host: Callable[..., Any]
+    executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
     node: PlainFaulty = host(PlainFaulty, "plain")
     observer = host(Node, "observer")
@@ -151,7 +136,7 @@ def test_plain_rclpy_lifecycle_node_is_contained_too(
         poison.publish(String(data="nails"))
         await log.wait_for_async("/plain", "unconfigured", after=2)
 
-    run(guarded, scenario())
+    run(executor, scenario())
     assert log.pairs("/plain")[-3:] == [
         ("active", "deactivating"),
         ("deactivating", "errorprocessing"),
@@ -160,7 +145,7 @@ def test_plain_rclpy_lifecycle_node_is_contained_too(
 
 
 def test_errors_in_inactive_nodes_change_nothing(
-    guarded: AsyncioExecutor, host: Callable[..., Any]
+    executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
     node: PlainFaulty = host(PlainFaulty, "idle")
     observer = host(Node, "observer")
@@ -177,5 +162,5 @@ def test_errors_in_inactive_nodes_change_nothing(
         while not received:
             await asyncio.sleep(0.005)
 
-    run(guarded, scenario())
+    run(executor, scenario())
     assert node._state_machine.current_state[1] == "inactive"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -24,22 +24,6 @@ from lifecycle_support import TransitionLog, run
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
 
-
-@pytest.fixture
-def host(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[..., Any]]:
-    """Create a node on the test context and add it to the executor."""
-    nodes: list[Node] = []
-
-    def make(cls: type[Node], name: str, **kwargs: Any) -> Any:
-        node = cls(name, context=context, **kwargs)
-        executor.add_node(node)
-        nodes.append(node)
-        return node
-
-    yield make
-    for node in nodes:
-        executor.remove_node(node)
-        node.destroy_node()
 
 
 class Gate(LifecycleNode):

@@ -10,7 +10,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +23,6 @@ from ldlidar.plugin import SCAN_QOS, LdLidarNode, find_serial_ports, to_laser_sc
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Log
-from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -40,27 +39,6 @@ ROSOUT_QOS = QoSProfile(
 
 
 # -- helpers ---------------------------------------------------------------------------
-@pytest.fixture
-def host(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[..., Any]]:
-    """Create a node on the test context and add it to the executor."""
-    nodes: list[Node] = []
-
-    def make(cls: type[Node], name: str, **kwargs: Any) -> Any:
-        node = cls(name, context=context, **kwargs)
-        executor.add_node(node)
-        nodes.append(node)
-        return node
-
-    yield make
-    for node in nodes:
-        executor.remove_node(node)
-        node.destroy_node()
-        # A lifecycle node's rcl state machine holds the rcl node, and with it
-        # the node's /rosout registration, until collected; release it now.
-        machine = getattr(node, "_state_machine", None)
-        if machine is not None:
-            machine.destroy_when_not_in_use()
-
 
 def lidar_parameters(port: str, **more: Any) -> list[Parameter]:
     """Overrides for an LD06 on ``port``; keyword names use ``__`` for ``.``."""

@@ -93,18 +93,22 @@ _NODE_KEYS = {
 }
 
 
-def load_config(path: str | Path) -> ContainerConfig:
-    """Read and check a container file."""
-    path = Path(path)
+def read_yaml(path: str | Path) -> Any:
+    """Read a YAML file; a missing file or bad YAML is a :class:`ConfigError`."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = Path(path).read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"cannot read: {exc.strerror}", source=str(path)) from exc
     try:
-        document = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"not valid YAML: {exc}", source=str(path)) from exc
-    return parse_config(document, base_dir=path.parent, source=str(path))
+
+
+def load_config(path: str | Path) -> ContainerConfig:
+    """Read and check a container file."""
+    path = Path(path)
+    return parse_config(read_yaml(path), base_dir=path.parent, source=str(path))
 
 
 def parse_config(

@@ -298,3 +298,24 @@ def test_hung_node_resets_the_rest_and_recovery_restarts_them(
         for node in nodes:
             executor.remove_node(node)
             node.destroy_node()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("-p", "bogus"), "expected 'name:=value', not 'bogus'"),
+        (("/nonexistent/manager.yaml",), "cannot read"),
+        (("-p", "bond_timeout:=soon"), "bond_timeout"),
+    ],
+)
+def test_manager_command_refuses_bad_input_with_exit_2(
+    args: tuple[str, ...], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from container._cli import main
+
+    try:
+        code = main(["manager", *args])
+    except SystemExit as exc:  # argparse's usage errors
+        code = int(exc.code or 0)
+    assert code == 2
+    assert message in capsys.readouterr().err

@@ -22,6 +22,7 @@ from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from .._runtime import use_fast_discovery
+from ._types import name_value
 
 if TYPE_CHECKING:
     from rclpy.client import Client
@@ -69,12 +70,12 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         help="component node remapping rules, in the 'from:=to' form",
     )
     load.add_argument(
-        "-p", "--parameter", action="append", default=[], dest="parameters", type=_name_value,
+        "-p", "--parameter", action="append", default=[], dest="parameters", type=name_value,
         help="component node parameters, in the 'name:=value' form",
     )
     load.add_argument(
         "-e", "--extra-argument", action="append", default=[], dest="extra_arguments",
-        type=_name_value, help="extra arguments for the container, in the 'name:=value' form",
+        type=name_value, help="extra arguments for the container, in the 'name:=value' form",
     )
     load.add_argument("-q", "--quiet", action="store_true", help="only print the component's unique ID")
     _add_spin_time(load)
@@ -116,13 +117,6 @@ def _add_spin_time(parser: argparse.ArgumentParser) -> None:
         "--spin-time", type=float, default=2.0,
         help="seconds to wait for discovery of the container (default: %(default)s)",
     )
-
-
-def _name_value(text: str) -> tuple[str, str]:
-    name, sep, value = text.partition(":=")
-    if not sep or not name:
-        raise argparse.ArgumentTypeError(f"expected 'name:=value', not {text!r}")
-    return name, value
 
 
 def _log_level(text: str) -> int:

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 import yaml
 
+from .._config import read_yaml
 from .._errors import ConfigError
 from .._runtime import configure_logging
+from ._types import name_value
 
 __all__ = ["add_parser"]
 
@@ -36,18 +37,14 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         action="append",
         default=[],
         metavar="NAME:=VALUE",
+        type=name_value,
         help="set a parameter (YAML value); repeatable",
     )
     parser.set_defaults(handler=_run)
 
 
 def _settings_mapping(path: str) -> dict[str, Any]:
-    try:
-        document = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"cannot read: {exc.strerror}", source=path) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"not valid YAML: {exc}", source=path) from exc
+    document = read_yaml(path)
     if document is None:
         return {}
     if not isinstance(document, dict):
@@ -76,10 +73,7 @@ def _run(args: argparse.Namespace) -> int:
 
     try:
         mapping = _settings_mapping(args.file) if args.file else {}
-        for item in args.param:
-            name, sep, value = item.partition(":=")
-            if not sep or not name:
-                raise ConfigError(f"expected NAME:=VALUE, not {item!r}", source="-p")
+        for name, value in args.param:
             mapping[name] = yaml.safe_load(value)
         if args.name:
             mapping["name"] = args.name

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -62,3 +64,23 @@ def corrupted_stream(seed: int, *, packets: int = 400, model: str = "LD06") -> t
 def is_subsequence(needles: list[bytes], haystack: list[bytes]) -> bool:
     it = iter(haystack)
     return all(any(n == h for h in it) for n in needles)
+
+
+def decode_command_modules(capture: Path) -> set[str]:
+    """The modules ``python -m ldlidar decode --json capture`` has loaded when it ends."""
+    script = (
+        "import sys, runpy, io, contextlib\n"
+        f"sys.argv = ['ldlidar', 'decode', '--json', {str(capture)!r}]\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    try:\n"
+        "        runpy.run_module('ldlidar', run_name='__main__')\n"
+        "    except SystemExit as exc:\n"
+        "        assert exc.code == 0, exc.code\n"
+        "print(' '.join(sorted(sys.modules)))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+        env={**os.environ, "PYTHONPATH": str(PLUGIN)},
+    )
+    assert out.returncode == 0, out.stderr
+    return set(out.stdout.split())

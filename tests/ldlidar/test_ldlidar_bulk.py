@@ -1,8 +1,5 @@
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +16,7 @@ from ldlidar import (
     encode_packet,
 )
 from ldlidar import _bulk
-from ldlidar_support import PLUGIN, corrupted_stream
+from ldlidar_support import corrupted_stream, decode_command_modules
 
 
 def streaming(data: bytes) -> tuple[list, StreamParser]:  # type: ignore[type-arg]
@@ -472,22 +469,7 @@ def test_decode_command_loads_only_what_it_needs(tmp_path: Path) -> None:
     """Start-up is a visible share of ``python -m ldlidar decode``: keep it lean."""
     capture = tmp_path / "capture.bin"
     capture.write_bytes(corrupted_stream(0)[0])
-    script = (
-        "import sys, runpy, io, contextlib\n"
-        f"sys.argv = ['ldlidar', 'decode', '--json', {str(capture)!r}]\n"
-        "with contextlib.redirect_stdout(io.StringIO()):\n"
-        "    try:\n"
-        "        runpy.run_module('ldlidar', run_name='__main__')\n"
-        "    except SystemExit as exc:\n"
-        "        assert exc.code == 0, exc.code\n"
-        "print(' '.join(sorted(sys.modules)))\n"
-    )
-    out = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
-        env={**os.environ, "PYTHONPATH": str(PLUGIN)},
-    )
-    assert out.returncode == 0, out.stderr
-    loaded = set(out.stdout.split())
+    loaded = decode_command_modules(capture)
     unwanted = {
         "concurrent.futures", "numpy.ma", "numpy.typing", "ldlidar._render", "ldlidar._scan",
         "ldlidar._emulator", "ldlidar._lidar", "asyncio",

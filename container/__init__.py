@@ -16,11 +16,9 @@ from ._errors import (
     PluginError,
     TransitionError,
 )
-from ._executor import AsyncioExecutor, CallbackErrorHandler
-from ._faults import contain_fault
+from .executor import AsyncioExecutor, CallbackErrorHandler
 from ._hookspecs import RegisterNodeType, hookimpl, hookspec
-from ._manager import LifecycleManager, ManagerSettings
-from ._node import LifecycleNode
+from .lifecycle import LifecycleManager, LifecycleNode, ManagerSettings, contain_fault
 from ._registry import ENTRY_POINT_GROUP, NodeType, PluginRegistry
 from ._services import ContainerServices
 

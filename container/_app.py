@@ -23,8 +23,8 @@ from rclpy.signals import SignalHandlerOptions
 from ._config import ContainerConfig
 from ._container import ComponentManager, requests_from_specs
 from ._errors import ContainerError
-from ._executor import AsyncioExecutor
-from ._faults import contain_fault
+from .executor import AsyncioExecutor
+from .lifecycle import contain_fault
 from ._params import node_parameters
 from ._registry import PluginRegistry
 from ._runtime import use_fast_discovery

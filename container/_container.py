@@ -23,7 +23,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from . import _transitions
+from .lifecycle import _transitions
 from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
@@ -33,7 +33,7 @@ _InvalidROSArgsError = _rclpy.RCLInvalidROSArgsError
 if TYPE_CHECKING:
     from rclpy.context import Context
 
-    from ._executor import AsyncioExecutor
+    from .executor import AsyncioExecutor
 
 __all__ = ["ComponentManager", "LoadRequest", "LoadedNode"]
 

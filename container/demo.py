@@ -19,7 +19,7 @@ from rclpy.timer import Timer
 from std_msgs.msg import String
 
 from ._hookspecs import RegisterNodeType, hookimpl
-from ._node import LifecycleNode
+from .lifecycle import LifecycleNode
 
 __all__ = ["Listener", "Talker", "register_node_types"]
 

@@ -27,7 +27,8 @@ from std_srvs.srv import Trigger
 from container import AsyncioExecutor
 from container._hookspecs import RegisterNodeType, hookimpl
 
-TESTS = Path(__file__).resolve().parent
+#: The directory that makes ``tests.component_support`` importable in a child process.
+IMPORT_ROOT = Path(__file__).resolve().parents[1]
 
 #: Every Busy node ever constructed; an entry outliving its unload is a leak.
 BUSY_NODES: weakref.WeakSet[Busy] = weakref.WeakSet()
@@ -85,7 +86,7 @@ def register_node_types(register: RegisterNodeType) -> None:
 def install_test_plugin(site: Path) -> Path:
     """Write distribution ``test-nodes`` (entry point: this module) into ``site``.
 
-    :return: the PYTHONPATH a child process needs to see it: ``site`` and tests/.
+    :return: the PYTHONPATH a child process needs to see it: ``site`` and the repository root.
     """
     info = site / "test_nodes-0.1.dist-info"
     info.mkdir(parents=True, exist_ok=True)
@@ -93,7 +94,7 @@ def install_test_plugin(site: Path) -> Path:
         "Metadata-Version: 2.1\nName: test-nodes\nVersion: 0.1\n", encoding="utf-8"
     )
     (info / "entry_points.txt").write_text(
-        "[container.plugins]\ntest_nodes = component_support\n", encoding="utf-8"
+        "[container.plugins]\ntest_nodes = tests.component_support\n", encoding="utf-8"
     )
     return site
 

@@ -29,7 +29,7 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
 
-from container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
+from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
 
 
 @pytest.fixture

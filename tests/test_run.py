@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from container_support import REPO, ContainerProcess
+from tests.container_support import REPO, ContainerProcess
 
 DEMO = """
 nodes:

@@ -15,8 +15,8 @@ from rcl_interfaces.srv import GetParameters
 from rclpy.context import Context
 from rclpy.node import Node
 
-from component_support import (
-    TESTS,
+from tests.component_support import (
+    IMPORT_ROOT,
     ContainerClient,
     graph_nodes,
     install_test_plugin,
@@ -24,7 +24,7 @@ from component_support import (
     parameter,
     wait_until,
 )
-from container_support import ContainerProcess
+from tests.container_support import ContainerProcess
 from container import AsyncioExecutor
 
 EMPTY = "container:\n  name: ComponentManager\n"
@@ -38,7 +38,7 @@ def container(
 ) -> ContainerProcess:
     """An empty ``container run`` that also sees the ``test-nodes`` plugin."""
     site = install_test_plugin(tmp_path / "site")
-    path = os.pathsep.join([str(site), str(TESTS), os.environ.get("PYTHONPATH", "")])
+    path = os.pathsep.join([str(site), str(IMPORT_ROOT), os.environ.get("PYTHONPATH", "")])
     monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
     return run_container(EMPTY)
 

@@ -17,8 +17,8 @@ from pathlib import Path
 from rclpy.context import Context
 from rclpy.lifecycle import LifecycleNode
 
-import component_support
-from component_support import BUSY_NODES
+from tests import component_support
+from tests.component_support import BUSY_NODES
 from container._app import ContainerApp
 from container._config import ContainerConfig
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from ldlidar_support import CAPTURE
+from tests.ldlidar.ldlidar_support import CAPTURE
 
 
 @pytest.fixture

@@ -16,7 +16,7 @@ from ldlidar import (
     encode_packet,
 )
 from ldlidar import _bulk
-from ldlidar_support import corrupted_stream, decode_command_modules
+from tests.ldlidar.ldlidar_support import corrupted_stream, decode_command_modules
 
 
 def streaming(data: bytes) -> tuple[list, StreamParser]:  # type: ignore[type-arg]

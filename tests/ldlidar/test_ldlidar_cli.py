@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from ldlidar import PacketGenerator, ScanAssembler, StreamParser, encode_png, render_scan
 from ldlidar._cli import main
-from ldlidar_support import PLUGIN
+from tests.ldlidar.ldlidar_support import PLUGIN
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:

@@ -1,7 +1,7 @@
 from __future__ import annotations
 
 import ldlidar
-from ldlidar_support import CAPTURE, decode_command_modules
+from tests.ldlidar.ldlidar_support import CAPTURE, decode_command_modules
 
 EXPECTED = {
     "HEADER", "HEALTH_SIZE", "HEALTH_TYPE", "INFO_SIZE", "INFO_TYPE", "MODELS",

@@ -29,8 +29,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
 from container import AsyncioExecutor, PluginRegistry
-from container_support import REPO, ContainerProcess
-from lifecycle_support import run
+from tests.container_support import REPO, ContainerProcess
+from tests.lifecycle_support import run
 
 EXAMPLE = REPO / "examples" / "lidar.yaml"
 ROSOUT_QOS = QoSProfile(

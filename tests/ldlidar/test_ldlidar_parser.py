@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from ldlidar import PacketGenerator, StreamParser, encode_health, encode_info, encode_packet
-from ldlidar_support import corrupted_stream, is_subsequence
+from tests.ldlidar.ldlidar_support import corrupted_stream, is_subsequence
 
 
 def parse(data: bytes, chunks: list[int] | None = None) -> tuple[list[bytes], StreamParser]:

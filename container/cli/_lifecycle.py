@@ -69,7 +69,7 @@ def _session(main: Callable[[Any], Coroutine[Any, Any, int]]) -> int:
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
-    from .._executor import AsyncioExecutor
+    from ..executor import AsyncioExecutor
     from .._runtime import use_fast_discovery
 
     use_fast_discovery()
@@ -133,7 +133,7 @@ async def _find(node: Any, args: argparse.Namespace) -> str | None:
 
 
 def _client(node: Any, name: str) -> Any:
-    from .._lifecycle_client import LifecycleClient
+    from ..lifecycle._client import LifecycleClient
 
     return LifecycleClient(node, name, service_timeout=5.0)
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from container_support import REPO, ContainerProcess
+from tests.container_support import REPO, ContainerProcess
 
 EMPTY = "container:\n  name: ComponentManager\n"
 PLUGIN_SOURCE = REPO / "examples" / "thirdparty_plugin"

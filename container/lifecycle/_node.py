@@ -43,7 +43,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile
 from rclpy.timer import Timer
 
-from ._errors import TransitionError
+from .._errors import TransitionError
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
 __all__ = ["LifecycleNode"]

@@ -15,11 +15,11 @@ from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from container_support import ContainerProcess
+from tests.container_support import ContainerProcess
 from container import AsyncioExecutor
-from container._manager import STARTUP, LifecycleManager, ManagerSettings
-from container._node import LifecycleNode
-from lifecycle_support import TransitionLog, run
+from container.lifecycle._manager import STARTUP, LifecycleManager, ManagerSettings
+from container.lifecycle._node import LifecycleNode
+from tests.lifecycle_support import TransitionLog, run
 
 nav2_srv = pytest.importorskip("nav2_msgs.srv")
 pytest.importorskip("bond.msg")
@@ -311,7 +311,7 @@ def test_hung_node_resets_the_rest_and_recovery_restarts_them(
 def test_manager_command_refuses_bad_input_with_exit_2(
     args: tuple[str, ...], message: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from container._cli import main
+    from container.cli import main
 
     try:
         code = main(["manager", *args])

@@ -35,7 +35,7 @@ from rclpy.executors import Executor
 from rclpy.task import Future as RclFuture
 
 from ._dispatch import WOKEN, Dispatcher, format_error
-from ._errors import ExecutorError
+from .._errors import ExecutorError
 from ._lanes import Lane, Work
 from ._selector import RclSelector
 

@@ -11,16 +11,16 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
-from . import component, lifecycle, manager, run
+from . import _component, _lifecycle, _manager, _run
 
 __all__ = ["main"]
 
 #: Modules contributing sub-commands, in the order ``--help`` lists them.
 _COMMANDS: list[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], None]] = [
-    run.add_parser,
-    component.add_parser,
-    lifecycle.add_parser,
-    manager.add_parser,
+    _run.add_parser,
+    _component.add_parser,
+    _lifecycle.add_parser,
+    _manager.add_parser,
 ]
 
 

@@ -252,7 +252,7 @@ def _with_node(main: Callable[[Node], Awaitable[int]]) -> int:
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
-    from .._executor import AsyncioExecutor
+    from ..executor import AsyncioExecutor
 
     use_fast_discovery()
     context = Context()

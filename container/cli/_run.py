@@ -29,7 +29,7 @@ def _run(args: argparse.Namespace) -> int:
         config = load_config(args.config)
         settings = None
         if config.manager is not None:
-            from .._manager import ManagerSettings
+            from ..lifecycle._manager import ManagerSettings
 
             settings = ManagerSettings.from_mapping(config.manager, source=f"{args.config}: manager")
     except ConfigError as exc:
@@ -39,6 +39,6 @@ def _run(args: argparse.Namespace) -> int:
 
     if settings is None:
         return run_container(config)
-    from .._manager import manager_extension
+    from ..lifecycle._manager import manager_extension
 
     return run_container(config, extensions=(manager_extension(settings),))

@@ -15,13 +15,13 @@ from typing import TYPE_CHECKING, Any
 
 from rclpy.lifecycle import LifecycleNodeMixin, TransitionCallbackReturn
 
-from ._errors import TransitionError
+from .._errors import TransitionError
 from ._node import LifecycleNode
 
 if TYPE_CHECKING:
     from rclpy.node import Node
 
-    from ._executor import AsyncioExecutor
+    from ..executor import AsyncioExecutor
 
 __all__ = ["bring_down", "bring_up", "is_lifecycle", "state_of", "transition"]
 

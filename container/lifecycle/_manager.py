@@ -38,14 +38,14 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
-from ._errors import ConfigError, TransitionError
-from ._executor import AsyncioExecutor
+from .._errors import ConfigError, TransitionError
+from ..executor import AsyncioExecutor
 from ._heartbeat import HeartbeatWatch
-from ._lifecycle_client import LifecycleClient, transition_id
-from ._runtime import use_fast_discovery
+from ._client import LifecycleClient, transition_id
+from .._runtime import use_fast_discovery
 
 if TYPE_CHECKING:
-    from ._app import ContainerApp
+    from .._app import ContainerApp
 
 __all__ = ["LifecycleManager", "ManagerSettings", "manager_extension", "run_manager"]
 

@@ -15,10 +15,10 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from container import AsyncioExecutor
-from container._faults import contain_fault
-from container._node import LifecycleNode
+from container.lifecycle._faults import contain_fault
+from container.lifecycle._node import LifecycleNode
 from container.demo import Talker
-from lifecycle_support import TransitionLog, run
+from tests.lifecycle_support import TransitionLog, run
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE

@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 import pytest
 
-from container_support import REPO, ContainerProcess
-from container._cli import main
+from tests.container_support import REPO, ContainerProcess
+from container.cli import main
 
 DEMO = """
 nodes:

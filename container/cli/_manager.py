@@ -69,7 +69,7 @@ def _settings_mapping(path: str) -> dict[str, Any]:
 
 def _run(args: argparse.Namespace) -> int:
     configure_logging()
-    from .._manager import ManagerSettings, run_manager
+    from ..lifecycle._manager import ManagerSettings, run_manager
 
     try:
         mapping = _settings_mapping(args.file) if args.file else {}

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 from lifecycle_msgs.msg import Transition, TransitionDescription
 from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 
-from ._errors import TransitionError
+from .._errors import TransitionError
 
 if TYPE_CHECKING:
     from rclpy.callback_groups import CallbackGroup

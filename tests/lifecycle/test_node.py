@@ -18,8 +18,8 @@ from std_msgs.msg import Int64
 
 from container import AsyncioExecutor
 from container._errors import TransitionError
-from container._node import LifecycleNode
-from lifecycle_support import TransitionLog, run
+from container.lifecycle._node import LifecycleNode
+from tests.lifecycle_support import TransitionLog, run
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE

@@ -26,8 +26,8 @@ from rclpy.lifecycle import (
     TransitionCallbackReturn,
 )
 
-from ._dispatch import describe
-from ._executor import AsyncioExecutor
+from ..executor._dispatch import describe
+from ..executor import AsyncioExecutor
 from ._node import LifecycleNode
 from ._transitions import state_of
 

@@ -1,0 +1,14 @@
+"""The executor: rclpy's ``Executor`` contract on an asyncio event loop.
+
+Start reading at :class:`AsyncioExecutor` (``_executor``). Under it, in the
+order work flows: ``_selector`` (the loop's thread sleeps in ``rcl_wait``),
+``_dispatch`` (cached wait sets; what is ready goes to a lane), ``_lanes``
+(callback groups: worker threads for plain callbacks, runner tasks for
+``async def`` ones) and ``_bridge`` (rclpy futures seen from asyncio). This
+package depends on rclpy and :mod:`container._compat` only, never on the
+rest of the container.
+"""
+
+from ._executor import AsyncioExecutor, CallbackErrorHandler
+
+__all__ = ["AsyncioExecutor", "CallbackErrorHandler"]

@@ -1,0 +1,14 @@
+"""Lifecycle nodes and their management: the node base, transitions, faults, the manager.
+
+``_node`` is the :class:`LifecycleNode` base plugins subclass; ``_transitions``
+drives a hosted node up and down; ``_faults`` sends a node whose callback
+raised through error processing; ``_heartbeat`` and ``_client`` are what the
+Nav2-compatible :class:`LifecycleManager` (``_manager``) watches and calls.
+Depends on :mod:`container.executor`; the container proper depends on this.
+"""
+
+from ._faults import contain_fault
+from ._manager import LifecycleManager, ManagerSettings
+from ._node import LifecycleNode
+
+__all__ = ["LifecycleManager", "LifecycleNode", "ManagerSettings", "contain_fault"]

@@ -4,12 +4,14 @@
 
     ContainerError                 anything this package raises on purpose
     ├── ExecutorError              the executor refused an impossible move
-    ├── ConfigError                a container configuration file is wrong
+    ├── ConfigError                a configuration value (file, setting, parameter) is wrong
     ├── PluginError                a plugin distribution could not be used
     ├── LoadError                  a node could not be loaded into the container
     ├── TransitionError            a lifecycle transition could not be carried out
     └── DeviceError                a device (serial port, capture file) failed
 
+Each keeps what it is about as attributes (``source``, ``node``, ``device``,
+...) and the bare ``reason``, so callers never take the message apart.
 Foreign errors (rclpy, import machinery, serial, YAML) are translated into
 these where they enter our code, chained with ``raise ... from exc`` so the
 original traceback is kept.
@@ -29,7 +31,15 @@ __all__ = [
 
 
 class ContainerError(Exception):
-    """Base of every error this package raises on purpose."""
+    """Base of every error this package raises on purpose.
+
+    :param reason: what went wrong, without the context the subclasses add
+        in front of it (file, node, device); the message when there is none.
+    """
+
+    def __init__(self, message: str, *, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = message if reason is None else reason
 
 
 class ExecutorError(ContainerError):
@@ -43,7 +53,7 @@ class ConfigError(ContainerError):
     """
 
     def __init__(self, message: str, *, source: str | None = None) -> None:
-        super().__init__(f"{source}: {message}" if source else message)
+        super().__init__(f"{source}: {message}" if source else message, reason=message)
         self.source = source
 
 
@@ -69,7 +79,7 @@ class PluginError(ContainerError):
             )
             if part
         )
-        super().__init__(f"{where}: {message}" if where else message)
+        super().__init__(f"{where}: {message}" if where else message, reason=message)
         self.distribution = distribution
         self.entry_point = entry_point
 
@@ -86,7 +96,7 @@ class TransitionError(ContainerError):
     """
 
     def __init__(self, message: str, *, node: str, transition: str) -> None:
-        super().__init__(f"{node}: transition {transition!r}: {message}")
+        super().__init__(f"{node}: transition {transition!r}: {message}", reason=message)
         self.node = node
         self.transition = transition
 
@@ -98,5 +108,5 @@ class DeviceError(ContainerError):
     """
 
     def __init__(self, message: str, *, device: str) -> None:
-        super().__init__(f"{device}: {message}")
+        super().__init__(f"{device}: {message}", reason=message)
         self.device = device

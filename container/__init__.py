@@ -1,12 +1,22 @@
 """A component container for ROS 2 lifecycle nodes, on one asyncio executor.
 
-The public API is what this module exports; everything in an underscored
-module is private and may change. Plugin authors need :data:`hookimpl`,
-:class:`LifecycleNode` and :class:`RegisterNodeType`; embedders need
-:class:`AsyncioExecutor`, :class:`ComponentManager` and :class:`LifecycleManager`.
+The public API is what this module exports, plus the public subpackages
+:mod:`container.executor`, :mod:`container.lifecycle` and the value checks
+:mod:`container.checks`; everything in an underscored module is private and
+may change. Plugin authors need :data:`hookimpl`, :class:`LifecycleNode` and
+:class:`RegisterNodeType`; embedders need :class:`AsyncioExecutor`,
+:class:`ComponentManager` and :class:`LifecycleManager`.
+
+The errors and the hook markers load with the package; everything that needs
+rclpy loads on first use, so a plugin's ROS-free parts (a decoder, a command
+line tool) can use the error hierarchy without starting ROS.
 """
 
-from ._container import ComponentManager, LoadedNode, LoadRequest
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from ._errors import (
     ConfigError,
     ContainerError,
@@ -16,11 +26,14 @@ from ._errors import (
     PluginError,
     TransitionError,
 )
-from .executor import AsyncioExecutor, CallbackErrorHandler
 from ._hookspecs import RegisterNodeType, hookimpl, hookspec
-from .lifecycle import LifecycleManager, LifecycleNode, ManagerSettings, contain_fault
-from ._registry import ENTRY_POINT_GROUP, NodeType, PluginRegistry
-from ._services import ContainerServices
+
+if TYPE_CHECKING:
+    from ._container import ComponentManager, LoadedNode, LoadRequest
+    from ._registry import ENTRY_POINT_GROUP, NodeType, PluginRegistry
+    from ._services import ContainerServices
+    from .executor import AsyncioExecutor, CallbackErrorHandler
+    from .lifecycle import LifecycleManager, LifecycleNode, ManagerSettings, contain_fault
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -47,3 +60,33 @@ __all__ = [
     "hookimpl",
     "hookspec",
 ]
+
+#: Where each name that needs rclpy lives.
+_LAZY = {
+    "ComponentManager": "._container",
+    "LoadRequest": "._container",
+    "LoadedNode": "._container",
+    "ENTRY_POINT_GROUP": "._registry",
+    "NodeType": "._registry",
+    "PluginRegistry": "._registry",
+    "ContainerServices": "._services",
+    "AsyncioExecutor": ".executor",
+    "CallbackErrorHandler": ".executor",
+    "LifecycleManager": ".lifecycle",
+    "LifecycleNode": ".lifecycle",
+    "ManagerSettings": ".lifecycle",
+    "contain_fault": ".lifecycle",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'container' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

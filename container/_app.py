@@ -1,36 +1,30 @@
-"""A running container process: registry, executor, container node, nodes.
+"""The processes: a container (registry, executor, container node, nodes), a manager.
 
-``run_container`` is what ``container run`` does. It installs its own
-SIGINT/SIGTERM handling on the event loop (rclpy's own handlers would shut
-the context down under the nodes' feet) and, on either signal, unloads every
-node through its lifecycle, destroys the container node and releases the
-executor, so the process exits with no thread left behind.
+``run_container`` is what ``container run`` does, as a server session
+(:mod:`container._session`): on SIGINT or SIGTERM it unloads every node
+through its lifecycle and destroys the container node; the session then
+releases the executor and reports any thread left behind.
 """
 
 from __future__ import annotations
 
 import asyncio
-import logging
-import signal
-import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
-import rclpy
 from rclpy.context import Context
-from rclpy.signals import SignalHandlerOptions
 
 from ._config import ContainerConfig
 from ._container import ComponentManager, requests_from_specs
 from ._errors import ContainerError
-from .executor import AsyncioExecutor
-from .lifecycle import contain_fault
 from ._params import node_parameters
 from ._registry import PluginRegistry
-from ._runtime import use_fast_discovery
 from ._services import ContainerServices
+from ._session import EXIT_OK, Session, run_session
+from .executor import AsyncioExecutor
+from .lifecycle import LifecycleManager, ManagerSettings, contain_fault
 
-__all__ = ["ContainerApp", "run_container"]
+__all__ = ["ContainerApp", "manager_extension", "run_container", "run_manager"]
 
 #: Extensions started after the configured nodes load (the lifecycle manager);
 #: each returns a coroutine to await on shutdown.
@@ -54,15 +48,19 @@ class ContainerApp:
     stopping: asyncio.Event = field(default_factory=asyncio.Event)
 
     @classmethod
-    def create(cls, config: ContainerConfig, *, context: Context) -> ContainerApp:
+    def create(
+        cls, config: ContainerConfig, *, context: Context, executor: AsyncioExecutor | None = None
+    ) -> ContainerApp:
+        """Build the container on ``executor`` (by default a new one made for ``config``)."""
         registry = PluginRegistry(
             allow=config.plugins_allow, block=config.plugins_block, trace=config.trace_hooks
         )
-        executor = AsyncioExecutor(
-            context=context,
-            reentrant_limit=config.reentrant_limit,
-            on_callback_error=contain_fault,
-        )
+        if executor is None:
+            executor = AsyncioExecutor(
+                context=context,
+                reentrant_limit=config.reentrant_limit,
+                on_callback_error=contain_fault,
+            )
         namespace = config.namespace if config.namespace.startswith("/") else f"/{config.namespace}"
         full_name = f"{namespace.rstrip('/')}/{config.name}"
         manager = ComponentManager(
@@ -82,64 +80,98 @@ class ContainerApp:
             manager.get_logger().error(f"Plugin skipped: {failure}")
         return cls(config, context, registry, executor, manager, services)
 
-    async def serve(self, *, extensions: tuple[Extension, ...] = ()) -> None:
-        """Load the configured nodes, run until :meth:`stop`, then unload all."""
-        loop = asyncio.get_running_loop()
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(signum, self.stop)
+    async def serve(
+        self, *, extensions: tuple[Extension, ...] = (), stopping: asyncio.Event | None = None
+    ) -> None:
+        """Load the configured nodes, run until :meth:`stop` (or ``stopping``), then unload all."""
+        if stopping is not None:
+            self.stopping = stopping
         log = self.manager.get_logger()
-        try:
-            for request in requests_from_specs(self.config.nodes):
-                try:
-                    await self.manager.load_and_start(request, timeout=self.config.unload_timeout)
-                except ContainerError as exc:
-                    # A bad entry costs that node only; the container serves on.
-                    log.error(f"Could not start {request.package}::{request.plugin}: {exc}")
-            running = [asyncio.ensure_future(extension(self)) for extension in extensions]
-            log.info(
-                f"Container '{self.manager.get_fully_qualified_name()}' ready with "
-                f"{len(self.manager.loaded())} node(s)"
-            )
-            await self.stopping.wait()
-            log.info("Shutting down")
-            for task in running:
-                task.cancel()
-            await asyncio.gather(*running, return_exceptions=True)
-            await self.manager.unload_all()
-        finally:
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(signum)
+        for request in requests_from_specs(self.config.nodes):
+            try:
+                await self.manager.load_and_start(request, timeout=self.config.unload_timeout)
+            except ContainerError as exc:
+                # A bad entry costs that node only; the container serves on.
+                log.error(f"Could not start {request.package}::{request.plugin}: {exc}")
+        running = [asyncio.ensure_future(extension(self)) for extension in extensions]
+        log.info(
+            f"Container '{self.manager.get_fully_qualified_name()}' ready with "
+            f"{len(self.manager.loaded())} node(s)"
+        )
+        await self.stopping.wait()
+        log.info("Shutting down")
+        for task in running:
+            task.cancel()
+        await asyncio.gather(*running, return_exceptions=True)
+        await self.manager.unload_all()
 
     def stop(self) -> None:
         self.stopping.set()
 
-    def close(self) -> bool:
-        """Destroy the container node and release the executor.
-
-        :return: ``False`` if a callback thread was still running.
-        """
+    def close(self) -> None:
+        """Destroy the container node; the executor is its owner's to shut down."""
         self.services.destroy()
         self.executor.remove_node(self.manager)
         self.manager.destroy_node()
-        return self.executor.shutdown()
 
 
 def run_container(config: ContainerConfig, *, extensions: tuple[Extension, ...] = ()) -> int:
     """Run a container process until SIGINT or SIGTERM; return the exit code."""
-    use_fast_discovery()
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        app = ContainerApp.create(config, context=context)
+
+    async def main(session: Session) -> int:
+        app = ContainerApp.create(config, context=session.context, executor=session.executor)
         try:
-            app.executor.spin_until_future_complete(app.serve(extensions=extensions))
+            await app.serve(extensions=extensions, stopping=session.stopping)
         finally:
-            clean = app.close()
-        leftover = [t.name for t in threading.enumerate() if t is not threading.main_thread()]
-        if leftover:
-            # Daemon threads would die silently with the process; say so instead.
-            logging.getLogger(__name__).error(f"threads left behind: {', '.join(leftover)}")
-            return 1
-        return 0 if clean else 1
-    finally:
-        rclpy.try_shutdown(context=context)
+            app.close()
+        return EXIT_OK
+
+    return run_session(
+        main,
+        server=True,
+        executor_options={"reentrant_limit": config.reentrant_limit, "on_callback_error": contain_fault},
+    )
+
+
+def manager_extension(settings: ManagerSettings) -> Callable[[ContainerApp], Awaitable[None]]:
+    """A container extension running a manager next to the container's nodes.
+
+    On container shutdown it resets the nodes it manages in reverse order
+    (bounded by the container's ``unload_timeout`` per node) before the
+    container unloads them.
+    """
+
+    async def run(app: ContainerApp) -> None:
+        manager = LifecycleManager(settings, context=app.context, namespace=settings.namespace)
+        app.executor.add_node(manager)
+        try:
+            await manager.run()
+        finally:
+            try:
+                await manager.settle(timeout=app.config.unload_timeout * max(1, len(manager.node_names)))
+            finally:
+                app.executor.remove_node(manager)
+                manager.destroy_node()
+
+    return run
+
+
+def run_manager(settings: ManagerSettings) -> int:
+    """Run a manager as its own process until SIGINT or SIGTERM; the exit code.
+
+    Like Nav2's, a manager process that stops leaves the nodes as they are.
+    """
+    async def main(session: Session) -> int:
+        manager = LifecycleManager(settings, context=session.context)
+        session.executor.add_node(manager)
+        running = asyncio.ensure_future(manager.run())
+        try:
+            await session.stopping.wait()
+        finally:
+            running.cancel()
+            await asyncio.gather(running, return_exceptions=True)
+            session.executor.remove_node(manager)
+            manager.destroy_node()
+        return EXIT_OK
+
+    return run_session(main, server=True)

@@ -19,16 +19,15 @@ from rclpy.exceptions import (
     InvalidNamespaceException,
     InvalidNodeNameException,
 )
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from .lifecycle import _transitions
+from ._compat import InvalidROSArgsError, state_machine
 from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
-
-_InvalidROSArgsError = _rclpy.RCLInvalidROSArgsError
+from .lifecycle import _transitions
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -155,7 +154,7 @@ class ComponentManager(Node):
             )
         except (InvalidNodeNameException, InvalidNamespaceException) as exc:
             raise LoadError(f"Invalid node name or namespace: {_one_line(exc)}") from exc
-        except _InvalidROSArgsError as exc:
+        except InvalidROSArgsError as exc:
             raise LoadError(f"Invalid remap rules: {_one_line(exc)}") from exc
         except Exception as exc:
             raise LoadError(f"Component constructor threw an exception: {_one_line(exc)}") from exc
@@ -233,9 +232,8 @@ def _destroy(node: Node) -> None:
     # rclpy's LifecycleNode keeps a C++ state machine that holds the rcl node
     # (and its transition_event publisher); destroy_node leaves it, so the node
     # would stay on the ROS graph until the Python object is collected.
-    machine = getattr(node, "_state_machine", None)
-    if machine is not None:
-        machine.destroy_when_not_in_use()
+    if isinstance(node, LifecycleNodeMixin):
+        state_machine(node).destroy_when_not_in_use()
 
 
 def _check_extra_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:

@@ -152,7 +152,7 @@ class ContainerClient:
 
     def list(self) -> list[tuple[int, str]]:
         response = self.call(self.list_client, ListNodes.Request())
-        return list(zip(response.unique_ids, response.full_node_names))
+        return list(zip(response.unique_ids, response.full_node_names, strict=True))
 
 
 def wait_until(

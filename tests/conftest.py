@@ -10,15 +10,15 @@ from __future__ import annotations
 import os
 import random
 from collections.abc import Callable, Iterator
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 os.environ["ROS_DOMAIN_ID"] = str(random.Random().randint(1, 200))
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
-from container._runtime import use_fast_discovery  # noqa: E402
+from container._runtime import use_fast_discovery
 
 use_fast_discovery()
 
@@ -26,9 +26,9 @@ import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
+from rclpy.utilities import try_shutdown  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
-
 from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
 
 
@@ -40,7 +40,7 @@ def context() -> Iterator[Context]:
     try:
         yield ctx
     finally:
-        rclpy.try_shutdown(context=ctx)
+        try_shutdown(context=ctx)
 
 
 @pytest.fixture
@@ -91,9 +91,7 @@ def run_container(tmp_path: Path) -> Iterator[Callable[..., ContainerProcess]]:
 
     yield start
     for proc in started:
-        if proc.process.poll() is None:
-            proc.process.kill()
-            proc.process.wait()
+        proc.close()
 
 
 def pytest_configure(config: pytest.Config) -> None:

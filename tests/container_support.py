@@ -68,5 +68,14 @@ class ContainerProcess:
             self.process.kill()
             self.process.wait()
             raise AssertionError(f"container ignored signal {sig} for {timeout} s") from None
-        self._reader.join(5.0)
+        self.close()
         return code
+
+    def close(self) -> None:
+        """Kill the process if it still runs, and release its pipe."""
+        if self.process.poll() is None:
+            self.process.kill()
+        self.process.wait()
+        self._reader.join(5.0)
+        if self.process.stdout is not None:
+            self.process.stdout.close()

@@ -15,6 +15,7 @@ from rcl_interfaces.srv import GetParameters
 from rclpy.context import Context
 from rclpy.node import Node
 
+from container import AsyncioExecutor
 from tests.component_support import (
     IMPORT_ROOT,
     ContainerClient,
@@ -25,7 +26,6 @@ from tests.component_support import (
     wait_until,
 )
 from tests.container_support import ContainerProcess
-from container import AsyncioExecutor
 
 EMPTY = "container:\n  name: ComponentManager\n"
 

@@ -14,13 +14,14 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
 from rclpy.context import Context
 from rclpy.lifecycle import LifecycleNode
 
-from tests import component_support
-from tests.component_support import BUSY_NODES
 from container._app import ContainerApp
 from container._config import ContainerConfig
+from tests import component_support
+from tests.component_support import BUSY_NODES
 
 WARM_UP_CYCLES = 20
 CYCLES = 200
@@ -160,6 +161,7 @@ def snapshot(app: ContainerApp) -> Snapshot:
     )
 
 
+@pytest.mark.timeout(900)
 def test_200_load_unload_cycles_leave_nothing_behind(context: Context, tmp_path: Path) -> None:
     script = tmp_path / "cycler.py"
     script.write_text(CLIENT, encoding="utf-8")
@@ -199,6 +201,7 @@ def test_200_load_unload_cycles_leave_nothing_behind(context: Context, tmp_path:
         stack_growth = stack_growth_kb(context, CYCLES * NODES_PER_CYCLE)
     finally:
         app.close()
+        app.executor.shutdown()
 
     before, after = snapshots
     assert (after.loaded, after.executor_nodes, after.busy_objects) == (0, 1, 0)

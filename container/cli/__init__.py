@@ -10,13 +10,17 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from . import _component, _lifecycle, _manager, _run
+
+if TYPE_CHECKING:
+    from .._compat import SubParsers
 
 __all__ = ["main"]
 
 #: Modules contributing sub-commands, in the order ``--help`` lists them.
-_COMMANDS: list[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], None]] = [
+_COMMANDS: list[Callable[[SubParsers], None]] = [
     _run.add_parser,
     _component.add_parser,
     _lifecycle.add_parser,

@@ -21,12 +21,13 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from .._runtime import use_fast_discovery
 from ._types import name_value
 
 if TYPE_CHECKING:
     from rclpy.client import Client
     from rclpy.node import Node
+
+    from .._compat import SubParsers
 
 __all__ = ["add_parser"]
 
@@ -50,7 +51,7 @@ _SETTLE_S = 0.5
 _RESPONSE_TIMEOUT_S = 60.0
 
 
-def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     """Register ``load``, ``unload``, ``list`` and ``types``."""
     load = subparsers.add_parser(
         "load",
@@ -206,7 +207,7 @@ def _run_list(args: argparse.Namespace) -> int:
             response = await _call(client, ListNodes.Request())
         finally:
             node.destroy_client(client)
-        return [f"{uid}  {name}" for uid, name in zip(response.unique_ids, response.full_node_names)]
+        return [f"{uid}  {name}" for uid, name in zip(response.unique_ids, response.full_node_names, strict=True)]
 
     async def listing(node: Node) -> int:
         wanted = args.container_node_name
@@ -246,45 +247,17 @@ def _fail(message: str) -> int:
 
 
 def _with_node(main: Callable[[Node], Awaitable[int]]) -> int:
-    """Run ``main`` with a hidden client node on an AsyncioExecutor; return its code."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
+    """Run ``main`` with a hidden client node; return its exit code."""
+    from .._session import Session, run_session
 
-    from ..executor import AsyncioExecutor
+    async def run(session: Session) -> int:
+        with session.client_node(f"_container_cli_{os.getpid()}") as node:
+            try:
+                return await main(node)
+            except _Failure as exc:
+                return _fail(str(exc))
 
-    use_fast_discovery()
-    context = Context()
-    # No args: rcl would read our own '-p name:=value' arguments as remap rules.
-    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        # A leading underscore hides the node from ``list`` and lifecycle tools.
-        node = Node(
-            f"_container_cli_{os.getpid()}",
-            context=context,
-            start_parameter_services=False,
-            enable_rosout=False,
-        )
-        executor = AsyncioExecutor(context=context)
-        executor.add_node(node)
-        codes: list[int] = []
-
-        async def run() -> None:
-            codes.append(await main(node))
-
-        try:
-            executor.spin_until_future_complete(run())
-        except _Failure as exc:
-            return _fail(str(exc))
-        except KeyboardInterrupt:
-            return 130
-        finally:
-            executor.shutdown()
-            node.destroy_node()
-        return codes[0] if codes else 1
-    finally:
-        rclpy.try_shutdown(context=context)
+    return run_session(run)
 
 
 async def _poll(condition: Callable[[], T | None], *, timeout: float) -> T | None:
@@ -359,24 +332,16 @@ async def _call(client: Client, request: Any) -> Any:
     ready = await _poll(lambda: True if client.service_is_ready() else None, timeout=_RESPONSE_TIMEOUT_S)
     if ready is None:
         raise _Failure(f"No '{client.srv_name}' service found")
+    from ..executor import _bridge as bridge
+
     future = client.call_async(request)
-    loop = asyncio.get_running_loop()
-    answered: asyncio.Future[None] = loop.create_future()
-    # rclpy may run done-callbacks on another thread of the executor.
-    future.add_done_callback(lambda _: loop.call_soon_threadsafe(_resolve, answered))
     try:
-        await asyncio.wait_for(answered, _RESPONSE_TIMEOUT_S)
-    except asyncio.TimeoutError:
+        return await bridge.result(future, timeout=_RESPONSE_TIMEOUT_S)
+    except TimeoutError:
         client.remove_pending_request(future)
         raise _Failure(
             f"No response from '{client.srv_name}' within {_RESPONSE_TIMEOUT_S:g} s"
         ) from None
-    return future.result()
-
-
-def _resolve(future: asyncio.Future[None]) -> None:
-    if not future.done():
-        future.set_result(None)
 
 
 class _Failure(Exception):

@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import sys
 import time
 from collections.abc import Callable, Coroutine
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .._compat import SubParsers
 
 __all__ = ["add_parser"]
 
@@ -21,7 +25,7 @@ _GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 _SETTLE_S = 0.5
 
 
-def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "lifecycle",
         help="inspect and drive lifecycle nodes, like ros2 lifecycle",
@@ -63,36 +67,14 @@ def _usage(parser: argparse.ArgumentParser) -> int:
 
 
 def _session(main: Callable[[Any], Coroutine[Any, Any, int]]) -> int:
-    """Run ``main(node)`` with a short-lived node on the project's executor."""
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
+    """Run ``main(node)`` with a short-lived hidden node; return its exit code."""
+    from .._session import Session, run_session
 
-    from ..executor import AsyncioExecutor
-    from .._runtime import use_fast_discovery
+    async def run(session: Session) -> int:
+        with session.client_node(f"_container_lifecycle_cli_{os.getpid()}") as node:
+            return await main(node)
 
-    use_fast_discovery()
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = Node("_container_lifecycle_cli", context=context, start_parameter_services=False)
-        executor = AsyncioExecutor(context=context)
-        executor.add_node(node)
-        code: list[int] = []
-
-        async def run() -> None:
-            code.append(await main(node))
-
-        try:
-            executor.spin_until_future_complete(run())
-        finally:
-            executor.remove_node(node)
-            node.destroy_node()
-            executor.shutdown()
-        return code[0] if code else 1
-    finally:
-        rclpy.try_shutdown(context=context)
+    return run_session(run)
 
 
 def _lifecycle_nodes(node: Any, *, hidden: bool) -> list[str]:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -19,10 +19,13 @@ from .._errors import ConfigError
 from .._runtime import configure_logging
 from ._types import name_value
 
+if TYPE_CHECKING:
+    from .._compat import SubParsers
+
 __all__ = ["add_parser"]
 
 
-def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "manager",
         help="run a lifecycle manager (Nav2-compatible) as its own process",
@@ -69,7 +72,8 @@ def _settings_mapping(path: str) -> dict[str, Any]:
 
 def _run(args: argparse.Namespace) -> int:
     configure_logging()
-    from ..lifecycle._manager import ManagerSettings, run_manager
+    from .._app import run_manager
+    from ..lifecycle import ManagerSettings
 
     try:
         mapping = _settings_mapping(args.file) if args.file else {}

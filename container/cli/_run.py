@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 from .._config import load_config
 from .._errors import ConfigError
 from .._runtime import configure_logging
 
+if TYPE_CHECKING:
+    from .._compat import SubParsers
+
 __all__ = ["add_parser"]
 
 
-def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "run",
         help="run a container with the nodes of a YAML file",
@@ -29,7 +33,7 @@ def _run(args: argparse.Namespace) -> int:
         config = load_config(args.config)
         settings = None
         if config.manager is not None:
-            from ..lifecycle._manager import ManagerSettings
+            from ..lifecycle import ManagerSettings
 
             settings = ManagerSettings.from_mapping(config.manager, source=f"{args.config}: manager")
     except ConfigError as exc:
@@ -39,6 +43,6 @@ def _run(args: argparse.Namespace) -> int:
 
     if settings is None:
         return run_container(config)
-    from ..lifecycle._manager import manager_extension
+    from .._app import manager_extension
 
     return run_container(config, extensions=(manager_extension(settings),))

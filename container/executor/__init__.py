@@ -9,6 +9,6 @@ package depends on rclpy and :mod:`container._compat` only, never on the
 rest of the container.
 """
 
-from ._executor import AsyncioExecutor, CallbackErrorHandler
+from ._executor import AsyncioExecutor, CallbackErrorHandler, ExecutorState
 
-__all__ = ["AsyncioExecutor", "CallbackErrorHandler"]
+__all__ = ["AsyncioExecutor", "CallbackErrorHandler", "ExecutorState"]

@@ -33,7 +33,7 @@ import inspect
 import logging
 import threading
 import traceback
-from collections.abc import Callable, Coroutine, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -41,10 +41,17 @@ from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
 from rclpy.event_handler import EventHandler, QoSSubscriptionEventType
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.subscription import Subscription
 from rclpy.waitable import NumberOfEntities
 
+from .._compat import (
+    WaitSet,
+    adopt_future,
+    event_handle,
+    fire_timer,
+    set_event_index,
+    subscription_wants_info,
+    waitable_futures,
+)
 from ._lanes import Lane, Post, Work
 
 if TYPE_CHECKING:
@@ -110,18 +117,6 @@ def describe(entity: object) -> str:
 def format_error(entity: object, error: BaseException) -> str:
     details = "".join(traceback.format_exception(error)).rstrip()
     return f"{describe(entity)} raised {type(error).__name__}: {error}\n{details}"
-
-
-def _event_handle(waitable: object) -> Any:
-    """The rcl event handle of a QoS event handler, if rclpy still has one.
-
-    Adding a handler through the generic Waitable API costs about a
-    microsecond per wait, several times the direct call. Anything
-    unrecognised takes the generic path.
-    """
-    if isinstance(waitable, EventHandler):
-        return getattr(waitable, "_EventHandler__event", None)
-    return None
 
 
 def _is_hot_waitable(waitable: object) -> bool:
@@ -191,7 +186,7 @@ class _WaitSet:
                 if not self._takes_waitable(waitable) or not _hold(held, waitable):
                     continue
                 entry = dispatcher.entry(waitable, node, "waitable")
-                event = _event_handle(waitable)
+                event = event_handle(waitable)
                 if event is not None:
                     table.events.append((event, entry))
                 else:
@@ -204,7 +199,7 @@ class _WaitSet:
                 guards.append(gc.handle)
         context = dispatcher.context
         held.enter_context(context.handle)  # type: ignore[arg-type]
-        table.wait_set = _rclpy.WaitSet(
+        table.wait_set = WaitSet(
             len(table.handles["subscription"]) + extra.num_subscriptions,
             len(guards) + extra.num_guard_conditions,
             len(table.handles["timer"]) + extra.num_timers,
@@ -295,10 +290,10 @@ class _WaitSet:
         self._busy = bool(guards_ready or messages)
         if events:
             is_ready = wait_set.is_ready
-            for index, (_, entry) in zip(indices, events):
+            for index, (_, entry) in zip(indices, events, strict=True):
                 if is_ready("event", index):
                     # Hand over to rclpy's own handler for the rare ready path.
-                    entry.entity._event_index = index
+                    set_event_index(entry.entity, index)
                     if entry.entity.is_ready(wait_set):
                         dispatcher.take_waitable(entry)
         for entry in table.waitables:
@@ -487,12 +482,15 @@ class Dispatcher:
         tmr = entry.entity
         try:
             with tmr.handle:
-                if not tmr.handle.is_timer_ready():
-                    return
-                tmr.handle.call_timer()
+                arguments = fire_timer(tmr)
         except InvalidHandle:
             return
-        self.submit(entry, tmr.callback, ())
+        if arguments is None:
+            return
+        if arguments:
+            self.submit(entry, functools.partial(tmr.callback, **arguments), ())
+        else:
+            self.submit(entry, tmr.callback, ())
 
     def take_message(self, entry: _Entry) -> None:
         sub = entry.entity
@@ -500,10 +498,10 @@ class Dispatcher:
         taken = sub.handle.take_message(sub.msg_type, sub.raw)
         if taken is None:
             return
-        if sub._callback_type is Subscription.CallbackType.MessageOnly:
-            self.submit(entry, sub.callback, (taken[0],))
-        else:
+        if subscription_wants_info(sub):
             self.submit(entry, sub.callback, tuple(taken))
+        else:
+            self.submit(entry, sub.callback, (taken[0],))
 
     def take_response(self, entry: _Entry) -> None:
         cli = entry.entity
@@ -518,7 +516,7 @@ class Dispatcher:
             future = cli.get_pending_request(header.request_id.sequence_number)
         except KeyError:
             return  # the caller cancelled the request
-        future._set_executor(self._future_executor)
+        adopt_future(future, self._future_executor)
         future.set_result(response)
         self._on_response()
 
@@ -549,8 +547,8 @@ class Dispatcher:
     def take_waitable(self, entry: _Entry) -> None:
         waitable = entry.entity
         data = waitable.take_data()
-        for future in waitable._futures:
-            future._set_executor(self._future_executor)
+        for future in waitable_futures(waitable):
+            adopt_future(future, self._future_executor)
 
         async def execute() -> None:
             await waitable.execute(data)
@@ -560,11 +558,7 @@ class Dispatcher:
     # -- lanes ----------------------------------------------------------------
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Hand ``callback(*args)`` to the entry's lane."""
-        call: Callable[[], Any]
-        if args:
-            call = functools.partial(callback, *args)
-        else:
-            call = callback
+        call: Callable[[], Any] = functools.partial(callback, *args) if args else callback
         entry.lane.submit(Work(entry.entity, call, entry.is_async, entry.depth, entry.done))
 
     def run(self, entry: _Entry, call: Callable[[], Any]) -> None:

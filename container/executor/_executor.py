@@ -22,29 +22,49 @@ import asyncio
 import atexit
 import collections
 import contextlib
+import enum
 import inspect
 import threading
-import types
 import weakref
-from collections.abc import Awaitable, Callable, Coroutine, Generator
+from collections.abc import Callable, Coroutine, Generator
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.context import Context
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import Executor
 from rclpy.task import Future as RclFuture
 
-from ._dispatch import WOKEN, Dispatcher, format_error
+from .._compat import executor_guards, running_loop
 from .._errors import ExecutorError
+from ._bridge import adapt, mirror
+from ._dispatch import WOKEN, Dispatcher, format_error
 from ._lanes import Lane, Work
 from ._selector import RclSelector
 
 if TYPE_CHECKING:
     from rclpy.node import Node
 
-__all__ = ["AsyncioExecutor", "CallbackErrorHandler"]
+__all__ = ["AsyncioExecutor", "CallbackErrorHandler", "ExecutorState"]
 
 T = TypeVar("T")
+
+class ExecutorState(enum.Enum):
+    """The life of an :class:`AsyncioExecutor`; each refuses what it cannot do.
+
+    ``IDLE`` (created, or between spins) -> ``SPINNING`` -> ``IDLE`` ...;
+    :meth:`~AsyncioExecutor.shutdown` leads to ``SHUT_DOWN``, through
+    ``STOPPING`` while a spin is still returning. Once stopping, ``spin*()``
+    and ``create_task()`` raise :class:`~container.ExecutorError`.
+    """
+
+    IDLE = "idle"
+    SPINNING = "spinning"
+    STOPPING = "stopping"
+    SHUT_DOWN = "shut down"
+
+
+_CLOSED = frozenset({ExecutorState.STOPPING, ExecutorState.SHUT_DOWN})
 
 #: Called with the node, the entity and the exception a callback raised.
 CallbackErrorHandler = Callable[["Node", object, BaseException], None]
@@ -103,17 +123,25 @@ class AsyncioExecutor(Executor):
         self._stopped: asyncio.Future[None] | None = None
         self._progress: asyncio.Future[None] | None = None
         self._completion_waiters: list[asyncio.Future[None]] = []
-        self._state_lock = threading.Lock()
-        self._spinning = False
+        self._state = ExecutorState.IDLE
+        #: Guards ``_state``; notified whenever it changes.
+        self._state_changed = threading.Condition()
         self._task_lane: Lane | None = None
-        self._closed = False
+        #: The outcome of releasing resources, once released.
         self._released: bool | None = None
         self._release_lock = threading.Lock()
-        self._idle = threading.Event()
-        self._idle.set()
         _live.add(self)
 
     # -- public surface ---------------------------------------------------------
+    @property
+    def state(self) -> ExecutorState:
+        """Where the executor is in its life: idle, spinning, stopping or shut down."""
+        return self._state
+
+    @property
+    def _closed(self) -> bool:
+        return self._state in _CLOSED
+
     @property
     def loop(self) -> asyncio.AbstractEventLoop:
         """The event loop callbacks run on (the running one under ``spin_async``)."""
@@ -191,7 +219,10 @@ class AsyncioExecutor(Executor):
         Coroutines run as asyncio tasks on the loop; plain callables on a
         shared worker lane, since they may block (action execute callbacks
         do). rclpy routes future done-callbacks through here.
+
+        :raises ExecutorError: the executor is shut down (or shutting down).
         """
+        self._refuse_if_closed("create a task")
         result = RclFuture(executor=self)
         loop = self.loop
         if inspect.iscoroutine(callback) or inspect.iscoroutinefunction(callback):
@@ -281,16 +312,27 @@ class AsyncioExecutor(Executor):
             ``timeout_sec`` (default: the constructor's ``shutdown_timeout``).
         """
         timeout = self._shutdown_timeout if timeout_sec is None else max(0.0, timeout_sec)
-        with self._state_lock:
-            first = not self._closed
-            self._closed = True
+        with self._state_changed:
+            first = self._state not in _CLOSED
+            if first:
+                self._move(ExecutorState.STOPPING if self._state is ExecutorState.SPINNING else ExecutorState.SHUT_DOWN)
         if first:
             self._signal_stopped()
-        if self._spinning and not self._inside_executor():
-            self._idle.wait(timeout)
-        if self._spinning:
-            return False
+        with self._state_changed:
+            if self._state is ExecutorState.STOPPING and not self._inside_executor():
+                self._state_changed.wait_for(lambda: self._state is not ExecutorState.STOPPING, timeout)
+            if self._state is ExecutorState.STOPPING:
+                return False  # released when the spinning call returns
         return self._release(timeout)
+
+    def _move(self, state: ExecutorState) -> None:
+        """Enter ``state``; the caller holds ``_state_changed``."""
+        self._state = state
+        self._state_changed.notify_all()
+
+    def _refuse_if_closed(self, what: str) -> None:
+        if self._state in _CLOSED:
+            raise ExecutorError(f"cannot {what}: the executor is {self._state.value}")
 
     def _release(self, timeout: float) -> bool:
         with self._release_lock:
@@ -343,33 +385,33 @@ class AsyncioExecutor(Executor):
         coroutine until the executor next delivers a service response or
         schedules a done-callback (or a short poll interval passes).
         """
-        return _rcl_aware(coro, self._progress_future)
+        return adapt(coro, self._progress_future)
 
     # -- running the owned loop ------------------------------------------------
     def _run_owned(self, main: Coroutine[Any, Any, None]) -> None:
-        if self._closed:
-            main.close()
-            return
-        with contextlib.suppress(RuntimeError):
-            if asyncio.get_running_loop() is not None:
-                main.close()
-                raise ExecutorError(
-                    "spin*() cannot run inside a running event loop; await spin_async()"
-                )
-        with self._spinning_on(self._loop):
-            self._selector.attach(self._wait)
-            try:
-                self._loop.run_until_complete(main)
-            finally:
-                self._selector.attach(None)
+        started = False
+        try:
+            self._refuse_if_closed("spin")
+            if running_loop() is not None:
+                raise ExecutorError("spin*() cannot run inside a running event loop; await spin_async()")
+            with self._spinning_on(self._loop):
+                self._selector.attach(self._wait)
+                started = True
+                try:
+                    self._loop.run_until_complete(main)
+                finally:
+                    self._selector.attach(None)
+        finally:
+            if not started:
+                main.close()  # refused: never awaited, and not to be warned about
 
     @contextlib.contextmanager
     def _spinning_on(self, loop: asyncio.AbstractEventLoop) -> Generator[None, None, None]:
-        with self._state_lock:
-            if self._spinning:
+        with self._state_changed:
+            self._refuse_if_closed("spin")
+            if self._state is ExecutorState.SPINNING:
                 raise ExecutorError("the executor is already spinning")
-            self._spinning = True
-            self._idle.clear()
+            self._move(ExecutorState.SPINNING)
             owned = self._dispatcher
             if loop is not self._loop:
                 self._dispatcher = self._make_dispatcher(loop)
@@ -381,7 +423,7 @@ class AsyncioExecutor(Executor):
         try:
             yield
         finally:
-            with self._state_lock:
+            with self._state_changed:
                 foreign: Dispatcher | None = None
                 if self._dispatcher is not owned:
                     foreign, self._dispatcher = self._dispatcher, owned
@@ -394,14 +436,13 @@ class AsyncioExecutor(Executor):
             self._dispatcher.bind_loop_thread(None)
             if self._closed:
                 self._release(self._shutdown_timeout)
-            with self._state_lock:
-                self._spinning = False
-            self._idle.set()
+            with self._state_changed:
+                self._move(ExecutorState.SHUT_DOWN if self._closed else ExecutorState.IDLE)
 
     def _make_dispatcher(self, loop: asyncio.AbstractEventLoop) -> Dispatcher:
         return Dispatcher(
             post=self._post if loop is self._loop else _threadsafe_poster(loop),
-            context=self._context,
+            context=self.context,
             nodes=self.get_nodes,
             own_guards=self._own_guards,
             loop=loop,
@@ -414,8 +455,7 @@ class AsyncioExecutor(Executor):
         )
 
     def _own_guards(self) -> list[tuple[Any, int]]:
-        guards = [(self._guard, WOKEN), (self._sigint_gc, WOKEN)]
-        return [(g, flag) for g, flag in guards if g is not None]
+        return [(guard, WOKEN) for guard in executor_guards(self)]
 
     def _post(self, callback: Callable[..., object], *args: Any) -> None:
         """Run ``callback(*args)`` on the owned loop's thread soon (any thread)."""
@@ -429,12 +469,12 @@ class AsyncioExecutor(Executor):
             callback, args = inbox.popleft()
             callback(*args)
         # Shutdown of the context and SIGINT both trigger one of our guards.
-        if flags & WOKEN and not self._context.ok():
+        if flags & WOKEN and not self.context.ok():
             self._signal_stopped()
         return flags
 
     def _wait_in_thread(self) -> None:
-        while not self._closed and self._context.ok() and not self._stop_requested():
+        while not self._closed and self.context.ok() and not self._stop_requested():
             self._wait(-1)
         self._signal_stopped()
 
@@ -456,7 +496,10 @@ class AsyncioExecutor(Executor):
         timeout_sec: float | None,
     ) -> None:
         if isinstance(future, RclFuture):
-            await self._bounded(self._wrap_rcl_future(future), timeout_sec)
+            settled = mirror(future, self.loop)
+            await self._bounded(settled, timeout_sec)
+            if settled.done() and not settled.cancelled():
+                settled.exception()  # the caller reads it from ``future``
             return
         if not inspect.iscoroutine(future):
             await self._bounded(asyncio.ensure_future(future), timeout_sec)
@@ -476,32 +519,13 @@ class AsyncioExecutor(Executor):
         timeout = None if timeout_sec is None or timeout_sec < 0 else timeout_sec
         await asyncio.wait(waits, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
 
-    def _wrap_rcl_future(self, future: RclFuture) -> asyncio.Future[Any]:
-        loop = self.loop
-        mirror: asyncio.Future[Any] = loop.create_future()
-
-        def copy(done: RclFuture) -> None:
-            def settle() -> None:
-                if mirror.done():
-                    return
-                if done.cancelled():
-                    mirror.cancel()
-                else:
-                    mirror.set_result(None)
-
-            self._call_soon(loop, settle)
-
-        # Without an executor rclpy runs done-callbacks in the completing thread.
-        future.add_done_callback(copy)
-        return mirror
-
     def _drain_owned_loop(self) -> None:
         """Let the owned loop's leftover tasks see their cancellation."""
         self._selector.attach(None)
         pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]
         for task in pending:
             task.cancel()
-        if asyncio._get_running_loop() is not None:
+        if running_loop() is not None:
             # Released from inside another loop (spin_async on a foreign
             # loop): the owned loop cannot run here, and has nothing to finish.
             return
@@ -513,7 +537,7 @@ class AsyncioExecutor(Executor):
     def _stopped_future(self) -> asyncio.Future[None]:
         if self._stopped is None:
             self._stopped = self.loop.create_future()
-            if self._closed or not self._context.ok():
+            if self._closed or not self.context.ok():
                 self._stopped.set_result(None)
         return self._stopped
 
@@ -534,10 +558,9 @@ class AsyncioExecutor(Executor):
         self._guard_trigger()
 
     def _guard_trigger(self) -> None:
-        guard = self._guard
-        if guard is not None:
-            with contextlib.suppress(Exception):
-                guard.trigger()
+        # The base class's wake(): triggers its guard, if not yet destroyed.
+        with contextlib.suppress(InvalidHandle):
+            Executor.wake(self)
 
     def _progress_future(self) -> asyncio.Future[None]:
         progress = self._progress
@@ -582,7 +605,8 @@ class AsyncioExecutor(Executor):
             self._on_callback_error(node, entity, error)
 
     def _tasks_lane(self) -> Lane:
-        with self._state_lock:
+        with self._state_changed:
+            self._refuse_if_closed("create a task")
             if self._task_lane is None:
                 self._task_lane = Lane(
                     name="executor:tasks",
@@ -618,32 +642,6 @@ def _settle(result: RclFuture, task: asyncio.Task[Any]) -> None:
 
 def _work(run: Callable[[], None]) -> Work:
     return Work(entity=run, call=run, is_async=False, depth=1 << 16, done=lambda w, e: None)
-
-
-@types.coroutine
-def _rcl_aware(
-    coro: Coroutine[Any, Any, T], progress: Callable[[], asyncio.Future[None]]
-) -> Generator[Any, Any, T]:
-    """Drive ``coro``, turning rclpy's bare ``yield`` into a real wait."""
-    value: Any = None
-    error: BaseException | None = None
-    while True:
-        try:
-            if error is not None:
-                yielded = coro.throw(error)
-            else:
-                yielded = coro.send(value)
-        except StopIteration as stop:
-            result: T = stop.value
-            return result
-        value, error = None, None
-        try:
-            if yielded is None:
-                yield from progress()
-            else:
-                value = yield yielded
-        except BaseException as exc:  # forwarded into the coroutine
-            error = exc
 
 
 #: Executors not yet shut down. Their waiter threads sit in ``rcl_wait``; one

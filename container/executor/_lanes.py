@@ -17,7 +17,8 @@ idle runner entered as the current task and in that runner's context. Most
 callbacks finish in that step (take, compute, publish) and never touch the
 task machinery; one that suspends is handed to that same runner to finish.
 Python 3.11 has no eager tasks, so this uses asyncio's own
-``_enter_task``/``_leave_task``, which its tasks call around every step.
+``_enter_task``/``_leave_task`` (through ``_compat``), which its tasks call
+around every step.
 
 Work waiting for a busy lane is kept per entity with a bound, like a DDS
 keep-last history: a subscription keeps its QoS depth of messages, a timer
@@ -38,6 +39,9 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Any
 
+from .._compat import enter_task, leave_task
+from ._bridge import drive
+
 __all__: list[str] = []
 
 #: Runs ``callback(*args)`` on the event loop's thread soon; callable from any thread.
@@ -46,9 +50,6 @@ Post = Callable[..., None]
 #: Takes async work to start eagerly after the current wait, or declines it
 #: (returns ``False``) when no wait is being dispatched on this thread.
 Defer = Callable[["Lane", "Work"], bool]
-
-_enter_task = asyncio.tasks._enter_task
-_leave_task = asyncio.tasks._leave_task
 
 
 @dataclass(eq=False, slots=True)
@@ -274,7 +275,7 @@ class Lane:
     def _first_step(
         self, task: asyncio.Task[None], work: Work
     ) -> tuple[bool, BaseException | None, _Resume | None]:
-        _enter_task(self._loop, task)
+        enter_task(self._loop, task)
         try:
             coro = work.call()
             try:
@@ -287,28 +288,7 @@ class Lane:
         except Exception as exc:  # reported, never fatal to the lane
             return True, exc, None
         finally:
-            _leave_task(self._loop, task)
-
-    def _drive(self, coro: Any, yielded: Any, thrown: BaseException | None) -> Generator[Any, Any, None]:
-        """Carry a callback's coroutine on from a suspension at ``yielded``."""
-        while True:
-            value: Any = None
-            if thrown is None:
-                try:
-                    if yielded is None:
-                        yield from self._progress()
-                    else:
-                        value = yield yielded
-                except BaseException as exc:  # forwarded into the callback
-                    thrown = exc
-            try:
-                if thrown is None:
-                    yielded = coro.send(value)
-                else:
-                    error, thrown = thrown, None
-                    yielded = coro.throw(error)
-            except StopIteration:
-                return
+            leave_task(self._loop, task)
 
     @types.coroutine
     def _run(self, item: Work | _Resume | None) -> Generator[Any, Any, None]:
@@ -326,15 +306,9 @@ class Lane:
             error: BaseException | None = None
             try:
                 if isinstance(item, Work):
-                    coro = work.call()
-                    try:
-                        first = coro.send(None)
-                    except StopIteration:
-                        pass
-                    else:
-                        yield from self._drive(coro, first, None)
+                    yield from drive(work.call(), self._progress)
                 else:
-                    yield from self._drive(item.coro, item.yielded, thrown)
+                    yield from drive(item.coro, self._progress, yielded=item.yielded, thrown=thrown, started=True)
             except asyncio.CancelledError:
                 if self._closed:
                     raise

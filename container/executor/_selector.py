@@ -18,7 +18,6 @@ import threading
 from collections.abc import Callable, Mapping
 from typing import Any
 
-
 __all__: list[str] = []
 
 #: Waits in rcl for at most the given nanoseconds (``-1``: forever) and

@@ -3,8 +3,9 @@
 The lifecycle manager and ``container lifecycle`` drive nodes they may not
 host (another process, a C++ node), so both go through the services every
 lifecycle node serves. Everything here runs on the executor's event loop;
-rclpy futures are turned into asyncio ones rather than awaited directly,
-which would busy-wait outside the executor's own callbacks.
+rclpy futures are awaited through the executor's bridge
+(:mod:`container.executor._bridge`), never directly, which would busy-wait
+outside the executor's own callbacks.
 """
 
 from __future__ import annotations
@@ -17,27 +18,27 @@ from lifecycle_msgs.msg import Transition, TransitionDescription
 from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 
 from .._errors import TransitionError
+from ..executor import _bridge as bridge
 
 if TYPE_CHECKING:
     from rclpy.callback_groups import CallbackGroup
     from rclpy.client import Client
     from rclpy.node import Node
-    from rclpy.task import Future as RclFuture
 
-__all__ = ["LifecycleClient", "rcl_result", "transition_id"]
+__all__ = ["LifecycleClient", "transition_id"]
 
 _READY_POLL_S = 0.02
 #: How long a query waits for its answer before asking again.
 _RESEND_S = 1.0
 
 #: Transition ids by label; ``shutdown`` depends on the state it leaves.
-_IDS = {
+_IDS: dict[str, int] = {
     "configure": Transition.TRANSITION_CONFIGURE,
     "cleanup": Transition.TRANSITION_CLEANUP,
     "activate": Transition.TRANSITION_ACTIVATE,
     "deactivate": Transition.TRANSITION_DEACTIVATE,
 }
-_SHUTDOWN_IDS = {
+_SHUTDOWN_IDS: dict[str, int] = {
     "unconfigured": Transition.TRANSITION_UNCONFIGURED_SHUTDOWN,
     "inactive": Transition.TRANSITION_INACTIVE_SHUTDOWN,
     "active": Transition.TRANSITION_ACTIVE_SHUTDOWN,
@@ -49,31 +50,6 @@ def transition_id(label: str, state: str) -> int:
     if label == "shutdown":
         return _SHUTDOWN_IDS[state]
     return _IDS[label]
-
-
-async def rcl_result(future: RclFuture, *, timeout: float | None) -> Any:
-    """Await an rclpy future from any coroutine on the running loop.
-
-    :raises asyncio.TimeoutError: no result within ``timeout``.
-    """
-    loop = asyncio.get_running_loop()
-    mirror: asyncio.Future[Any] = loop.create_future()
-
-    def settle(done: RclFuture) -> None:
-        if mirror.done():
-            return
-        if done.cancelled():
-            mirror.cancel()
-        elif done.exception() is not None:
-            mirror.set_exception(done.exception())
-        else:
-            mirror.set_result(done.result())
-
-    # rclpy may run done-callbacks on any thread.
-    future.add_done_callback(
-        lambda done: loop.call_soon_threadsafe(settle, done) if not loop.is_closed() else None
-    )
-    return await asyncio.wait_for(mirror, timeout)
 
 
 class LifecycleClient:
@@ -156,8 +132,8 @@ class LifecycleClient:
                 wait = _RESEND_S if wait is None else min(wait, _RESEND_S)
             future = client.call_async(request)
             try:
-                return await rcl_result(future, timeout=wait)
-            except asyncio.TimeoutError:
+                return await bridge.result(future, timeout=wait)
+            except TimeoutError:
                 client.remove_pending_request(future)
                 if give_up is not None and time.monotonic() >= give_up:
                     raise TransitionError(

@@ -26,8 +26,9 @@ from rclpy.lifecycle import (
     TransitionCallbackReturn,
 )
 
-from ..executor._dispatch import describe
+from .._compat import managed_entities, state_machine
 from ..executor import AsyncioExecutor
+from ..executor._dispatch import describe
 from ._node import LifecycleNode
 from ._transitions import state_of
 
@@ -91,7 +92,7 @@ def process_error(node: Node) -> str:
     """
     if state_of(node) != "active":
         return state_of(node)
-    machine = node._state_machine  # type: ignore[attr-defined]
+    machine = state_machine(node)
     node.get_logger().error("Entering error processing")
     machine.trigger_transition_by_id(Transition.TRANSITION_DEACTIVATE, True)
     machine.trigger_transition_by_label(TransitionCallbackReturn.ERROR.to_label(), True)
@@ -104,7 +105,7 @@ def process_error(node: Node) -> str:
         outcome = TransitionCallbackReturn.ERROR
     machine.trigger_transition_by_label(outcome.to_label(), True)
     # rclpy's on_error leaves lifecycle publishers enabled; they must not publish.
-    for entity in list(node._managed_entities):  # type: ignore[attr-defined]
+    for entity in list(managed_entities(node)):
         if isinstance(entity, LifecyclePublisher):
             entity.on_deactivate(LifecycleState(label=state_of(node), state_id=0))
     final = state_of(node)

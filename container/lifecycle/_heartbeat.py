@@ -187,7 +187,7 @@ class HeartbeatWatch:
                 self._changed = asyncio.Event()
             try:
                 await asyncio.wait_for(self._changed.wait(), remaining)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 return None
 
     def close(self) -> None:

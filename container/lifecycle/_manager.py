@@ -16,38 +16,30 @@ the nodes it already brought up running (navigation2#4678, #855). This one:
   ``bond_respawn_max_duration``.
 
 It runs inside a container (``manager:`` in the container file) or as its own
-process (``container manager``).
+process (``container manager``); both are set up in :mod:`container._app`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import signal
 import time
-from collections.abc import Awaitable, Callable, Iterable, Mapping
+from collections.abc import Awaitable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import rclpy
 from lifecycle_msgs.msg import Transition
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
 from .._errors import ConfigError, TransitionError
-from ..executor import AsyncioExecutor
-from ._heartbeat import HeartbeatWatch
 from ._client import LifecycleClient, transition_id
-from .._runtime import use_fast_discovery
+from ._heartbeat import HeartbeatWatch
 
-if TYPE_CHECKING:
-    from .._app import ContainerApp
-
-__all__ = ["LifecycleManager", "ManagerSettings", "manager_extension", "run_manager"]
+__all__ = ["LifecycleManager", "ManagerSettings"]
 
 #: Nav2's parameters with Nav2's defaults, then ours.
 PARAMETERS: dict[str, Any] = {
@@ -472,65 +464,4 @@ class LifecycleManager(Node):
             self._watch.close()
         for client in self._lifecycle.values():
             client.close()
-        super().destroy_node()
-
-
-def manager_extension(settings: ManagerSettings) -> Callable[[ContainerApp], Awaitable[None]]:
-    """A container extension running a manager next to the container's nodes.
-
-    On container shutdown it resets the nodes it manages in reverse order
-    (bounded by the container's ``unload_timeout`` per node) before the
-    container unloads them.
-    """
-
-    async def run(app: ContainerApp) -> None:
-        manager = LifecycleManager(settings, context=app.context, namespace=settings.namespace)
-        app.executor.add_node(manager)
-        try:
-            await manager.run()
-        finally:
-            try:
-                await manager.settle(timeout=app.config.unload_timeout * max(1, len(manager.node_names)))
-            finally:
-                app.executor.remove_node(manager)
-                manager.destroy_node()
-
-    return run
-
-
-def run_manager(settings: ManagerSettings) -> int:
-    """Run a manager as its own process until SIGINT or SIGTERM; the exit code.
-
-    Like Nav2's, a manager process that stops leaves the nodes as they are.
-    """
-    use_fast_discovery()
-    context = Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        executor = AsyncioExecutor(context=context)
-        manager = LifecycleManager(settings, context=context)
-        executor.add_node(manager)
-
-        async def serve() -> None:
-            loop = asyncio.get_running_loop()
-            stopping = asyncio.Event()
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                loop.add_signal_handler(signum, stopping.set)
-            running = asyncio.ensure_future(manager.run())
-            try:
-                await stopping.wait()
-            finally:
-                running.cancel()
-                await asyncio.gather(running, return_exceptions=True)
-                for signum in (signal.SIGINT, signal.SIGTERM):
-                    loop.remove_signal_handler(signum)
-
-        try:
-            executor.spin_until_future_complete(serve())
-        finally:
-            executor.remove_node(manager)
-            manager.destroy_node()
-            clean = executor.shutdown()
-        return 0 if clean else 1
-    finally:
-        rclpy.try_shutdown(context=context)
+        super().destroy_node()  # type: ignore[no-untyped-call]

@@ -43,6 +43,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile
 from rclpy.timer import Timer
 
+from .._compat import change_state_service, managed_entities, state_machine
 from .._errors import TransitionError
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
@@ -113,10 +114,8 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
             heartbeat_period,
             "Seconds between heartbeats on /bond for a lifecycle manager; <= 0 disables them.",
         )
-        service = getattr(self, "_service_change_state", None)
-        if service is not None:
-            # rclpy binds its synchronous handler at construction; ours awaits.
-            service.callback = self._serve_change_state
+        # rclpy binds its synchronous handler at construction; ours awaits.
+        change_state_service(self).callback = self._serve_change_state
         self._heartbeat: HeartbeatPublisher | None = None
         if period > 0:
             if status_type() is None:
@@ -144,7 +143,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
     @property
     def lifecycle_state(self) -> LifecycleState:
         """The node's current state (primary or transition)."""
-        state_id, label = self._state_machine.current_state
+        state_id, label = state_machine(self).current_state
         return LifecycleState(label=label, state_id=state_id)
 
     @property
@@ -208,14 +207,14 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
 
     def _resolve(self, request: str | int) -> int | None:
         """The id of the requested transition if available from the current state."""
-        for transition_id, label, *_ in self._state_machine.available_transitions:
-            if request == transition_id or request == label:
+        for transition_id, label, *_ in state_machine(self).available_transitions:
+            if request in (transition_id, label):
                 return int(transition_id)
         return None
 
     def _refuse(self, request: str | int) -> None:
         available = ", ".join(
-            f"{label} [{tid}]" for tid, label, *_ in self._state_machine.available_transitions
+            f"{label} [{tid}]" for tid, label, *_ in state_machine(self).available_transitions
         )
         self.get_logger().warning(
             f"Transition {request!r} is not available from state "
@@ -230,7 +229,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         inline: bool,
         forced: TransitionCallbackReturn | None = None,
     ) -> TransitionCallbackReturn:
-        machine = self._state_machine
+        machine = state_machine(self)
         start = self.lifecycle_state
         machine.trigger_transition_by_id(transition_id, True)
         middle = self.lifecycle_state
@@ -257,7 +256,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         return outcome
 
     def _fail_back(self) -> None:
-        machine = self._state_machine
+        machine = state_machine(self)
         if self.lifecycle_state.state_id >= State.TRANSITION_STATE_CONFIGURING:
             machine.trigger_transition_by_label(FAILURE.to_label(), True)
 
@@ -284,7 +283,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 result = await asyncio.wait_for(callback(previous), timeout)
             else:
                 result = await asyncio.wait_for(_in_thread(callback, previous, name), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             self.get_logger().error(
                 f"{name}() did not finish within {timeout:g} s; the transition fails"
             )
@@ -332,7 +331,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 node=name,
                 transition=label,
             )
-        goal = next(t[4] for t in self._state_machine.available_transitions if t[0] == transition_id)
+        goal = next(t[4] for t in state_machine(self).available_transitions if t[0] == transition_id)
         for callback_name in (_CALLBACKS[goal], "on_error"):
             if inspect.iscoroutinefunction(getattr(self, callback_name)):
                 raise TransitionError(
@@ -383,14 +382,14 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         return super().create_publisher(msg_type, topic, qos_profile, **kwargs)
 
     def create_lifecycle_publisher(self, *args: Any, **kwargs: Any) -> LifecyclePublisher:
-        publisher: LifecyclePublisher = super().create_lifecycle_publisher(*args, **kwargs)
+        publisher: LifecyclePublisher = super().create_lifecycle_publisher(*args, **kwargs)  # type: ignore[no-untyped-call]
         state = self.lifecycle_state
         if state.label in _PUBLISHING:
             publisher.on_activate(state)
         return publisher
 
     def destroy_publisher(self, publisher: Publisher) -> bool:
-        self._managed_entities.discard(publisher)
+        managed_entities(self).discard(publisher)
         return super().destroy_publisher(publisher)
 
     def create_timer(
@@ -429,7 +428,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
 
     def _follow_state(self, state: LifecycleState) -> None:
         enabled = state.label in _PUBLISHING
-        for entity in list(self._managed_entities):
+        for entity in list(managed_entities(self)):
             if isinstance(entity, LifecyclePublisher) and entity.is_activated != enabled:
                 if enabled:
                     entity.on_activate(state)
@@ -444,7 +443,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         if self._heartbeat is not None:
             self._heartbeat.close()
             self._heartbeat = None
-        super().destroy_node()
+        super().destroy_node()  # type: ignore[no-untyped-call]
 
 
 async def _in_thread(

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from rclpy.lifecycle import LifecycleNodeMixin, TransitionCallbackReturn
 
+from .._compat import state_machine
 from .._errors import TransitionError
 from ._node import LifecycleNode
 
@@ -40,7 +41,7 @@ def is_lifecycle(node: Node) -> bool:
 def state_of(node: Node) -> str:
     """The label of the node's current state (``active``, ``configuring``, ...)."""
     # rclpy keeps no public accessor for the state in Jazzy.
-    _, label = node._state_machine.current_state  # type: ignore[attr-defined]
+    _, label = state_machine(node).current_state
     return str(label)
 
 
@@ -84,7 +85,7 @@ async def transition(
             ),
             limit,
         )
-    except asyncio.TimeoutError:
+    except TimeoutError:
         raise TransitionError(f"no answer within {timeout:g} s", node=name, transition=label) from None
     except Exception as exc:
         raise TransitionError(f"{type(exc).__name__}: {exc}", node=name, transition=label) from exc

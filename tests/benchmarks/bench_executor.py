@@ -16,6 +16,7 @@ Printed as medians and as ratios to rclpy's SingleThreadedExecutor.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import random
@@ -102,8 +103,8 @@ def ping_pong(kind: str, seconds: float) -> float:
         got(msg)
 
     is_async = kind == "asyncio-async"
-    b.create_subscription(Int64, "ping", echo_async if is_async else echo, 10)
-    a.create_subscription(Int64, "pong", got_async if is_async else got, 10)
+    b.create_subscription(Int64, "ping", echo_async if is_async else echo, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
+    a.create_subscription(Int64, "pong", got_async if is_async else got, 10)  # type: ignore[arg-type]
     executor = _executor(kind)
     executor.add_node(a)
     executor.add_node(b)
@@ -144,7 +145,7 @@ def timer_gap(kind: str, seconds: float) -> float:
     executor.add_node(a)
     executor.add_node(b)
     _spin_until(executor, done, seconds + 30.0)
-    gaps = [later - earlier for earlier, later in zip(ticks, ticks[1:])]
+    gaps = [later - earlier for earlier, later in itertools.pairwise(ticks)]
     return max(gaps) * 1000.0 if gaps else float("inf")
 
 
@@ -211,7 +212,7 @@ def main() -> None:
     if singles:
         print("\nround by round, vs that round's SingleThreadedExecutor:")
         for kind, label in KINDS.items():
-            ratios = [rt / one for rt, one in zip(results.get(("pingpong", kind), []), singles)]
+            ratios = [rt / one for rt, one in zip(results.get(("pingpong", kind), []), singles, strict=False)]
             listed = " ".join(f"{r:.2f}x" for r in ratios)
             print(f"{label:40} {listed}   (min {min(ratios):.2f}x)")
 

@@ -42,6 +42,7 @@ from lifecycle_msgs.srv import GetState  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
+from rclpy.utilities import try_shutdown  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
 
@@ -205,7 +206,7 @@ def main() -> int:
         finally:
             executor.shutdown()
             node.destroy_node()
-            rclpy.try_shutdown(context=context)
+            try_shutdown(context=context)
 
     print(f"{args.nodes} demo talkers, ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}")
     print(f"{'layout':<20} {'procs':>5} {'PSS MiB':>9} {'RSS MiB':>9} {'all active s':>13}")
@@ -214,7 +215,7 @@ def main() -> int:
             f"{result.layout:<20} {result.processes:>5} {result.pss_kb / 1024:>9.1f} "
             f"{result.rss_kb / 1024:>9.1f} {result.seconds_to_active:>13.2f}"
         )
-    for one, many in zip(results[::2], results[1::2]):
+    for one, many in zip(results[::2], results[1::2], strict=True):
         print(
             f"ratio separate/container: PSS {many.pss_kb / one.pss_kb:.1f}x, "
             f"time to all active {many.seconds_to_active / one.seconds_to_active:.1f}x"

@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 import pytest
 
-from tests.container_support import REPO, ContainerProcess
 from container.cli import main
+from tests.container_support import REPO, ContainerProcess
 
 DEMO = """
 nodes:

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import itertools
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import rclpy
@@ -89,7 +91,7 @@ def test_blocking_plain_callback_in_one_node_does_not_delay_another(
     assert enough.wait(10.0), "the ticker stalled behind the blocker"
     executor.shutdown(timeout_sec=5.0)
     thread.join(5.0)
-    gaps = [b - a for a, b in zip(ticks, ticks[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(ticks)]
     # 20 ticks at 20 Hz all fell inside the blocker's 1.5 s callbacks.
     assert max(gaps) < 0.25, gaps
 
@@ -186,7 +188,7 @@ def test_async_callback_awaits_asyncio_stream_io(
         await server.wait_closed()
         done.set()
 
-    node.create_subscription(Int64, "numbers", on_number, 10)
+    node.create_subscription(Int64, "numbers", on_number, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
     node.create_timer(0.05, lambda: pub.publish(Int64(data=42)) if not done.is_set() else None)
     executor.add_node(node)
     thread = spin_in_thread(executor)
@@ -221,7 +223,7 @@ def test_async_callback_is_a_task_with_one_context_across_its_awaits(
         if len(seen) >= 3:
             done.set()
 
-    node.create_subscription(Int64, "ticks", on_tick, 10)
+    node.create_subscription(Int64, "ticks", on_tick, 10)  # type: ignore[arg-type]
     node.create_timer(0.05, lambda: pub.publish(Int64(data=len(seen))) if not done.is_set() else None)
     executor.add_node(node)
     thread = spin_in_thread(executor)
@@ -292,7 +294,7 @@ def test_async_service_callback_can_await(
     thread = spin_in_thread(executor)
     try:
         assert client.wait_for_service(timeout_sec=10.0)
-        response = client.call(Trigger.Request(), timeout_sec=10.0)
+        response: Any = client.call(Trigger.Request(), timeout_sec=10.0)
     finally:
         executor.shutdown(timeout_sec=5.0)
         thread.join(5.0)
@@ -385,7 +387,7 @@ def test_spin_async_on_a_foreign_event_loop(
             got.append(msg.data)
             received.set()
 
-        node.create_subscription(Int64, "foreign_topic", on_message, 10)
+        node.create_subscription(Int64, "foreign_topic", on_message, 10)  # type: ignore[arg-type]
         executor.add_node(node)
         spinning = asyncio.ensure_future(executor.spin_async())
         for _ in range(200):
@@ -393,7 +395,7 @@ def test_spin_async_on_a_foreign_event_loop(
             try:
                 await asyncio.wait_for(received.wait(), 0.05)
                 break
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 continue
         executor.shutdown(timeout_sec=5.0)
         await asyncio.wait_for(spinning, 10.0)

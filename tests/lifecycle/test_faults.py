@@ -15,9 +15,9 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from container import AsyncioExecutor
+from container.demo import Talker
 from container.lifecycle._faults import contain_fault
 from container.lifecycle._node import LifecycleNode
-from container.demo import Talker
 from tests.lifecycle_support import TransitionLog, run
 
 SUCCESS = TransitionCallbackReturn.SUCCESS

@@ -15,10 +15,10 @@ from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from tests.container_support import ContainerProcess
 from container import AsyncioExecutor
 from container.lifecycle._manager import STARTUP, LifecycleManager, ManagerSettings
 from container.lifecycle._node import LifecycleNode
+from tests.container_support import ContainerProcess
 from tests.lifecycle_support import TransitionLog, run
 
 nav2_srv = pytest.importorskip("nav2_msgs.srv")
@@ -125,7 +125,7 @@ def test_startup_walks_forward_and_shutdown_in_reverse(
 def test_failed_configure_rolls_the_others_back_and_says_why(
     executor: AsyncioExecutor, system: Callable[..., Any]
 ) -> None:
-    managed, manager, log, observer = system()
+    managed, _manager, log, observer = system()
     managed["b"].failures = 1
     started, state = run(executor, call_manager(observer, Command.STARTUP))
     assert not started and not state.success
@@ -274,6 +274,10 @@ def test_hung_node_resets_the_rest_and_recovery_restarts_them(
     assert isinstance(hanging, Hanging)
     try:
 
+        def active() -> bool:
+            """Whether the manager reports the system active (set by its own tasks)."""
+            return manager.system_active
+
         async def scenario() -> float:
             assert await manager.command(STARTUP)
             mark = len(log)
@@ -286,7 +290,7 @@ def test_hung_node_resets_the_rest_and_recovery_restarts_them(
             hanging.unhang.set()
             await log.wait_for_async("/a", "active", after=back)
             await log.wait_for_async("/c", "active", after=back)
-            while not manager.system_active:
+            while not active():
                 await asyncio.sleep(0.01)
             return reset.received - hung_at
 

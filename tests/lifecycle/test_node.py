@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import time
 from collections.abc import Callable
 from typing import Any
@@ -64,7 +65,7 @@ def test_async_configure_keeps_other_nodes_running(
     assert run(executor, gate.transition("configure"))
     assert gate.lifecycle_state.label == "inactive"
     assert len(ticks) >= 20
-    assert max(b - a for a, b in zip(ticks, ticks[1:])) < 0.25
+    assert max(b - a for a, b in itertools.pairwise(ticks)) < 0.25
 
 
 def test_transition_past_its_timeout_fails_back_to_start_state(
@@ -76,6 +77,10 @@ def test_transition_past_its_timeout_fails_back_to_start_state(
     observer = host(Node, "observer")
     log = TransitionLog(observer, ["/slow"])
 
+    def pending_release() -> asyncio.Event | None:
+        """The event the gate's callback waits on, once it waits (set by that callback)."""
+        return gate.release
+
     async def scenario() -> tuple[bool, float, bool, bool]:
         started = time.monotonic()
         configured = await gate.transition("configure")
@@ -83,9 +88,9 @@ def test_transition_past_its_timeout_fails_back_to_start_state(
         # The keyword wins over the parameter; the gate is opened from outside.
         gate.release = None
         second = asyncio.ensure_future(gate.transition("configure", timeout=5.0))
-        while gate.release is None:
+        while (release := pending_release()) is None:
             await asyncio.sleep(0.005)
-        gate.release.set()
+        release.set()
         reconfigured = await second
         activated = await gate.transition("activate", timeout=0.2)
         return configured, elapsed, reconfigured, activated

@@ -1,0 +1,212 @@
+"""Every private rclpy, asyncio and argparse name the project relies on, in one place.
+
+The executor and the lifecycle base do what rclpy's own executors and
+lifecycle node do, and for that they reach behind some underscores. Each such
+name is wrapped here once, with the versions known to have it, so that a new
+rclpy or Python that drops one breaks this module's test
+(``tests/test_compat.py``, which checks every entry of :data:`PRIVATE_NAMES`)
+instead of a callback somewhere at run time.
+
+Checked against rclpy 7.1 (Jazzy, the version installed here) and the rclpy
+of Kilted and Rolling (8.x-10.x) where stated; CPython 3.11 (required), with
+notes for 3.12 and later.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import inspect
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeAlias
+
+import rclpy.timer
+from rclpy.event_handler import EventHandler
+from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.subscription import Subscription
+
+if TYPE_CHECKING:
+    from rclpy.executors import Executor
+    from rclpy.guard_condition import GuardCondition
+    from rclpy.lifecycle import LifecycleNode
+    from rclpy.node import Node
+    from rclpy.task import Future
+    from rclpy.timer import Timer
+    from rclpy.waitable import Waitable
+
+__all__ = [
+    "PRIVATE_NAMES",
+    "TIMER_INFO",
+    "InvalidROSArgsError",
+    "SubParsers",
+    "WaitSet",
+    "adopt_future",
+    "change_state_service",
+    "enter_task",
+    "event_handle",
+    "executor_guards",
+    "fire_timer",
+    "leave_task",
+    "managed_entities",
+    "running_loop",
+    "set_event_index",
+    "state_machine",
+    "subscription_wants_info",
+    "waitable_futures",
+]
+
+#: ``(owner, name, where known)`` of every private name used below; the test
+#: asserts each still exists. Owners are dotted paths (module or class).
+PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
+    ("asyncio.tasks", "_enter_task", "CPython 3.7-3.14; what Task.__step calls around each step"),
+    ("asyncio.tasks", "_leave_task", "CPython 3.7-3.14"),
+    ("asyncio", "_get_running_loop", "CPython 3.7-3.14; get_running_loop() without the raise"),
+    ("rclpy.impl.implementation_singleton", "rclpy_implementation", "rclpy 1.0-10.x: the C extension"),
+    ("rclpy.event_handler.EventHandler", "_EventHandler__event", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.event_handler.EventHandler", "_event_index", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.subscription.Subscription", "_callback_type", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.task.Future", "_set_executor", "rclpy 1.0-10.x"),
+    ("rclpy.waitable.Waitable", "_futures", "rclpy 1.0-10.x (instance attribute)"),
+    ("rclpy.executors.Executor", "_guard", "rclpy 1.0-10.x (instance attribute)"),
+    ("rclpy.executors.Executor", "_sigint_gc", "rclpy 1.0-10.x (instance attribute)"),
+    ("rclpy.lifecycle.LifecycleNodeMixin", "_state_machine", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.lifecycle.LifecycleNodeMixin", "_managed_entities", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_change_state", "rclpy 4.0-10.x (instance attribute)"),
+    ("argparse", "_SubParsersAction", "CPython 3.2-3.14; what add_subparsers() returns"),
+)
+
+# -- asyncio ----------------------------------------------------------------------
+
+#: Make ``task`` the loop's current task (``asyncio.current_task()``) while a
+#: coroutine step runs outside ``Task.__step``: what 3.12's eager tasks do.
+enter_task: Callable[[asyncio.AbstractEventLoop, asyncio.Task[Any]], None] = asyncio.tasks._enter_task
+leave_task: Callable[[asyncio.AbstractEventLoop, asyncio.Task[Any]], None] = asyncio.tasks._leave_task
+
+
+def running_loop() -> asyncio.AbstractEventLoop | None:
+    """The running loop of this thread, or ``None`` (no exception on the hot path)."""
+    return asyncio._get_running_loop()
+
+
+# -- argparse ---------------------------------------------------------------------
+
+#: What ``ArgumentParser.add_subparsers()`` returns; argparse names no public type.
+SubParsers: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
+
+# -- the rclpy C extension ----------------------------------------------------------
+
+#: rcl's wait set, which the executor caches instead of rebuilding per wait.
+WaitSet: Any = rclpy_implementation.WaitSet
+#: What rcl raises for malformed ``--ros-args``.
+InvalidROSArgsError: type[Exception] = rclpy_implementation.RCLInvalidROSArgsError
+
+# -- executors, entities, futures -------------------------------------------------
+
+
+def executor_guards(executor: Executor) -> list[GuardCondition]:
+    """The base class's wake-up guard and its SIGINT guard (``None``s skipped).
+
+    ``Executor.wake()`` triggers the first; rclpy's signal handler the second.
+    """
+    guards = (executor._guard, executor._sigint_gc)
+    return [guard for guard in guards if guard is not None]
+
+
+def event_handle(handler: object) -> Any | None:
+    """The rcl event handle inside a QoS ``EventHandler``, or ``None``.
+
+    Adding the handle directly costs about a microsecond per wait less than
+    the generic Waitable path; ``None`` (any other waitable, or an rclpy that
+    renamed the attribute) falls back to that generic path.
+    """
+    if isinstance(handler, EventHandler):
+        return getattr(handler, "_EventHandler__event", None)
+    return None
+
+
+def set_event_index(handler: object, index: int) -> None:
+    """Tell an ``EventHandler`` where its handle sits in a wait set we filled."""
+    handler._event_index = index  # type: ignore[attr-defined]
+
+
+def subscription_wants_info(subscription: Subscription) -> bool:
+    """Whether the callback takes ``(message, message_info)``; rclpy decides by signature."""
+    return subscription._callback_type is not Subscription.CallbackType.MessageOnly
+
+
+def adopt_future(future: Future, executor: object) -> None:
+    """Make ``executor`` run ``future``'s done-callbacks, as rclpy's executors do."""
+    future._set_executor(executor)
+
+
+def waitable_futures(waitable: Waitable) -> list[Future]:
+    """The futures a waitable (an action client) completes when it executes."""
+    futures: list[Future] = waitable._futures
+    return futures
+
+
+# -- timers ---------------------------------------------------------------------------
+
+#: ``rclpy.timer.TimerInfo`` where rclpy has it (Kilted and later); ``None`` on Jazzy.
+TIMER_INFO: type | None = getattr(rclpy.timer, "TimerInfo", None)
+
+
+def fire_timer(timer: Timer) -> dict[str, Any] | None:
+    """Mark a ready timer as called; the keyword arguments its callback takes.
+
+    :return: ``None`` if the timer was not ready after all (cancelled or reset
+        meanwhile); otherwise ``{}``, or ``{name: TimerInfo(...)}`` when rclpy
+        has ``TimerInfo`` and the callback has a parameter annotated with it,
+        which is how rclpy's own executors decide to pass one.
+    """
+    handle = timer.handle
+    if not handle.is_timer_ready():
+        return None
+    call_with_info = getattr(handle, "call_timer_with_info", None)
+    if TIMER_INFO is None or call_with_info is None:
+        handle.call_timer()
+        return {}
+    info = call_with_info()
+    name = timer_info_parameter(timer.callback)
+    if name is None:
+        return {}
+    return {
+        name: TIMER_INFO(
+            expected_call_time=info["expected_call_time"],
+            actual_call_time=info["actual_call_time"],
+            clock_type=timer.clock.clock_type,
+        )
+    }
+
+
+def timer_info_parameter(callback: Callable[..., Any] | None) -> str | None:
+    """The name of ``callback``'s parameter annotated with ``TimerInfo``, if any."""
+    if callback is None or TIMER_INFO is None:
+        return None
+    try:
+        parameters = inspect.signature(callback).parameters.values()
+    except (TypeError, ValueError):
+        return None
+    for parameter in parameters:
+        if parameter.annotation is TIMER_INFO or parameter.annotation == TIMER_INFO.__name__:
+            return parameter.name
+    return None
+
+
+# -- lifecycle --------------------------------------------------------------------
+
+
+def state_machine(node: Node | LifecycleNode) -> Any:
+    """The rcl lifecycle state machine of a lifecycle node (rclpy has no accessor)."""
+    return node._state_machine  # type: ignore[union-attr]
+
+
+def managed_entities(node: Node | LifecycleNode) -> set[Any]:
+    """The entities (lifecycle publishers) a lifecycle node activates and deactivates."""
+    entities: set[Any] = node._managed_entities  # type: ignore[union-attr]
+    return entities
+
+
+def change_state_service(node: LifecycleNode) -> Any:
+    """The ``change_state`` service, whose handler the node base replaces."""
+    return node._service_change_state

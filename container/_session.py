@@ -1,0 +1,167 @@
+"""One way to run a ROS program: context, executor, signals, exit codes, shutdown.
+
+Every command (``container run``, ``container manager``, ``container load``,
+``container lifecycle ...``) runs its work through :func:`run_session`, so all
+of them start ROS and end alike:
+
+* a fresh context initialised with no command-line arguments, so that the
+  command's own ``-p name:=value`` is never read by rcl as a remap rule;
+* rclpy's signal handlers off, and SIGINT/SIGTERM handled on the event loop
+  (rclpy's would shut the context down under the nodes' feet);
+* the exit code: what ``main`` returns; for a command cut short by a signal,
+  ``128 + signal`` (130 for Ctrl-C), as shells report it; a *server* (a
+  container, a manager) treats the first signal as the request to stop and
+  exits with what its orderly shutdown returns; a second signal while it
+  shuts down exits at once (``128 + signal``), without a traceback;
+* the executor shut down and the context with it, whatever happened.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Awaitable, Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import try_shutdown
+
+from ._runtime import use_fast_discovery
+from .executor import AsyncioExecutor
+
+__all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "Session", "exit_code_for", "run_session"]
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+#: Bad usage or a bad configuration file, as argparse exits.
+EXIT_USAGE = 2
+
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+_log = logging.getLogger("container")
+
+
+def exit_code_for(signum: int) -> int:
+    """The exit code shells report for a process ended by ``signum`` (130 for SIGINT)."""
+    return 128 + signum
+
+
+@dataclass
+class Session:
+    """What :func:`run_session` hands to the program it runs.
+
+    :ivar stopping: set by the first SIGINT or SIGTERM of a server session.
+    :ivar signal: the signal that stopped the session, if one did.
+    """
+
+    context: Context
+    executor: AsyncioExecutor
+    stopping: asyncio.Event = field(default_factory=asyncio.Event)
+    signal: int | None = None
+
+    @contextlib.contextmanager
+    def client_node(self, name: str) -> Iterator[Node]:
+        """A short-lived node for a command to talk through; gone afterwards.
+
+        A leading underscore in ``name`` hides it from ``list`` and lifecycle
+        tools; it serves no parameters and logs nothing to ``/rosout``.
+        """
+        node = Node(name, context=self.context, start_parameter_services=False, enable_rosout=False)
+        self.executor.add_node(node)
+        try:
+            yield node
+        finally:
+            self.executor.remove_node(node)
+            node.destroy_node()
+
+
+def run_session(
+    main: Callable[[Session], Awaitable[int]],
+    *,
+    server: bool = False,
+    executor_options: dict[str, Any] | None = None,
+) -> int:
+    """Run ``main`` on a fresh context and executor; return the process exit code.
+
+    :param server: ``True`` for a long-running process that stops on the
+        first signal by itself (``main`` awaits ``session.stopping``); for any
+        other command a signal cancels ``main``.
+    :param executor_options: keyword arguments for :class:`AsyncioExecutor`.
+    """
+    use_fast_discovery()
+    before = set(threading.enumerate())
+    context = Context()
+    try:
+        # No arguments: rcl would read the command's own ones (-p x:=y) as ROS arguments.
+        rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    except KeyboardInterrupt:
+        return exit_code_for(signal.SIGINT)
+    code = EXIT_FAILURE
+    clean = False
+    try:
+        executor = AsyncioExecutor(context=context, **(executor_options or {}))
+        try:
+            session = Session(context, executor)
+            codes: list[int] = []
+            executor.spin_until_future_complete(_guarded(main, session, server=server, codes=codes))
+            if codes:
+                code = codes[0]
+            elif session.signal is not None:
+                code = exit_code_for(session.signal)
+        finally:
+            clean = executor.shutdown()
+    except KeyboardInterrupt:
+        code = exit_code_for(signal.SIGINT)
+    finally:
+        try_shutdown(context=context)
+    leftover = [t.name for t in threading.enumerate() if t not in before]
+    if leftover or not clean:
+        # Daemon threads would die silently with the process; say so instead.
+        _log.error(f"threads left behind: {', '.join(leftover) or 'callbacks still running'}")
+        return code or EXIT_FAILURE
+    return code
+
+
+async def _guarded(
+    main: Callable[[Session], Awaitable[int]], session: Session, *, server: bool, codes: list[int]
+) -> None:
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+
+    def on_signal(signum: int) -> None:
+        if session.signal is not None:
+            # A second signal: the user wants out now, whatever is still running.
+            name = signal.Signals(signum).name
+            print(f"{name} again: exiting at once", file=sys.stderr, flush=True)
+            with contextlib.suppress(Exception):
+                logging.shutdown()
+            os._exit(exit_code_for(signum))
+        session.signal = signum
+        if server:
+            _log.info(f"{signal.Signals(signum).name} received: shutting down")
+            session.stopping.set()
+        else:
+            task.cancel()
+
+    for signum in _SIGNALS:
+        loop.add_signal_handler(signum, on_signal, signum)
+    try:
+        codes.append(await main(session))
+    except asyncio.CancelledError:
+        if session.signal is None:
+            raise
+        task.uncancel()
+    finally:
+        if not server or session.signal is None:
+            for signum in _SIGNALS:
+                loop.remove_signal_handler(signum)

@@ -1,0 +1,125 @@
+"""The one bridge between rclpy futures and asyncio.
+
+rclpy's futures complete on whatever thread takes the response (or in an
+executor's task), and ``await``-ing one yields a bare ``None`` until it is
+done: to asyncio, "run me again at once", a busy loop. Everything in the
+project that waits for an rclpy future from asyncio code goes through here:
+
+* :func:`mirror` gives an asyncio future on a chosen loop that completes with
+  the rclpy one, from any thread, and never touches a closed loop;
+* :func:`result` awaits an rclpy future's result with an optional timeout;
+* :func:`drive` runs a coroutine that may ``await`` rclpy futures directly
+  (rclpy-style code), parking it on a progress signal instead of spinning;
+  :func:`adapt` wraps one so that any asyncio task can await it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import types
+from collections.abc import Callable, Coroutine, Generator
+from typing import Any, TypeVar
+
+from rclpy.task import Future as RclFuture
+
+from .._compat import running_loop
+
+__all__ = ["adapt", "drive", "mirror", "result"]
+
+T = TypeVar("T")
+
+
+def mirror(future: RclFuture, loop: asyncio.AbstractEventLoop) -> asyncio.Future[Any]:
+    """An asyncio future on ``loop`` that settles as ``future`` does.
+
+    Result, exception and cancellation carry over. Safe whichever thread
+    completes ``future``; once ``loop`` is closed nothing is scheduled on it.
+    """
+    settled: asyncio.Future[Any] = loop.create_future()
+
+    def copy() -> None:
+        if settled.done():
+            return
+        if future.cancelled():
+            settled.cancel()
+        elif future.exception() is not None:
+            settled.set_exception(future.exception())
+        else:
+            settled.set_result(future.result())
+
+    def on_done(_: RclFuture) -> None:
+        if loop.is_closed():
+            return
+        if running_loop() is loop:
+            loop.call_soon(copy)
+        else:
+            loop.call_soon_threadsafe(copy)
+
+    # rclpy runs this at once if the future is already done, on the
+    # completing thread if it has no executor, else as an executor task.
+    future.add_done_callback(on_done)
+    return settled
+
+
+async def result(future: RclFuture, *, timeout: float | None = None) -> Any:
+    """Wait for ``future`` on the running loop and return its result (or raise its error).
+
+    :raises TimeoutError: not done within ``timeout`` seconds; ``future`` is
+        left as it is (a client may then drop its pending request).
+    """
+    return await asyncio.wait_for(mirror(future, asyncio.get_running_loop()), timeout)
+
+
+def drive(
+    coro: Coroutine[Any, Any, T],
+    progress: Callable[[], asyncio.Future[None]],
+    *,
+    yielded: Any = None,
+    thrown: BaseException | None = None,
+    started: bool = False,
+) -> Generator[Any, Any, T]:
+    """Run ``coro`` inside a task, turning rclpy's bare ``yield`` into a real wait.
+
+    Use with ``yield from``. ``progress()`` is a future that completes when
+    something an rclpy future may be waiting for has happened (a response
+    taken, a done-callback scheduled), or after a short poll interval.
+
+    :param started: ``coro`` already ran up to a suspension at ``yielded``
+        (or is to receive ``thrown`` there): carry on from that point.
+    """
+    if not started:
+        try:
+            yielded = coro.send(None)
+        except StopIteration as stop:
+            done: T = stop.value
+            return done
+    while True:
+        value: Any = None
+        if thrown is None:
+            try:
+                if yielded is None:
+                    yield from progress()
+                else:
+                    value = yield yielded
+            except BaseException as exc:  # forwarded into the coroutine
+                thrown = exc
+        try:
+            if thrown is None:
+                yielded = coro.send(value)
+            else:
+                error, thrown = thrown, None
+                yielded = coro.throw(error)
+        except StopIteration as stop:
+            finished: T = stop.value
+            return finished
+
+
+@types.coroutine
+def _adapted(coro: Coroutine[Any, Any, T], progress: Callable[[], asyncio.Future[None]]) -> Generator[Any, Any, T]:
+    return (yield from drive(coro, progress))
+
+
+def adapt(coro: Coroutine[Any, Any, T], progress: Callable[[], asyncio.Future[None]]) -> Coroutine[Any, Any, T]:
+    """``coro`` as an awaitable that :func:`drive` runs (see there)."""
+    adapted: Coroutine[Any, Any, T] = _adapted(coro, progress)
+    return adapted

@@ -1,0 +1,139 @@
+"""Every private rclpy/asyncio name in ``container._compat`` still exists here.
+
+When an rclpy or Python upgrade drops one, this is the test that fails, by
+name, instead of a callback somewhere at run time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+from collections.abc import Callable, Iterator
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleNode
+from rclpy.waitable import Waitable
+from std_msgs.msg import String
+
+from container import _compat
+
+
+@pytest.fixture
+def samples(context: Context) -> Iterator[dict[str, Callable[[], Any]]]:
+    """Real instances of the classes whose private names are instance attributes."""
+    node = LifecycleNode("compat_probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    publisher = node.create_publisher(
+        String, "probe", 10, event_callbacks=PublisherEventCallbacks(liveliness=lambda _: None)
+    )
+    subscription = node.create_subscription(String, "probe", lambda _: None, 10)
+    handlers = [w for w in node.waitables if type(w).__name__ == "EventHandler"]
+    yield {
+        "rclpy.event_handler.EventHandler": lambda: handlers[0],
+        "rclpy.subscription.Subscription": lambda: subscription,
+        "rclpy.waitable.Waitable": lambda: Waitable(MutuallyExclusiveCallbackGroup()),
+        "rclpy.executors.Executor": lambda: executor,
+        "rclpy.lifecycle.LifecycleNodeMixin": lambda: node,
+    }
+    executor.shutdown()
+    node.destroy_publisher(publisher)
+    node.destroy_node()
+    _compat.state_machine(node).destroy_when_not_in_use()
+
+
+def _resolve(path: str) -> Any:
+    module_name, _, attribute = path.rpartition(".")
+    try:
+        return importlib.import_module(path)
+    except ImportError:
+        return getattr(importlib.import_module(module_name), attribute)
+
+
+@pytest.mark.parametrize(("owner", "name", "versions"), _compat.PRIVATE_NAMES, ids=lambda v: str(v))
+def test_private_name_exists(owner: str, name: str, versions: str, samples: dict[str, Callable[[], Any]]) -> None:
+    target = samples[owner]() if "instance attribute" in versions else _resolve(owner)
+    assert hasattr(target, name), f"{owner}.{name} is gone ({versions}): update container/_compat.py"
+
+
+def test_qos_event_handlers_take_the_direct_path(samples: dict[str, Callable[[], Any]]) -> None:
+    """The fast path for QoS events needs the handle; its fallback would be silent."""
+    assert _compat.event_handle(samples["rclpy.event_handler.EventHandler"]()) is not None
+
+
+def test_enter_task_makes_a_task_current() -> None:
+    async def probe() -> None:
+        loop = asyncio.get_running_loop()
+        other = loop.create_task(asyncio.sleep(0))
+        current = asyncio.current_task()
+        assert current is not None
+        _compat.leave_task(loop, current)
+        _compat.enter_task(loop, other)
+        try:
+            assert asyncio.current_task() is other
+        finally:
+            _compat.leave_task(loop, other)
+            _compat.enter_task(loop, current)
+        await other
+
+    asyncio.run(probe())
+
+
+class _FakeTimerInfo:
+    """Stands in for rclpy's TimerInfo (Kilted and later) on Jazzy."""
+
+    def __init__(self, *, expected_call_time: int, actual_call_time: int, clock_type: object) -> None:
+        self.expected_call_time = expected_call_time
+        self.actual_call_time = actual_call_time
+        self.clock_type = clock_type
+
+
+class _FakeHandle:
+    def __init__(self, *, with_info: bool) -> None:
+        self.calls: list[str] = []
+        if with_info:
+            self.call_timer_with_info = self._call_with_info
+
+    def is_timer_ready(self) -> bool:
+        return True
+
+    def call_timer(self) -> None:
+        self.calls.append("plain")
+
+    def _call_with_info(self) -> dict[str, int]:
+        self.calls.append("info")
+        return {"expected_call_time": 10, "actual_call_time": 12}
+
+
+def test_timer_callbacks_get_timer_info_the_way_rclpy_passes_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where rclpy has TimerInfo, a parameter annotated with it receives one."""
+    monkeypatch.setattr(_compat, "TIMER_INFO", _FakeTimerInfo)
+    received: list[_FakeTimerInfo] = []
+
+    def wants(info: _FakeTimerInfo) -> None:
+        received.append(info)
+
+    def plain() -> None:
+        pass
+
+    clock = SimpleNamespace(clock_type="steady")
+    handle = _FakeHandle(with_info=True)
+    arguments = _compat.fire_timer(SimpleNamespace(handle=handle, callback=wants, clock=clock))  # type: ignore[arg-type]
+    assert arguments is not None and set(arguments) == {"info"}
+    wants(**arguments)
+    assert (received[0].expected_call_time, received[0].actual_call_time) == (10, 12)
+    assert _compat.fire_timer(SimpleNamespace(handle=handle, callback=plain, clock=clock)) == {}  # type: ignore[arg-type]
+    assert handle.calls == ["info", "info"]
+
+
+def test_timers_on_jazzy_are_called_plainly(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(_compat, "TIMER_INFO", None)
+    handle = _FakeHandle(with_info=False)
+    timer = SimpleNamespace(handle=handle, callback=lambda: None, clock=None)
+    assert _compat.fire_timer(timer) == {}  # type: ignore[arg-type]
+    assert handle.calls == ["plain"]

@@ -198,7 +198,7 @@ def main() -> None:
 
         if not args.no_peer:
             elapsed, out = timed([pythons[0], "-c", PEER, str(path)], {**os.environ})
-            good, bad = (int(x) for x in out.split())
+            good, _bad = (int(x) for x in out.split())
             print(f"\npeer (pure-Python CRC scanner, whole process): {good:,} packets in {elapsed:.2f} s")
             print(f"  => {good / elapsed / 1e6:.2f} M packets/s ({good / elapsed / LINE_RATE:,.0f}x line rate)")
             print(f"  the fastest decode is {elapsed / best:.1f}x faster than the peer (best)")

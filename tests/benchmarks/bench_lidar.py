@@ -178,9 +178,10 @@ class Listener:
 
     def __init__(self, topic: str, kind: str) -> None:
         import rclpy
+        from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
 
-        self.context = rclpy.Context()
+        self.context = Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("bench_listener", context=self.context)
         self.records: list[tuple[int, int, float, float]] = []
@@ -217,9 +218,9 @@ class Listener:
             pass  # close() shut the context down: the end of the window
 
     def close(self) -> None:
-        import rclpy
+        from rclpy.utilities import try_shutdown
 
-        rclpy.try_shutdown(context=self.context)
+        try_shutdown(context=self.context)
         self.thread.join(5)
         self.executor.shutdown(1)
         self.node.destroy_node()

@@ -4,10 +4,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from ldlidar import (
     PacketGenerator,
     ScanAssembler,
     StreamParser,
+    _bulk,
     crc8,
     decode_bytes,
     decode_file,
@@ -15,7 +17,6 @@ from ldlidar import (
     encode_info,
     encode_packet,
 )
-from ldlidar import _bulk
 from tests.ldlidar.ldlidar_support import corrupted_stream, decode_command_modules
 
 
@@ -88,7 +89,7 @@ def _overlapping_pair(offset: int) -> bytes:
 @pytest.mark.parametrize("offset", [8, 20, 40])
 def test_frame_inside_an_accepted_frame_is_not_a_frame(offset: int, blocks: None) -> None:
     data = _overlapping_pair(offset) + PacketGenerator("LD06", seed=1).packets(3)
-    packets, parser = streaming(data)
+    packets, _parser = streaming(data)
     assert packets[0].crc == data[46]  # the first packet won; the one inside it is skipped
     assert_agree(data)
 
@@ -391,7 +392,7 @@ def test_frames_in_the_last_bytes_of_a_block(
         data[block - back : block - back + 4] = encode_health(back)
         data[3 * block - back : 3 * block - back + 23] = encode_info(bytes(range(back, back + 20)))
         data += PacketGenerator("LD06").packets(3)
-        packets, parser = streaming(bytes(data))
+        _packets, parser = streaming(bytes(data))
         assert parser.stats.health_frames == 1 and parser.stats.info_frames == 1
         assert_agree(bytes(data))
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from ldlidar import PacketGenerator, ScanAssembler, StreamParser, encode_png, render_scan
 from ldlidar._cli import main
 from tests.ldlidar.ldlidar_support import PLUGIN

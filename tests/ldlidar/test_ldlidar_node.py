@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import math
 import os
 import subprocess
@@ -18,8 +17,6 @@ from typing import Any
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from ldlidar import Emulator, PacketGenerator, ScanAssembler, StreamParser
-from ldlidar.plugin import SCAN_QOS, LdLidarNode, find_serial_ports, to_laser_scan
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Log
@@ -29,6 +26,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
 from container import AsyncioExecutor, PluginRegistry
+from ldlidar import Emulator
+from ldlidar.plugin import SCAN_QOS, LdLidarNode, find_serial_ports
 from tests.container_support import REPO, ContainerProcess
 from tests.lifecycle_support import run
 
@@ -119,29 +118,6 @@ def test_plugin_is_found_through_its_entry_point() -> None:
     )
     assert out.returncode == 0, out.stderr
     assert "ldlidar\n  ldlidar::LdLidarNode\n" in out.stdout
-
-
-def test_laser_scan_conversion_keeps_every_field() -> None:
-    generator = PacketGenerator("LD06")
-    parser, assembler = StreamParser(), ScanAssembler(bins=0)
-    scans = [s for p in parser.feed(generator.packets(120)) for s in assembler.push(p, host_time=1e9)]
-    scan = scans[0]
-    msg = to_laser_scan(scan, frame_id="laser")
-    assert msg.header.frame_id == "laser"
-    assert msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 == pytest.approx(scan.stamp, abs=1e-6)
-    assert 0 <= msg.header.stamp.nanosec < 1_000_000_000
-    assert list(msg.ranges) == pytest.approx(scan.ranges.tolist())
-    assert list(msg.intensities) == pytest.approx(scan.intensities.tolist())
-    assert msg.angle_increment * (len(msg.ranges) - 1) == pytest.approx(msg.angle_max - msg.angle_min)
-    assert (msg.scan_time, msg.time_increment) == pytest.approx((scan.scan_time, scan.time_increment))
-
-
-def test_stamp_just_below_a_whole_second_rounds_up_cleanly() -> None:
-    generator = PacketGenerator("LD06")
-    parser, assembler = StreamParser(), ScanAssembler()
-    scan = [s for p in parser.feed(generator.packets(120)) for s in assembler.push(p)][0]
-    stamp = to_laser_scan(dataclasses.replace(scan, stamp=41.9999999999), frame_id="x").header.stamp
-    assert (stamp.sec, stamp.nanosec) == (42, 0)
 
 
 # -- the lifecycle -------------------------------------------------------------------------------

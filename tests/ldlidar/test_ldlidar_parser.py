@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from ldlidar import PacketGenerator, StreamParser, encode_health, encode_info, encode_packet
 from tests.ldlidar.ldlidar_support import corrupted_stream, is_subsequence
 
@@ -31,7 +32,7 @@ def reencode(p) -> bytes:  # type: ignore[no-untyped-def]
 
 
 def random_chunks(rng: np.random.Generator, total: int) -> list[int]:
-    sizes = []
+    sizes: list[int] = []
     while sum(sizes) < total:
         sizes.append(int(rng.choice([1, 2, 3, 46, 47, 48, int(rng.integers(1, 300))])))
     return sizes

@@ -5,6 +5,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+
 from ldlidar import DeviceClock, Packet, Scan, ScanAssembler, decode_packet, encode_packet
 
 POINTS = 456  # per turn: 38 packets, as an LD06 at 10 Hz
@@ -114,7 +115,7 @@ def test_zero_and_360_are_never_both_present() -> None:
 
 
 def test_readings_just_either_side_of_the_front_share_the_front_bin() -> None:
-    dist = lambda a: 700 if 359.5 < a or a < 0.5 else 2000  # noqa: E731
+    dist = lambda a: 700 if a > 359.5 or a < 0.5 else 2000  # noqa: E731
     scan = run(ScanAssembler(bins=360), packets_for(dist, offset=0.1))[0]
     assert scan.ranges[ray_near(scan, 0.0)] == pytest.approx(0.7)
     assert np.count_nonzero(scan.ranges < 1) == 1
@@ -279,8 +280,8 @@ def test_due_predicts_when_the_packet_completing_a_turn_arrives() -> None:
     latency = 0.004  # seconds from a packet's last point to its read
     packets = packets_for(lambda a: 1000, turns=4)
     point_time = 0.1 / POINTS
+    assert ScanAssembler().due is None  # nothing to predict before the first packet
     assembler = ScanAssembler()
-    assert assembler.due is None
     predictions: list[float] = []
     completed_at: list[float] = []
     for packet in packets:

@@ -6,6 +6,6 @@ import sys
 # effect because importing the package does not load NumPy.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from ._cli import main  # noqa: E402
+from ._cli import main
 
 sys.exit(main())

@@ -27,6 +27,7 @@ import stat
 import threading
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import TYPE_CHECKING, NamedTuple, TypeVar, cast
 
 import numpy as np
@@ -523,7 +524,7 @@ def _split(
     """Append the runs of valid links of the chain from *p* to *runs*, the rest (before *e*) to *gaps*."""
     bounds = [0, *(np.flatnonzero(ok[1:] != ok[:-1]) + 1).tolist(), len(ok)]
     good = bool(ok[0])
-    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+    for lo, hi in pairwise(bounds):
         if good:
             runs.append((p + lo * PACKET_SIZE, hi - lo))
         else:
@@ -672,7 +673,7 @@ def _accept(found: Sequence[_Found]) -> _Frames:
     bad = np.concatenate([f.bad for f in found]) if found else np.zeros(0, np.int64)
     extras, sizes = _extras(found)
     filled = [f for f in found if len(f.packets)]
-    seams = np.array([b.packets[0] - a.packets[-1] for a, b in zip(filled, filled[1:])], dtype=np.int64)
+    seams = np.array([b.packets[0] - a.packets[-1] for a, b in pairwise(filled)], dtype=np.int64)
     near, near_sizes = _around(packets, extras, sizes)
     near_steps = np.diff(near)
     overlap = (

@@ -136,6 +136,7 @@ def _render(args: argparse.Namespace) -> int:
 
 def _emulate(args: argparse.Namespace) -> int:
     import asyncio
+    import contextlib
 
     from ._emulator import Emulator
 
@@ -144,10 +145,8 @@ def _emulate(args: argparse.Namespace) -> int:
             print(f"{emu.model.name} emulator on {emu.port} (link {emu.link}); Ctrl-C stops", flush=True)
             await asyncio.Event().wait()
 
-    try:
+    with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(run())
-    except KeyboardInterrupt:
-        pass
     return 0
 
 

@@ -1,24 +1,30 @@
-"""The plugin's exceptions, all in one place.
+"""The plugin's exceptions, all in one place, under the container's hierarchy.
 
 ::
 
-    LidarError                 anything this package raises on purpose
-    ├── ProtocolError          bytes that are not a valid frame
-    └── DeviceError            a device (serial port, capture file, emulator) failed
+    container.ContainerError
+    └── LidarError                 anything this package raises on purpose
+        ├── ProtocolError          bytes that are not a valid frame
+        └── DeviceError            a device (serial port, capture file, emulator) failed
+                                   (also a container.DeviceError)
 
-They stand alone until the container's hierarchy can be imported; then
-``LidarError`` is meant to be rebased onto ``container.ContainerError`` and
-``DeviceError`` onto ``container.DeviceError`` (same ``device`` keyword).
+A container that loads the node, or a program that drives a :class:`Lidar`,
+can therefore catch ``container.ContainerError`` or ``container.DeviceError``
+without knowing this plugin; ``device`` and ``reason`` are the container's
+attributes, so nobody takes a message apart. ``container`` loads its
+ROS-dependent parts on first use, which keeps the decode path free of rclpy.
 Foreign errors (pyserial, OS) are translated where they enter this package and
 chained with ``raise ... from exc``.
 """
 
 from __future__ import annotations
 
+import container
+
 __all__ = ["DeviceError", "LidarError", "ProtocolError"]
 
 
-class LidarError(Exception):
+class LidarError(container.ContainerError):
     """Base of every error this package raises on purpose."""
 
 
@@ -26,12 +32,8 @@ class ProtocolError(LidarError):
     """Bytes handed to a decoder are not a valid frame."""
 
 
-class DeviceError(LidarError):
+class DeviceError(LidarError, container.DeviceError):
     """A device failed: it could not open, vanished, or sent nothing valid.
 
     :param device: the port, URL or file of the device.
     """
-
-    def __init__(self, message: str, *, device: str) -> None:
-        super().__init__(f"{device}: {message}")
-        self.device = device

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import Literal
 
 import numpy as np
@@ -242,7 +243,7 @@ class ScanAssembler:
         scans: list[Scan] = []
         bounds = [*splits, POINTS_PER_PACKET]
         self._extend(packet, positions, 0, bounds[0], device, dt)
-        for split, until in zip(bounds, bounds[1:], strict=False):
+        for split, until in pairwise(bounds):
             if self._turn is not None and self._turn.first_time is not None:
                 scans.append(self._finish(self._turn, device + dt * split))
             self._turn = _Turn()

@@ -10,6 +10,7 @@ at the boundary, chained to the original.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 from abc import ABC, abstractmethod
 from pathlib import Path
@@ -211,17 +212,14 @@ class SerialSource(_Base):
         writer, self._writer, self._reader = self._writer, None, None
         port, self._serial = self._serial, None
         self._state = "closed"
+        # The port is gone either way; a close error has nowhere useful to go.
         if port is not None:
-            try:
+            with contextlib.suppress(Exception):
                 port.close()
-            except Exception:
-                pass  # The port is gone either way; a close error has nowhere useful to go.
         if writer is not None:
             writer.close()
-            try:
+            with contextlib.suppress(Exception):
                 await writer.wait_closed()
-            except Exception:
-                pass  # The port is gone either way; a close error has nowhere useful to go.
 
 
 class ReplaySource(_Base):

@@ -1,0 +1,141 @@
+"""The node's ``/diagnostics`` status: rates over the last period and one health verdict.
+
+Rates and the verdict cover the period since the previous report, not the
+whole run: a burst of line noise warns once and then clears, and a device
+that stops sending turns ERROR within one period however long it ran well.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Final
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from ._lidar import Lidar
+
+__all__ = ["DIAGNOSTICS_PERIOD", "Diagnostics"]
+
+#: Seconds between two ``/diagnostics`` messages.
+DIAGNOSTICS_PERIOD: Final = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class _Counts:
+    """Counters at one diagnostics message; the next one reports the difference."""
+
+    when: float
+    packets: int = 0
+    scans: int = 0
+    crc_errors: int = 0
+    skipped_bytes: int = 0
+    health_frames: int = 0
+
+    @classmethod
+    def now(cls, lidar: Lidar, scans: int) -> _Counts:
+        stats = lidar.stats
+        return cls(
+            when=time.monotonic(),
+            packets=stats.packets,
+            scans=scans,
+            crc_errors=stats.crc_errors,
+            skipped_bytes=stats.skipped_bytes,
+            health_frames=stats.health_frames,
+        )
+
+
+class Diagnostics:
+    """The ``/diagnostics`` status of one open LiDAR, one period at a time.
+
+    :param lidar: the device, open; its counters are the baseline of the first period.
+    :param node_name: the node's name, which names the status.
+    :param emulated: the device is the node's own emulator (said in the status,
+        since its scans are simulated).
+    """
+
+    def __init__(self, lidar: Lidar, *, node_name: str, emulated: bool) -> None:
+        self._lidar = lidar
+        self._name = f"{node_name}: LiDAR"
+        self._emulated = emulated
+        self._counts = _Counts.now(lidar, 0)
+
+    def report(
+        self,
+        *,
+        stamp: Time,
+        node_state: str,
+        scans: int,
+        published: int,
+        stopped: str | None = None,
+        failed: bool = False,
+    ) -> DiagnosticArray:
+        """Return the status of the period since the previous report, and start the next.
+
+        :param stamp: the time of the message.
+        :param node_state: the node's lifecycle state label; only ``active`` publishes.
+        :param scans: revolutions assembled since configure.
+        :param published: revolutions published since configure.
+        :param stopped: why the port is no longer read, or ``None`` while it is.
+        :param failed: reading stopped on an error rather than at the end of a capture.
+        """
+        lidar, stats = self._lidar, self._lidar.stats
+        last, now = self._counts, _Counts.now(lidar, scans)
+        self._counts = now
+        elapsed = max(now.when - last.when, 1e-6)
+        level, message = _health(lidar, last, now, stopped=stopped, failed=failed)
+        if level == DiagnosticStatus.OK:
+            message += ", publishing" if node_state == "active" else ", not publishing (node inactive)"
+        values = {
+            "port": lidar.port,
+            "emulated": "yes" if self._emulated else "no",
+            "baudrate": str(lidar.baudrate),
+            "device state": lidar.state,
+            "node state": node_state,
+            "packet rate (Hz)": f"{(now.packets - last.packets) / elapsed:.1f}",
+            "scan rate (Hz)": f"{(now.scans - last.scans) / elapsed:.2f}",
+            "packets": str(stats.packets),
+            "scans": str(scans),
+            "scans published": str(published),
+            "crc errors": str(stats.crc_errors),
+            "resyncs": str(stats.resyncs),
+            "skipped bytes": str(stats.skipped_bytes),
+            "health frames": str(stats.health_frames),
+            "last health code": "none" if stats.last_health_code is None else str(stats.last_health_code),
+            "reconnects": str(lidar.reopens),
+            "last error": lidar.last_error or "none",
+        }
+        status = DiagnosticStatus(
+            level=level,
+            name=self._name,
+            message=message,
+            hardware_id=f"{lidar.model.name} on {lidar.port}",
+            values=[KeyValue(key=key, value=text) for key, text in values.items()],
+        )
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp
+        return msg
+
+
+def _health(lidar: Lidar, last: _Counts, now: _Counts, *, stopped: str | None, failed: bool) -> tuple[bytes, str]:
+    """The level and one-line message of the period from *last* to *now*, worst first."""
+    elapsed = now.when - last.when
+    if stopped is not None:
+        return (DiagnosticStatus.ERROR if failed else DiagnosticStatus.WARN), f"not reading: {stopped}"
+    if lidar.state == "reconnecting":
+        return DiagnosticStatus.ERROR, f"device lost ({lidar.last_error}); reopening, {lidar.reopens} reopen(s) so far"
+    if now.packets == last.packets:
+        return DiagnosticStatus.ERROR, f"no data for {elapsed:.1f} s"
+    if now.scans == last.scans:
+        return DiagnosticStatus.WARN, "packets but no complete revolution (motor stopped?)"
+    code = lidar.stats.last_health_code
+    if now.health_frames > last.health_frames and code:
+        return DiagnosticStatus.WARN, f"device reports health error code {code}"
+    crc_errors = now.crc_errors - last.crc_errors
+    skipped = now.skipped_bytes - last.skipped_bytes
+    if crc_errors or skipped:
+        return DiagnosticStatus.WARN, (
+            f"line noise: {crc_errors} CRC error(s), {skipped} byte(s) skipped in the last {elapsed:.1f} s"
+        )
+    return DiagnosticStatus.OK, "streaming"

@@ -35,6 +35,7 @@ from typing import Any
 
 import yaml
 
+from . import checks
 from ._errors import ConfigError
 from ._params import ParameterSource
 
@@ -242,30 +243,20 @@ def _no_unknown(value: Mapping[str, Any], known: set[str], where: str) -> None:
 
 
 def _string(value: Any, where: str) -> str:
-    if not isinstance(value, str):
-        raise ConfigError(f"expected a string, not {value!r}", source=where)
-    return value
+    return checks.string(value, where=where, empty=True)
 
 
 def _strings(value: Any, where: str) -> tuple[str, ...]:
-    if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
-        raise ConfigError("expected a list of strings", source=where)
-    return tuple(value)
+    return checks.strings(value, where=where)
 
 
 def _bool(value: Any, where: str) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"expected true or false, not {value!r}", source=where)
-    return value
+    return checks.boolean(value, where=where)
 
 
 def _positive_int(value: Any, where: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ConfigError(f"expected a positive integer, not {value!r}", source=where)
-    return value
+    return checks.integer(value, where=where, minimum=1)
 
 
 def _positive_float(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
-        raise ConfigError(f"expected a positive number, not {value!r}", source=where)
-    return float(value)
+    return checks.number(value, where=where, positive=True)

@@ -23,7 +23,7 @@ ALLOWED = {
     "container.lifecycle": (
         "container._compat",
         "container._errors",
-        "container._runtime",
+        "container.checks",
         "container.executor",
         "container.lifecycle",
     ),
@@ -47,7 +47,9 @@ def _imports(path: Path) -> set[str]:
             else:
                 target = node.module or ""
             names = [f"{target}.{alias.name}" for alias in node.names]
-            found.update(name for name in [target, *names] if name.startswith("container"))
+            # ``from .. import checks`` imports the module, not the package's own names.
+            candidates = names if node.module is None else [target]
+            found.update(name for name in candidates if name.startswith("container"))
         elif isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names if alias.name.startswith("container"))
     return found

@@ -82,7 +82,7 @@ nodes:
     [
         ("nodes:\n  - package: a\n    plugin: a::B\n    nmae: typo\n", "unknown key(s) 'nmae'"),
         ("nodes:\n  - plugin: a::B\n", "missing 'package'"),
-        ("container:\n  reentrant_limit: 0\n", "expected a positive integer"),
+        ("container:\n  reentrant_limit: 0\n", "must be >= 1, not 0"),
         ("nodes: [\n", "not valid YAML"),
         ("nodes:\n  - {package: a, plugin: b, remappings: [[x]]}\n", "remappings[0]"),
     ],

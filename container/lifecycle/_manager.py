@@ -35,6 +35,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
+from .. import checks
 from .._errors import ConfigError, TransitionError
 from ._client import LifecycleClient, transition_id
 from ._heartbeat import HeartbeatWatch
@@ -133,20 +134,15 @@ class ManagerSettings:
 def _check_value(key: str, value: Any, where: str) -> Any:
     default = PARAMETERS[key]
     if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ConfigError(f"expected true or false, not {value!r}", source=where)
-        return value
+        return checks.boolean(value, where=where)
     if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ConfigError(f"expected a non-negative integer, not {value!r}", source=where)
-        return value
+        return checks.integer(value, where=where, minimum=0)
     if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"expected a number, not {value!r}", source=where)
-        return float(value)
-    if not isinstance(value, list) or not value or not all(isinstance(v, str) and v for v in value):
-        raise ConfigError("expected a non-empty list of node names", source=where)
-    return list(value)
+        return checks.number(value, where=where)
+    names = checks.strings(value, where=where)
+    if not names or not all(names):
+        raise ConfigError("must be a non-empty list of node names", source=where)
+    return list(names)
 
 
 @dataclass

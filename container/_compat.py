@@ -46,11 +46,13 @@ __all__ = [
     "event_handle",
     "executor_guards",
     "fire_timer",
+    "is_built",
     "leave_task",
     "managed_entities",
     "running_loop",
     "set_event_index",
     "state_machine",
+    "state_machine_if_built",
     "subscription_wants_info",
     "waitable_futures",
 ]
@@ -72,6 +74,7 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.lifecycle.LifecycleNodeMixin", "_state_machine", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.lifecycle.LifecycleNodeMixin", "_managed_entities", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.lifecycle.LifecycleNodeMixin", "_service_change_state", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.node.Node", "_Node__node", "rclpy 1.0-10.x (instance attribute)"),
     ("argparse", "_SubParsersAction", "CPython 3.2-3.14; what add_subparsers() returns"),
 )
 
@@ -194,6 +197,16 @@ def timer_info_parameter(callback: Callable[..., Any] | None) -> str | None:
 
 
 # -- lifecycle --------------------------------------------------------------------
+
+
+def is_built(node: Node) -> bool:
+    """Whether ``Node.__init__`` got as far as creating the rcl node."""
+    return getattr(node, "_Node__node", None) is not None
+
+
+def state_machine_if_built(node: Node) -> Any | None:
+    """The lifecycle state machine, if a (maybe half-built) node has one."""
+    return getattr(node, "_state_machine", None)
 
 
 def state_machine(node: Node | LifecycleNode) -> Any:

@@ -8,9 +8,11 @@ that is what ``ros2 component`` users read.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import itertools
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,11 +25,13 @@ from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from ._compat import InvalidROSArgsError, state_machine
+from ._compat import InvalidROSArgsError, is_built, state_machine, state_machine_if_built
 from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
-from .lifecycle import _transitions
+from ._text import clip
+from .executor._bridge import in_thread
+from .lifecycle import LifecycleNode, _transitions
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -95,6 +99,7 @@ class ComponentManager(Node):
         context: Context | None = None,
         parameter_overrides: Sequence[Parameter] = (),
         unload_timeout: float = 5.0,
+        load_timeout: float = 10.0,
     ) -> None:
         super().__init__(
             name,
@@ -106,6 +111,8 @@ class ComponentManager(Node):
         self.registry = registry
         self._host = executor
         self.unload_timeout = unload_timeout
+        self.load_timeout = load_timeout
+        self._background: set[asyncio.Task[None]] = set()
         self._ids = itertools.count(1)
         self._loaded: dict[int, LoadedNode] = {}
 
@@ -121,10 +128,15 @@ class ComponentManager(Node):
             raise LoadError(f"No node found with unique_id: {unique_id}") from None
 
     # -- load -------------------------------------------------------------------
-    def load(self, request: LoadRequest) -> LoadedNode:
+    async def load(self, request: LoadRequest) -> LoadedNode:
         """Construct a registered node type and start running it.
 
-        Autostart, if asked, is left to :meth:`load_and_start`, which awaits it.
+        The constructor runs on a thread of its own, bounded by
+        ``load_timeout``: one that blocks stalls neither the event loop nor
+        any other node. A constructor that fails (raises, exits, times out)
+        leaves nothing behind: whatever of the node it built is destroyed
+        before the refusal is raised. Autostart, if asked, is left to
+        :meth:`load_and_start`, which awaits it.
 
         :raises LoadError: with a message fit for a LoadNode response.
         """
@@ -142,8 +154,15 @@ class ComponentManager(Node):
         except ConfigError as exc:
             raise LoadError(f"Invalid parameters: {exc}") from exc
         cli_args = ["--ros-args", *(part for rule in remaps for part in ("-r", rule))] if remaps else None
-        try:
-            node = node_type.node_class(
+        node_class = node_type.node_class
+        built: list[Node] = []
+
+        def construct() -> Node:
+            # __new__ apart from __init__, so that a constructor failing half
+            # way still leaves us the object to destroy.
+            node = node_class.__new__(node_class)
+            built.append(node)
+            node.__init__(  # type: ignore[misc]
                 name,
                 namespace=namespace,
                 context=self.context,
@@ -152,23 +171,35 @@ class ComponentManager(Node):
                 parameter_overrides=overrides,
                 **extra,
             )
-        except (InvalidNodeNameException, InvalidNamespaceException) as exc:
-            raise LoadError(f"Invalid node name or namespace: {_one_line(exc)}") from exc
-        except InvalidROSArgsError as exc:
-            raise LoadError(f"Invalid remap rules: {_one_line(exc)}") from exc
-        except Exception as exc:
-            raise LoadError(f"Component constructor threw an exception: {_one_line(exc)}") from exc
+            return node
+
+        construction = asyncio.ensure_future(in_thread(construct, name=f"construct:{clip(full_name)}"))
         try:
+            node = await asyncio.wait_for(asyncio.shield(construction), self.load_timeout)
             # Remap rules (__node:=, __ns:=) or the class may have renamed it.
             self._refuse_duplicate(node.get_fully_qualified_name())
             if request.log_level:
                 node.get_logger().set_level(request.log_level)
-        except BaseException:
-            _destroy(node)
+        except TimeoutError:
+            # It may return yet: whatever it built is destroyed then.
+            construction.add_done_callback(lambda _: _discard(built))
+            raise LoadError(f"Component constructor did not return within {self.load_timeout:g} s") from None
+        except (InvalidNodeNameException, InvalidNamespaceException) as exc:
+            _discard(built)
+            raise LoadError(f"Invalid node name or namespace: {_one_line(exc)}") from exc
+        except InvalidROSArgsError as exc:
+            _discard(built)
+            raise LoadError(f"Invalid remap rules: {_one_line(exc)}") from exc
+        except LoadError:
+            _discard(built)
             raise
-        loaded = LoadedNode(
-            next(self._ids), node, node_type, request, node.get_fully_qualified_name()
-        )
+        except (KeyboardInterrupt, asyncio.CancelledError):
+            _discard(built)
+            raise
+        except BaseException as exc:  # sys.exit() in a constructor ends only that load
+            _discard(built)
+            raise LoadError(f"Component constructor threw an exception: {_one_line(exc)}") from exc
+        loaded = LoadedNode(next(self._ids), node, node_type, request, node.get_fully_qualified_name())
         self._loaded[loaded.unique_id] = loaded
         self._host.add_node(node)
         self.get_logger().info(
@@ -191,39 +222,87 @@ class ComponentManager(Node):
         A node that fails to come up stays loaded, in the state it reached,
         so that it can be inspected; the failure is raised.
         """
-        loaded = self.load(request)
+        loaded = await self.load(request)
         if request.autostart and _transitions.is_lifecycle(loaded.node):
             await _transitions.bring_up(self._host, loaded.node, timeout=timeout)
         return loaded
 
     # -- unload -------------------------------------------------------------------
-    async def unload(self, unique_id: int) -> LoadedNode:
-        """Take the node down its lifecycle, then destroy it.
+    async def unload(self, unique_id: int) -> tuple[LoadedNode, list[str]]:
+        """Take the node down its lifecycle, stop what still runs, then destroy it.
 
         rclcpp destroys a component without running its shutdown; here a
         lifecycle node is deactivated, cleaned up and shut down first, each
-        step bounded by ``unload_timeout``. A failing step is logged and the
-        node destroyed anyway: an unload always removes the node.
+        step bounded by ``unload_timeout``. A transition already in progress
+        (a ``change_state`` from a peer) is waited for, and cancelled past
+        ``unload_timeout``; callbacks still running are cancelled or waited
+        for, as long again. Nothing is destroyed while one of its callbacks
+        still uses it: a plain callback blocked for good keeps its node's
+        state machine (and so its lifecycle services) until it returns. An
+        unload always removes the node.
 
+        :return: the node, and notes on what had to be cut short.
         :raises LoadError: no node has ``unique_id``.
         """
         loaded = self.find(unique_id)
         del self._loaded[unique_id]
         node = loaded.node
+        notes: list[str] = []
+        if isinstance(node, LifecycleNode):
+            cut = await node.end_transition(timeout=self.unload_timeout)
+            if cut is not None:
+                notes.append(cut)
         if _transitions.is_lifecycle(node):
             try:
                 await _transitions.bring_down(self._host, node, timeout=self.unload_timeout)
             except TransitionError as exc:
-                self.get_logger().warning(f"Unloading '{loaded.full_name}' anyway: {exc}")
-        self._host.remove_node(node)
+                notes.append(f"taken down incompletely: {exc.reason}")
+        stuck = await self._host.retire(node, timeout=self.unload_timeout)
+        if stuck:
+            notes.append(
+                f"still running after {self.unload_timeout:g} s, left to finish: {', '.join(stuck)}"
+            )
+            self._spawn(self._destroy_when_idle(node))
+        else:
+            _destroy(node)
+        log = self.get_logger()
+        for note in notes:
+            log.warning(f"Unloading '{loaded.full_name}': {note}")
+        log.info(f"Unloaded '{loaded.full_name}' (unique_id {unique_id})")
+        return loaded, notes
+
+    async def _destroy_when_idle(self, node: Node) -> None:
+        """Destroy ``node`` once its last blocked callback has returned."""
+        while await self._host.retire(node, timeout=1.0):
+            pass
         _destroy(node)
-        self.get_logger().info(f"Unloaded '{loaded.full_name}' (unique_id {unique_id})")
-        return loaded
+        self.get_logger().info(f"Released '{node.get_fully_qualified_name()}': its last callback returned")
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._background.add(task)
+        task.add_done_callback(self._background.discard)
 
     async def unload_all(self) -> None:
         """Unload every node, the last loaded first."""
         for unique_id in reversed(list(self._loaded)):
             await self.unload(unique_id)
+        for task in list(self._background):
+            task.cancel()
+
+
+def _discard(built: list[Node]) -> None:
+    """Destroy what a failed constructor built, so it leaves nothing on the graph."""
+    for node in built:
+        if is_built(node):
+            # The base class's: an override may rely on attributes the
+            # failed constructor never set.
+            with contextlib.suppress(Exception):
+                Node.destroy_node(node)
+        machine = state_machine_if_built(node)
+        if machine is not None:
+            machine.destroy_when_not_in_use()
+    built.clear()
 
 
 def _destroy(node: Node) -> None:
@@ -240,7 +319,7 @@ def _check_extra_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
     for key, value in arguments.items():
         expected = _EXTRA_ARGUMENTS.get(key)
         if expected is None:
-            raise LoadError(f"Extra component argument '{key}' is not supported")
+            raise LoadError(f"Extra component argument '{clip(key)}' is not supported")
         if not isinstance(value, expected):
             raise LoadError(
                 f"Extra component argument '{key}' must be a {_TYPE_WORDS[expected]}"
@@ -256,7 +335,7 @@ _REMAP = re.compile(r"^(?:[^:=\s]+:)?[^:=\s]+:=[^:=\s]+$")
 
 def _check_remap(rule: str) -> str:
     if not _REMAP.match(rule):
-        raise LoadError(f"Invalid remap rule '{rule}': expected 'from:=to'")
+        raise LoadError(f"Invalid remap rule '{clip(rule)}': expected 'from:=to'")
     return rule
 
 
@@ -291,7 +370,7 @@ def _overrides(request: LoadRequest, full_name: str) -> list[Parameter]:
 
 
 def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
+    text = clip(" ".join(str(exc).split()))
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 

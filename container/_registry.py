@@ -290,7 +290,9 @@ class PluginRegistry:
     def _import(entry_point: importlib.metadata.EntryPoint, distribution: str) -> object:
         try:
             return entry_point.load()
-        except Exception as exc:
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # sys.exit() at import too: reported and skipped
             raise PluginError(
                 f"cannot import {entry_point.value!r}: {type(exc).__name__}: {exc}",
                 distribution=distribution,
@@ -332,10 +334,12 @@ class PluginRegistry:
         # are, and still goes through the manager, so tracing sees the call.
         others = [other for other in self._pm.get_plugins() if other is not plugin]
         hook = self._pm.subset_hook_caller("register_node_types", remove_plugins=others)
-        raised: Exception | None = None
+        raised: BaseException | None = None
         try:
             hook(register=registrar)
-        except Exception as exc:
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:
             raised = exc
         finally:
             registrar.open = False

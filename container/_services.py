@@ -24,6 +24,7 @@ from rclpy.parameter import Parameter
 
 from ._container import LoadRequest
 from ._errors import ContainerError, LoadError
+from ._text import CLIP_LIMIT, clip
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -96,11 +97,12 @@ class ContainerServices:
     async def _load(self, request: LoadNode.Request, response: LoadNode.Response) -> Any:
         log = self._manager.get_logger()
         try:
-            loaded = self._manager.load(load_request_from_msg(request))
+            loaded = await self._manager.load(load_request_from_msg(request))
         except ContainerError as exc:
-            log.error(f"Refused to load {request.package_name}::{request.plugin_name}: {exc}")
+            what = clip(f"{request.package_name}::{request.plugin_name}")
+            log.error(f"Refused to load {what}: {clip(str(exc))}")
             response.success = False
-            response.error_message = str(exc)
+            response.error_message = clip(str(exc), limit=4 * CLIP_LIMIT)
             return response
         response.success = True
         response.full_node_name = loaded.full_name
@@ -109,13 +111,15 @@ class ContainerServices:
 
     async def _unload(self, request: UnloadNode.Request, response: UnloadNode.Response) -> Any:
         try:
-            await self._manager.unload(request.unique_id)
+            _, notes = await self._manager.unload(request.unique_id)
         except ContainerError as exc:
             self._manager.get_logger().error(f"Refused to unload: {exc}")
             response.success = False
             response.error_message = str(exc)
             return response
         response.success = True
+        # rclcpp leaves it empty on success; here it says what was cut short.
+        response.error_message = "; ".join(notes)
         return response
 
     async def _list(self, request: ListNodes.Request, response: ListNodes.Response) -> Any:

@@ -40,6 +40,7 @@ def samples(context: Context) -> Iterator[dict[str, Callable[[], Any]]]:
         "rclpy.waitable.Waitable": lambda: Waitable(MutuallyExclusiveCallbackGroup()),
         "rclpy.executors.Executor": lambda: executor,
         "rclpy.lifecycle.LifecycleNodeMixin": lambda: node,
+        "rclpy.node.Node": lambda: node,
     }
     executor.shutdown()
     node.destroy_publisher(publisher)

@@ -23,6 +23,7 @@ ALLOWED = {
     "container.lifecycle": (
         "container._compat",
         "container._errors",
+        "container._text",
         "container.checks",
         "container.executor",
         "container.lifecycle",

@@ -10,12 +10,15 @@ project that waits for an rclpy future from asyncio code goes through here:
 * :func:`result` awaits an rclpy future's result with an optional timeout;
 * :func:`drive` runs a coroutine that may ``await`` rclpy futures directly
   (rclpy-style code), parking it on a progress signal instead of spinning;
-  :func:`adapt` wraps one so that any asyncio task can await it.
+  :func:`adapt` wraps one so that any asyncio task can await it;
+* :func:`in_thread` awaits a plain call that may block (a constructor, a
+  transition callback) on a thread of its own.
 """
 
 from __future__ import annotations
 
 import asyncio
+import threading
 import types
 from collections.abc import Callable, Coroutine, Generator
 from typing import Any, TypeVar
@@ -24,7 +27,7 @@ from rclpy.task import Future as RclFuture
 
 from .._compat import running_loop
 
-__all__ = ["adapt", "drive", "mirror", "result"]
+__all__ = ["adapt", "drive", "in_thread", "mirror", "result"]
 
 T = TypeVar("T")
 
@@ -123,3 +126,37 @@ def adapt(coro: Coroutine[Any, Any, T], progress: Callable[[], asyncio.Future[No
     """``coro`` as an awaitable that :func:`drive` runs (see there)."""
     adapted: Coroutine[Any, Any, T] = _adapted(coro, progress)
     return adapted
+
+
+async def in_thread(call: Callable[[], T], *, name: str) -> T:
+    """Run ``call`` on a new daemon thread named ``name``; await its outcome.
+
+    A thread of its own, not a pool's: a call that never returns costs one
+    idle thread, never the pool everyone else waits on. If the awaiting
+    coroutine gives up (cancelled, timed out), the call runs on and its
+    outcome is dropped. Any exception, ``SystemExit`` included, is raised
+    to the awaiting coroutine.
+    """
+    loop = asyncio.get_running_loop()
+    outcome: asyncio.Future[T] = loop.create_future()
+
+    def settle(value: T | None, error: BaseException | None) -> None:
+        if outcome.done():
+            return
+        if error is not None:
+            outcome.set_exception(error)
+        else:
+            outcome.set_result(value)  # type: ignore[arg-type]
+
+    def run() -> None:
+        value: T | None = None
+        error: BaseException | None = None
+        try:
+            value = call()
+        except BaseException as exc:  # handed to the awaiting coroutine
+            error = exc
+        if not loop.is_closed():
+            loop.call_soon_threadsafe(settle, value, error)
+
+    threading.Thread(target=run, name=name, daemon=True).start()
+    return await outcome

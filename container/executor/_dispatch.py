@@ -52,7 +52,7 @@ from .._compat import (
     subscription_wants_info,
     waitable_futures,
 )
-from ._lanes import Lane, Post, Work
+from ._lanes import Lane, Post, Retired, Token, Work
 
 if TYPE_CHECKING:
     import asyncio
@@ -86,6 +86,7 @@ class _Entry:
     is_async: bool
     depth: int
     done: Callable[[Work, BaseException | None], None]
+    token: Token
 
 
 @dataclass(slots=True)
@@ -105,7 +106,8 @@ class _Table:
 
 def describe(entity: object) -> str:
     """Name an entity the way a ROS user would recognise it in a log."""
-    callback = getattr(entity, "callback", None)
+    # Work the executor runs for a node itself (a transition) is the callable.
+    callback = getattr(entity, "callback", entity)
     name = getattr(callback, "__qualname__", None) or repr(callback)
     for attribute, kind in (("topic_name", "subscription"), ("srv_name", "service")):
         value = getattr(entity, attribute, None)
@@ -367,6 +369,9 @@ class Dispatcher:
         self._progress = progress
         self._lanes: dict[int, tuple[CallbackGroup, Lane]] = {}
         self._lanes_lock = threading.Lock()
+        #: Entity (or node) id -> (the object, its token); see ``_token``.
+        self._tokens: dict[int, tuple[object, Token]] = {}
+        self._tokens_lock = threading.Lock()
         self._loop_thread: int | None = None
         self._cold_wake = GuardCondition(callback=None, callback_group=None, context=context)
         self._hot = _WaitSet(
@@ -426,9 +431,14 @@ class Dispatcher:
 
     # -- entities ---------------------------------------------------------------
     def invalidate(self) -> None:
-        """Collect entities again before the next waits (any thread)."""
+        """Collect entities again before the next waits (any thread).
+
+        Work already taken for an entity that is gone (destroyed, or its node
+        removed) is retired at once: it will not start.
+        """
         self._hot.invalidate()
         self._cold.invalidate()
+        self._sweep_tokens()
         with contextlib.suppress(InvalidHandle):
             self._cold_wake.trigger()
 
@@ -452,6 +462,7 @@ class Dispatcher:
             is_async=is_async,
             depth=depth,
             done=functools.partial(self._done, node),
+            token=self._token(entity, node),
         )
 
     def wait_and_dispatch(self, timeout_ns: int) -> int:
@@ -476,6 +487,46 @@ class Dispatcher:
             return False
         self._eager.append((lane, work))
         return True
+
+    # -- tokens: which work may still start ----------------------------------------
+    def _token(self, entity: object, node: Node) -> Token:
+        """The token of ``entity``, the same across wait-set rebuilds."""
+        key = id(entity)
+        with self._tokens_lock:
+            found = self._tokens.get(key)
+            if found is not None and found[0] is entity:
+                return found[1]
+            token = Token(node)
+            self._tokens[key] = (entity, token)
+            return token
+
+    def node_token(self, node: Node) -> Token:
+        """The token of work the executor runs for ``node`` itself (transitions)."""
+        return self._token(node, node)
+
+    def _sweep_tokens(self) -> None:
+        """Retire the tokens of entities and nodes that left the executor."""
+        nodes = self.nodes()
+        live = {id(node) for node in nodes}
+        for node in nodes:
+            for kind in _HOT + _COLD:
+                live.update(id(entity) for entity in _entities_of(node, kind))
+            live.update(id(waitable) for waitable in list(node.waitables))
+        with self._tokens_lock:
+            gone = [key for key in self._tokens if key not in live]
+            for key in gone:
+                _, token = self._tokens.pop(key)
+                token.retired = True
+
+    def retire(self, node: Node) -> None:
+        """Drop and cancel ``node``'s work: it was removed (on the loop thread, or not running)."""
+        self._sweep_tokens()
+        for lane in self.lanes():
+            lane.retire(node)
+
+    def running(self, node: Node) -> list[Work]:
+        """``node``'s work that started and has not finished."""
+        return [work for lane in self.lanes() for work in lane.running(node)]
 
     # -- taking ---------------------------------------------------------------
     def take_timer(self, entry: _Entry) -> None:
@@ -559,12 +610,14 @@ class Dispatcher:
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Hand ``callback(*args)`` to the entry's lane."""
         call: Callable[[], Any] = functools.partial(callback, *args) if args else callback
-        entry.lane.submit(Work(entry.entity, call, entry.is_async, entry.depth, entry.done))
+        entry.lane.submit(Work(entry.entity, call, entry.is_async, entry.depth, entry.done, entry.token))
 
     def run(self, entry: _Entry, call: Callable[[], Any]) -> None:
         self.submit(entry, call, ())
 
     def _done(self, node: Node, work: Work, error: BaseException | None) -> None:
+        if isinstance(error, Retired):
+            return  # dropped, never started: nothing to report
         if error is not None:
             self._on_error(node, work.entity, error)
         self._on_done()

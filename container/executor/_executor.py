@@ -38,7 +38,7 @@ from rclpy.task import Future as RclFuture
 from .._compat import executor_guards, running_loop
 from .._errors import ExecutorError
 from ._bridge import adapt, mirror
-from ._dispatch import WOKEN, Dispatcher, format_error
+from ._dispatch import WOKEN, Dispatcher, describe, format_error
 from ._lanes import Lane, Work
 from ._selector import RclSelector
 
@@ -68,6 +68,9 @@ _CLOSED = frozenset({ExecutorState.STOPPING, ExecutorState.SHUT_DOWN})
 
 #: Called with the node, the entity and the exception a callback raised.
 CallbackErrorHandler = Callable[["Node", object, BaseException], None]
+
+#: How often :meth:`AsyncioExecutor.retire` looks whether a node's callbacks ended.
+_RETIRE_POLL_S = 0.01
 
 #: How long an ``await`` on an rclpy future may sleep before looking again,
 #: for futures completed outside the executor (no wake-up reaches us then).
@@ -158,10 +161,38 @@ class AsyncioExecutor(Executor):
         return added
 
     def remove_node(self, node: Node) -> None:
+        """Stop running ``node``'s callbacks: none that has not started yet will.
+
+        Its ``async def`` callbacks in progress are cancelled; plain ones
+        already running on a thread go on until they return (see
+        :meth:`retire`, which waits for them).
+        """
         super().remove_node(node)
-        self._dispatcher.invalidate()
+        dispatcher = self._dispatcher
+        dispatcher.invalidate()
+        if self._on_loop() or not self.loop.is_running():
+            dispatcher.retire(node)
+        else:
+            self._post_to(self.loop, dispatcher.retire, node)
         self._guard_trigger()
 
+    async def retire(self, node: Node, *, timeout: float) -> list[str]:
+        """:meth:`remove_node`, then wait up to ``timeout`` for its running callbacks.
+
+        :return: the callbacks of ``node`` still running when ``timeout``
+            ran out (plain callbacks blocked in their thread), described for
+            a log line; empty when nothing of the node runs any more.
+        """
+        self.remove_node(node)
+        deadline = self.loop.time() + timeout
+        while True:
+            running = self._dispatcher.running(node)
+            if not running or self.loop.time() >= deadline:
+                return [describe(work.entity) for work in running]
+            await asyncio.sleep(_RETIRE_POLL_S)
+
+    def _on_loop(self) -> bool:
+        return running_loop() is self.loop
     def spin(self) -> None:
         """Run callbacks until :meth:`shutdown` or the context shuts down."""
         self._run_owned(self._until_stopped())
@@ -241,7 +272,7 @@ class AsyncioExecutor(Executor):
             def run() -> None:
                 try:
                     result.set_result(function(*args, **kwargs))
-                except Exception as exc:  # handed to the future's owner
+                except BaseException as exc:  # handed to the future's owner
                     result.set_exception(exc)
 
             self._tasks_lane().submit(_work(run))
@@ -293,7 +324,8 @@ class AsyncioExecutor(Executor):
                 self._post_to(loop, settle, error)
 
         lane = self._dispatcher.lane_for(group, node)
-        lane.submit(Work(call, capture, is_async, 1 << 16, done))
+        token = self._dispatcher.node_token(node) if node is not None else None
+        lane.submit(Work(call, capture, is_async, 1 << 16, done, token))
         return outcome
 
     def _post_to(self, loop: asyncio.AbstractEventLoop, callback: Callable[..., object], *args: Any) -> None:

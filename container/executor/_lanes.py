@@ -67,6 +67,34 @@ class Work:
     is_async: bool
     depth: int
     done: Callable[[Work, BaseException | None], None] = field(repr=False)
+    #: Whose work this is; once retired, the work never starts.
+    token: Token | None = None
+
+
+@dataclass(eq=False, slots=True)
+class Token:
+    """Whether work for one entity (or for a node itself) may still start.
+
+    The dispatcher retires a token when its entity is destroyed or its node
+    is removed from the executor; work already waiting in a lane is then
+    dropped instead of run, as rclpy's executors drop it.
+    """
+
+    node: object
+    retired: bool = False
+
+
+class Retired(Exception):
+    """Told to a work's ``done`` when it was dropped because its token retired."""
+
+
+def _retired(work: Work) -> bool:
+    token = work.token
+    return token is not None and token.retired
+
+
+def _work_of(item: Work | _Resume) -> Work:
+    return item if isinstance(item, Work) else item.work
 
 
 @dataclass(eq=False, slots=True)
@@ -85,6 +113,8 @@ class _Runner:
     task: asyncio.Task[None]
     context: contextvars.Context
     idle: asyncio.Future[Work | _Resume | None] | None = None
+    #: The work it carries now, if any.
+    current: Work | None = None
 
 
 class Lane:
@@ -114,6 +144,8 @@ class Lane:
         self._on_loop_thread = on_loop_thread
         self._lock = threading.Lock()
         self._running = 0
+        #: Work started and not yet done (under ``_lock``).
+        self._active: set[Work] = set()
         self._pending: collections.deque[Work] = collections.deque()
         self._pending_per_entity: dict[int, int] = {}
         self._closed = False
@@ -136,6 +168,7 @@ class Lane:
                 self._keep_pending(work)
                 return
             self._running += 1
+            self._active.add(work)
         self._start(work)
 
     def busy(self) -> bool:
@@ -156,20 +189,50 @@ class Lane:
             self._pending_per_entity[key] = count + 1
         self._pending.append(work)
 
-    def _next_pending(self) -> Work | None:
-        """Take the next pending work, or release the running slot."""
+    def _next_pending(self, finished: Work) -> Work | None:
+        """``finished`` is done: take the next pending work, or release the running slot."""
         with self._lock:
+            self._active.discard(finished)
             if self._pending and not self._closed:
                 work = self._pending.popleft()
-                key = id(work.entity)
-                left = self._pending_per_entity[key] - 1
-                if left:
-                    self._pending_per_entity[key] = left
-                else:
-                    del self._pending_per_entity[key]
+                self._forget_pending(work)
+                self._active.add(work)
                 return work
             self._running -= 1
             return None
+
+    def _forget_pending(self, work: Work) -> None:
+        key = id(work.entity)
+        left = self._pending_per_entity[key] - 1
+        if left:
+            self._pending_per_entity[key] = left
+        else:
+            del self._pending_per_entity[key]
+
+    # -- retiring ---------------------------------------------------------------
+    def retire(self, node: object) -> None:
+        """Drop ``node``'s pending work and cancel its running ``async def`` work.
+
+        Its plain callbacks already running go on (a thread cannot be
+        stopped); :meth:`running` tells when they are done. Must be called
+        on the loop thread, or while the loop is not running.
+        """
+        with self._lock:
+            dropped = [w for w in self._pending if w.token is not None and w.token.node is node]
+            for work in dropped:
+                self._pending.remove(work)
+                self._forget_pending(work)
+        for work in dropped:
+            work.done(work, Retired())
+        for runner in list(self._runners.values()):
+            current = runner.current
+            if current is not None and current.token is not None and current.token.node is node:
+                runner.task.cancel()
+
+    def running(self, node: object) -> list[Work]:
+        """``node``'s work started and not yet done."""
+        with self._lock:
+            return [w for w in self._active if w.token is not None and w.token.node is node]
 
     def _start(self, work: Work) -> None:
         if not work.is_async:
@@ -201,12 +264,15 @@ class Lane:
             work = self._inbox.get()
             while work is not None:
                 error: BaseException | None = None
-                try:
-                    work.call()
-                except Exception as exc:  # reported, never fatal to the lane
-                    error = exc
+                if _retired(work):
+                    error = Retired()
+                else:
+                    try:
+                        work.call()
+                    except BaseException as exc:  # reported, never fatal: sys.exit() included
+                        error = exc
                 work.done(work, error)
-                nxt = self._next_pending()
+                nxt = self._next_pending(work)
                 if nxt is not None and nxt.is_async:
                     self._start(nxt)
                     nxt = None
@@ -225,7 +291,7 @@ class Lane:
                 return
         context = contextvars.copy_context()
         task = self._loop.create_task(self._run(item), name=f"lane:{self.name}", context=context)
-        self._runners[task] = _Runner(task, context)
+        self._runners[task] = _Runner(task, context, current=_work_of(item))
         task.add_done_callback(self._forget_runner)
 
     def _forget_runner(self, task: asyncio.Task[None]) -> None:
@@ -239,6 +305,7 @@ class Lane:
         idle, runner.idle = runner.idle, None
         if idle is None or idle.done():
             return False
+        runner.current = _work_of(item)
         idle.set_result(item)
         return True
 
@@ -259,7 +326,11 @@ class Lane:
             if runner.idle is None or runner.idle.done():
                 self._idle_runners.pop()  # cancelled while idle; its task ends
                 continue
-            done, error, resume = runner.context.run(self._first_step, runner.task, item)
+            error: BaseException | None
+            if _retired(item):
+                done, error, resume = True, Retired(), None
+            else:
+                done, error, resume = runner.context.run(self._first_step, runner.task, item)
             if not done:
                 assert resume is not None
                 self._idle_runners.pop()
@@ -267,7 +338,7 @@ class Lane:
                     self._hand_to_runner(resume)
                 return
             item.done(item, error)
-            item = self._next_pending()
+            item = self._next_pending(item)
             if item is not None and not item.is_async:
                 self._hand_to_thread(item)
                 return
@@ -285,7 +356,9 @@ class Lane:
             return False, None, _Resume(work, coro, yielded)
         except asyncio.CancelledError:
             return True, None, None  # a callback's own cancellation ends that callback only
-        except Exception as exc:  # reported, never fatal to the lane
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # reported, never fatal: sys.exit() included
             return True, exc, None
         finally:
             leave_task(self._loop, task)
@@ -305,7 +378,9 @@ class Lane:
             work = item if isinstance(item, Work) else item.work
             error: BaseException | None = None
             try:
-                if isinstance(item, Work):
+                if _retired(work) and isinstance(item, Work):
+                    error = Retired()
+                elif isinstance(item, Work):
                     yield from drive(work.call(), self._progress)
                 else:
                     yield from drive(item.coro, self._progress, yielded=item.yielded, thrown=thrown, started=True)
@@ -316,18 +391,22 @@ class Lane:
                 task = asyncio.current_task()
                 if task is not None:
                     task.uncancel()
-            except Exception as exc:  # reported, never fatal to the lane
+            except (KeyboardInterrupt, GeneratorExit):
+                raise
+            except BaseException as exc:  # reported, never fatal: sys.exit() included
                 error = exc
             thrown = None
             work.done(work, error)
-            nxt = self._next_pending()
+            nxt = self._next_pending(work)
             if nxt is not None and not nxt.is_async:
                 self._hand_to_thread(nxt)
                 nxt = None
             item = nxt
+            task = asyncio.current_task()
+            runner = self._runners.get(task) if task is not None else None
+            if runner is not None:
+                runner.current = item
             if item is None and not self._closed:
-                task = asyncio.current_task()
-                runner = self._runners.get(task) if task is not None else None
                 if runner is None:
                     return
                 idle: asyncio.Future[Work | _Resume | None] = self._loop.create_future()

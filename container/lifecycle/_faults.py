@@ -98,7 +98,9 @@ def process_error(node: Node) -> str:
     machine.trigger_transition_by_label(TransitionCallbackReturn.ERROR.to_label(), True)
     try:
         outcome = node.on_error(LifecycleState(label="active", state_id=3))  # type: ignore[attr-defined]
-    except Exception as exc:
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:
         node.get_logger().error(f"on_error() raised {type(exc).__name__}: {exc}")
         outcome = TransitionCallbackReturn.ERROR
     if not isinstance(outcome, TransitionCallbackReturn):

@@ -25,10 +25,10 @@ the container, :meth:`LifecycleNode.transition`).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import inspect
-import threading
 import traceback
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import lifecycle_msgs.msg
@@ -45,6 +45,8 @@ from rclpy.timer import Timer
 
 from .._compat import change_state_service, managed_entities, state_machine
 from .._errors import TransitionError
+from .._text import clip
+from ..executor._bridge import in_thread
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
 __all__ = ["LifecycleNode"]
@@ -62,6 +64,9 @@ _CALLBACKS = {
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
 ERROR = TransitionCallbackReturn.ERROR
+
+#: How long a cancelled transition may take to fail back to its start state.
+_FAIL_BACK_S = 1.0
 
 #: States in which managed publishers publish.
 _PUBLISHING = {"activating", "active"}
@@ -103,6 +108,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         self._managed_timers: set[Timer] = set()
         self._paused_timers: set[Timer] = set()
         self._transition_lock = asyncio.Lock()
+        self._transition_task: asyncio.Task[Any] | None = None
         self._declare_seconds(
             "transition_timeout",
             transition_timeout,
@@ -143,7 +149,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
     @property
     def lifecycle_state(self) -> LifecycleState:
         """The node's current state (primary or transition)."""
-        state_id, label = state_machine(self).current_state
+        state_id, label = self._machine("current_state")
         return LifecycleState(label=label, state_id=state_id)
 
     @property
@@ -151,7 +157,57 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         """The node's heartbeat publisher, if heartbeats are on."""
         return self._heartbeat
 
+    def _machine(self, name: str, *args: Any) -> Any:
+        """Use rcl's state machine while holding it, so it cannot be freed meanwhile.
+
+        Once it is destroyed (the node was unloaded under a callback that
+        still runs) this raises ``InvalidHandle`` instead of touching freed
+        memory.
+        """
+        machine = state_machine(self)
+        with machine:
+            attribute = getattr(machine, name)
+            return attribute(*args) if callable(attribute) else attribute
+
     # -- transitions -----------------------------------------------------------
+    async def end_transition(self, *, timeout: float) -> str | None:
+        """Wait for a transition in progress to end; past ``timeout``, cancel it.
+
+        Called before the node is taken down and destroyed (unload, container
+        shutdown): a transition callback still running then would find its
+        state machine gone. A cancelled transition fails back to its start
+        state, and a ``change_state`` caller waiting for it gets ``success=false``.
+
+        :return: ``None`` when no transition was running or it ended in
+            time; else what was cancelled, for a log line.
+        """
+        if not self._transition_lock.locked() or await self._transitions_idle(timeout):
+            return None
+        state = self.lifecycle_state.label
+        task = self._transition_task
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+        await self._transitions_idle(_FAIL_BACK_S)
+        return f"transition in progress ({state}) cancelled after {timeout:g} s"
+
+    async def _transitions_idle(self, timeout: float) -> bool:
+        """Wait until no transition runs; ``False`` if one still does after ``timeout``."""
+        try:
+            async with asyncio.timeout(timeout), self._transition_lock:
+                return True
+        except TimeoutError:
+            return False
+
+    @contextlib.asynccontextmanager
+    async def _transitioning(self) -> AsyncIterator[None]:
+        """Hold the transition lock, remembering which task does (see :meth:`end_transition`)."""
+        async with self._transition_lock:
+            self._transition_task = asyncio.current_task()
+            try:
+                yield
+            finally:
+                self._transition_task = None
+
     async def transition(self, label: str, *, timeout: float | None = None) -> bool:
         """Carry out one transition (``configure``, ``activate``, ``shutdown``, ...).
 
@@ -172,7 +228,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         between ``unconfigured`` and ``finalized``. Each step appears on
         ``transition_event``. A node that is not active is left alone.
         """
-        async with self._transition_lock:
+        async with self._transitioning():
             if self.lifecycle_state.label != "active":
                 return self.lifecycle_state.label
             detail = f" after {type(error).__name__}: {error}" if error is not None else ""
@@ -190,7 +246,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
     async def _request(
         self, request: str | int, *, timeout: float | None
     ) -> TransitionCallbackReturn | None:
-        async with self._transition_lock:
+        async with self._transitioning():
             transition_id = self._resolve(request)
             if transition_id is None:
                 self._refuse(request)
@@ -207,17 +263,17 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
 
     def _resolve(self, request: str | int) -> int | None:
         """The id of the requested transition if available from the current state."""
-        for transition_id, label, *_ in state_machine(self).available_transitions:
+        for transition_id, label, *_ in self._machine("available_transitions"):
             if request in (transition_id, label):
                 return int(transition_id)
         return None
 
     def _refuse(self, request: str | int) -> None:
         available = ", ".join(
-            f"{label} [{tid}]" for tid, label, *_ in state_machine(self).available_transitions
+            f"{label} [{tid}]" for tid, label, *_ in self._machine("available_transitions")
         )
         self.get_logger().warning(
-            f"Transition {request!r} is not available from state "
+            f"Transition {clip(repr(request))} is not available from state "
             f"'{self.lifecycle_state.label}'; available: {available or 'none'}"
         )
 
@@ -229,9 +285,8 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         inline: bool,
         forced: TransitionCallbackReturn | None = None,
     ) -> TransitionCallbackReturn:
-        machine = state_machine(self)
         start = self.lifecycle_state
-        machine.trigger_transition_by_id(transition_id, True)
+        self._machine("trigger_transition_by_id", transition_id, True)
         middle = self.lifecycle_state
         if start.label == "active":
             self._pause_timers()
@@ -241,12 +296,12 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 outcome = forced
             else:
                 outcome = await self._invoke(middle, start, timeout=timeout, inline=inline)
-            machine.trigger_transition_by_label(outcome.to_label(), True)
+            self._machine("trigger_transition_by_label", outcome.to_label(), True)
             if outcome == ERROR:
                 recovery = await self._invoke(
                     self.lifecycle_state, start, timeout=timeout, inline=inline
                 )
-                machine.trigger_transition_by_label(recovery.to_label(), True)
+                self._machine("trigger_transition_by_label", recovery.to_label(), True)
         except asyncio.CancelledError:
             # Whoever waited gave up: never leave the node in a transition state.
             self._fail_back()
@@ -256,9 +311,8 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         return outcome
 
     def _fail_back(self) -> None:
-        machine = state_machine(self)
         if self.lifecycle_state.state_id >= State.TRANSITION_STATE_CONFIGURING:
-            machine.trigger_transition_by_label(FAILURE.to_label(), True)
+            self._machine("trigger_transition_by_label", FAILURE.to_label(), True)
 
     async def _invoke(
         self,
@@ -282,13 +336,17 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
             elif inspect.iscoroutinefunction(callback):
                 result = await asyncio.wait_for(callback(previous), timeout)
             else:
-                result = await asyncio.wait_for(_in_thread(callback, previous, name), timeout)
+                result = await asyncio.wait_for(
+                    in_thread(lambda: callback(previous), name=f"transition:{name}"), timeout
+                )
         except TimeoutError:
             self.get_logger().error(
                 f"{name}() did not finish within {timeout:g} s; the transition fails"
             )
             return FAILURE
-        except Exception as exc:
+        except (KeyboardInterrupt, asyncio.CancelledError):
+            raise
+        except BaseException as exc:  # sys.exit() in a callback is an error, not an exit
             details = "".join(traceback.format_exception(exc)).rstrip()
             self.get_logger().error(f"{name}() raised {type(exc).__name__}: {exc}\n{details}")
             return ERROR
@@ -331,7 +389,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 node=name,
                 transition=label,
             )
-        goal = next(t[4] for t in state_machine(self).available_transitions if t[0] == transition_id)
+        goal = next(t[4] for t in self._machine("available_transitions") if t[0] == transition_id)
         for callback_name in (_CALLBACKS[goal], "on_error"):
             if inspect.iscoroutinefunction(getattr(self, callback_name)):
                 raise TransitionError(
@@ -357,7 +415,15 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
     ) -> lifecycle_msgs.srv.ChangeState.Response:
         # rclpy resolves a label first when one is given; so do we.
         wanted: str | int = request.transition.label or request.transition.id
-        response.success = await self._request(wanted, timeout=None) is SUCCESS
+        try:
+            response.success = await self._request(wanted, timeout=None) is SUCCESS
+        except asyncio.CancelledError:
+            # Cut short by end_transition (the node is going away): answer
+            # the caller rather than leave it waiting for good.
+            task = asyncio.current_task()
+            if task is not None:
+                task.uncancel()
+            response.success = False
         return response
 
     # -- entities that follow the state ---------------------------------------------
@@ -444,33 +510,6 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
             self._heartbeat.close()
             self._heartbeat = None
         super().destroy_node()  # type: ignore[no-untyped-call]
-
-
-async def _in_thread(
-    callback: Callable[[LifecycleState], Any], previous: LifecycleState, name: str
-) -> Any:
-    """Run a plain callback on its own thread, so a blocking one stalls only its node."""
-    loop = asyncio.get_running_loop()
-    outcome: asyncio.Future[Any] = loop.create_future()
-
-    def settle(value: Any, error: BaseException | None) -> None:
-        if outcome.done():
-            return
-        if error is not None:
-            outcome.set_exception(error)
-        else:
-            outcome.set_result(value)
-
-    def run() -> None:
-        try:
-            value, error = callback(previous), None
-        except BaseException as exc:  # handed to the awaiting coroutine
-            value, error = None, exc
-        if not loop.is_closed():
-            loop.call_soon_threadsafe(settle, value, error)
-
-    threading.Thread(target=run, name=f"transition:{name}", daemon=True).start()
-    return await outcome
 
 
 def _discard(awaitable: Any) -> None:

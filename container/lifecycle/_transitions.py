@@ -40,8 +40,11 @@ def is_lifecycle(node: Node) -> bool:
 
 def state_of(node: Node) -> str:
     """The label of the node's current state (``active``, ``configuring``, ...)."""
-    # rclpy keeps no public accessor for the state in Jazzy.
-    _, label = state_machine(node).current_state
+    # rclpy keeps no public accessor for the state in Jazzy; holding the
+    # machine keeps it from being freed meanwhile (InvalidHandle once it is).
+    machine = state_machine(node)
+    with machine:
+        _, label = machine.current_state
     return str(label)
 
 
@@ -87,7 +90,9 @@ async def transition(
         )
     except TimeoutError:
         raise TransitionError(f"no answer within {timeout:g} s", node=name, transition=label) from None
-    except Exception as exc:
+    except (KeyboardInterrupt, asyncio.CancelledError):
+        raise
+    except BaseException as exc:
         raise TransitionError(f"{type(exc).__name__}: {exc}", node=name, transition=label) from exc
     if not ok:
         raise TransitionError(

@@ -2,11 +2,32 @@
 
 from __future__ import annotations
 
+import logging
+import os
 import sys
+import threading
 
-from .cli import main
+from .cli import main as _main
 
 __all__ = ["main"]
+
+
+def main() -> int:
+    """Run the command; never wait on threads a plugin left running.
+
+    Python's own exit joins every non-daemon thread, so one a plugin started
+    and never ended would keep the process alive after the container is
+    gone. The session has already named them in the log; here the process
+    ends with its exit code regardless.
+    """
+    code = _main()
+    if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code or 1)
+    return code
+
 
 if __name__ == "__main__":
     sys.exit(main())

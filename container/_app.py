@@ -73,6 +73,7 @@ class ContainerApp:
                 config.parameters, full_name=full_name, base_dir=config.base_dir
             ),
             unload_timeout=config.unload_timeout,
+            load_timeout=config.load_timeout,
         )
         services = ContainerServices(manager)
         executor.add_node(manager)

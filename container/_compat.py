@@ -49,6 +49,7 @@ __all__ = [
     "is_built",
     "leave_task",
     "managed_entities",
+    "query_services",
     "running_loop",
     "set_event_index",
     "state_machine",
@@ -74,6 +75,14 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.lifecycle.LifecycleNodeMixin", "_state_machine", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.lifecycle.LifecycleNodeMixin", "_managed_entities", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.lifecycle.LifecycleNodeMixin", "_service_change_state", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_get_state", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_get_available_states", "rclpy 4.0-10.x (instance attribute)"),
+    (
+        "rclpy.lifecycle.LifecycleNodeMixin",
+        "_service_get_available_transitions",
+        "rclpy 4.0-10.x (instance attribute)",
+    ),
+    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_get_transition_graph", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.node.Node", "_Node__node", "rclpy 1.0-10.x (instance attribute)"),
     ("argparse", "_SubParsersAction", "CPython 3.2-3.14; what add_subparsers() returns"),
 )
@@ -223,3 +232,13 @@ def managed_entities(node: Node | LifecycleNode) -> set[Any]:
 def change_state_service(node: LifecycleNode) -> Any:
     """The ``change_state`` service, whose handler the node base replaces."""
     return node._service_change_state
+
+
+def query_services(node: LifecycleNode) -> list[Any]:
+    """The lifecycle services that only read the state (``get_state`` and the like)."""
+    return [
+        node._service_get_state,
+        node._service_get_available_states,
+        node._service_get_available_transitions,
+        node._service_get_transition_graph,
+    ]

@@ -8,7 +8,8 @@
       parameters: [params.yaml]     # for the container node itself
       plugins: {allow: [...], block: [...], trace: false}
       reentrant_limit: 8
-      unload_timeout: 5.0
+      unload_timeout: 5.0           # seconds each step of taking a node down may take
+      load_timeout: 10.0            # seconds a node's constructor may take
     nodes:
       - package: lifecycle_container
         plugin: lifecycle_container::Talker
@@ -69,6 +70,7 @@ class ContainerConfig:
     trace_hooks: bool = False
     reentrant_limit: int = 8
     unload_timeout: float = 5.0
+    load_timeout: float = 10.0
     nodes: tuple[NodeSpec, ...] = ()
     manager: Mapping[str, Any] | None = None
     base_dir: Path | None = None
@@ -81,6 +83,7 @@ _CONTAINER_KEYS = {
     "plugins",
     "reentrant_limit",
     "unload_timeout",
+    "load_timeout",
 }
 _NODE_KEYS = {
     "package",
@@ -144,6 +147,7 @@ def parse_config(
         unload_timeout=_positive_float(
             container.get("unload_timeout", 5.0), f"{source}: container.unload_timeout"
         ),
+        load_timeout=_positive_float(container.get("load_timeout", 10.0), f"{source}: container.load_timeout"),
         nodes=tuple(
             _node(entry, base_dir=base_dir, where=f"{source}: nodes[{index}]")
             for index, entry in enumerate(nodes_value)

@@ -30,7 +30,7 @@ from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
 from ._text import clip
-from .executor._bridge import in_thread
+from .executor._bridge import Escaped, in_thread
 from .lifecycle import LifecycleNode, _transitions
 
 if TYPE_CHECKING:
@@ -198,7 +198,8 @@ class ComponentManager(Node):
             raise
         except BaseException as exc:  # sys.exit() in a constructor ends only that load
             _discard(built)
-            raise LoadError(f"Component constructor threw an exception: {_one_line(exc)}") from exc
+            error = exc.error if isinstance(exc, Escaped) else exc
+            raise LoadError(f"Component constructor threw an exception: {_one_line(error)}") from exc
         loaded = LoadedNode(next(self._ids), node, node_type, request, node.get_fully_qualified_name())
         self._loaded[loaded.unique_id] = loaded
         self._host.add_node(node)

@@ -83,18 +83,21 @@ def register_node_types(register: RegisterNodeType) -> None:
     register(Busy)
 
 
-def install_test_plugin(site: Path) -> Path:
-    """Write distribution ``test-nodes`` (entry point: this module) into ``site``.
+def install_test_plugin(
+    site: Path, *, distribution: str = "test-nodes", module: str = "tests.component_support"
+) -> Path:
+    """Write a distribution whose entry point is ``module`` into ``site``.
 
-    :return: the PYTHONPATH a child process needs to see it: ``site`` and the repository root.
+    :return: ``site``; a child process needs it and :data:`IMPORT_ROOT` on PYTHONPATH.
     """
-    info = site / "test_nodes-0.1.dist-info"
+    package = distribution.replace("-", "_")
+    info = site / f"{package}-0.1.dist-info"
     info.mkdir(parents=True, exist_ok=True)
     (info / "METADATA").write_text(
-        "Metadata-Version: 2.1\nName: test-nodes\nVersion: 0.1\n", encoding="utf-8"
+        f"Metadata-Version: 2.1\nName: {distribution}\nVersion: 0.1\n", encoding="utf-8"
     )
     (info / "entry_points.txt").write_text(
-        "[container.plugins]\ntest_nodes = tests.component_support\n", encoding="utf-8"
+        f"[container.plugins]\n{package} = {module}\n", encoding="utf-8"
     )
     return site
 

@@ -20,16 +20,49 @@ from __future__ import annotations
 import asyncio
 import threading
 import types
-from collections.abc import Callable, Coroutine, Generator
+from collections.abc import Awaitable, Callable, Coroutine, Generator
 from typing import Any, TypeVar
 
 from rclpy.task import Future as RclFuture
 
 from .._compat import running_loop
 
-__all__ = ["adapt", "drive", "in_thread", "mirror", "result"]
+__all__ = ["Escaped", "adapt", "as_exception", "contained", "drive", "in_thread", "mirror", "result"]
 
 T = TypeVar("T")
+
+
+class Escaped(Exception):
+    """A ``SystemExit`` (or other non-``Exception``) a callback raised, carried as an exception.
+
+    asyncio re-raises ``SystemExit`` and ``KeyboardInterrupt`` set on a
+    future out of the event loop itself, ending the process: a plugin's
+    ``sys.exit()`` must reach its awaiting caller as an ordinary error.
+    """
+
+    def __init__(self, error: BaseException) -> None:
+        super().__init__(f"{type(error).__name__}: {error}")
+        self.error = error
+
+
+def as_exception(error: BaseException) -> Exception:
+    """``error`` itself if it is an ``Exception``, else wrapped in :class:`Escaped`."""
+    return error if isinstance(error, Exception) else Escaped(error)
+
+
+async def contained(awaitable: Awaitable[T]) -> T:
+    """Await a plugin's coroutine so that its ``sys.exit()`` cannot end the loop.
+
+    A ``SystemExit`` escaping a task ends the event loop (asyncio re-raises
+    it); here it becomes :class:`Escaped`, an ordinary error for the caller.
+    Cancellation and Ctrl-C pass through unchanged.
+    """
+    try:
+        return await awaitable
+    except (KeyboardInterrupt, asyncio.CancelledError, GeneratorExit):
+        raise
+    except BaseException as exc:
+        raise as_exception(exc) from exc
 
 
 def mirror(future: RclFuture, loop: asyncio.AbstractEventLoop) -> asyncio.Future[Any]:
@@ -45,8 +78,8 @@ def mirror(future: RclFuture, loop: asyncio.AbstractEventLoop) -> asyncio.Future
             return
         if future.cancelled():
             settled.cancel()
-        elif future.exception() is not None:
-            settled.set_exception(future.exception())
+        elif (error := future.exception()) is not None:
+            settled.set_exception(as_exception(error))
         else:
             settled.set_result(future.result())
 
@@ -144,7 +177,7 @@ async def in_thread(call: Callable[[], T], *, name: str) -> T:
         if outcome.done():
             return
         if error is not None:
-            outcome.set_exception(error)
+            outcome.set_exception(as_exception(error))
         else:
             outcome.set_result(value)  # type: ignore[arg-type]
 

@@ -37,7 +37,7 @@ from rclpy.task import Future as RclFuture
 
 from .._compat import executor_guards, running_loop
 from .._errors import ExecutorError
-from ._bridge import adapt, mirror
+from ._bridge import adapt, as_exception, contained, mirror
 from ._dispatch import WOKEN, Dispatcher, describe, format_error
 from ._lanes import Lane, Work
 from ._selector import RclSelector
@@ -262,7 +262,7 @@ class AsyncioExecutor(Executor):
             )
 
             def start() -> None:
-                task = loop.create_task(self.adapt(coro))
+                task = loop.create_task(self.adapt(contained(coro)))
                 task.add_done_callback(lambda t: _settle(result, t))
 
             self._call_soon(loop, start)
@@ -313,7 +313,7 @@ class AsyncioExecutor(Executor):
             if outcome.done():
                 return
             if error is not None:
-                outcome.set_exception(error)
+                outcome.set_exception(as_exception(error))
             else:
                 outcome.set_result(result[0] if result else None)
 

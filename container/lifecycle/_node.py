@@ -28,6 +28,7 @@ import asyncio
 import contextlib
 import inspect
 import traceback
+import weakref
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -36,17 +37,17 @@ import lifecycle_msgs.srv
 import rclpy.lifecycle
 from lifecycle_msgs.msg import State
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.callback_groups import CallbackGroup
+from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock
 from rclpy.lifecycle import LifecyclePublisher, LifecycleState, TransitionCallbackReturn
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile
 from rclpy.timer import Timer
 
-from .._compat import change_state_service, managed_entities, state_machine
+from .._compat import change_state_service, managed_entities, query_services, state_machine
 from .._errors import TransitionError
 from .._text import clip
-from ..executor._bridge import in_thread
+from ..executor._bridge import Escaped, contained, in_thread
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
 __all__ = ["LifecycleNode"]
@@ -122,6 +123,14 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         )
         # rclpy binds its synchronous handler at construction; ours awaits.
         change_state_service(self).callback = self._serve_change_state
+        # rclpy serves get_state and the like in the default group, where a
+        # transition that awaits for seconds would hold them up: `ros2
+        # lifecycle get` must answer "configuring" meanwhile. They only read.
+        queries = ReentrantCallbackGroup()
+        for service in query_services(self):
+            self.default_callback_group.entities.discard(weakref.ref(service))
+            service.callback_group = queries
+            queries.add_entity(service)
         self._heartbeat: HeartbeatPublisher | None = None
         if period > 0:
             if status_type() is None:
@@ -334,7 +343,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                     _discard(result)
                     raise TypeError(f"{name}() is asynchronous; await node.transition() instead")
             elif inspect.iscoroutinefunction(callback):
-                result = await asyncio.wait_for(callback(previous), timeout)
+                result = await asyncio.wait_for(contained(callback(previous)), timeout)
             else:
                 result = await asyncio.wait_for(
                     in_thread(lambda: callback(previous), name=f"transition:{name}"), timeout
@@ -347,8 +356,9 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         except (KeyboardInterrupt, asyncio.CancelledError):
             raise
         except BaseException as exc:  # sys.exit() in a callback is an error, not an exit
-            details = "".join(traceback.format_exception(exc)).rstrip()
-            self.get_logger().error(f"{name}() raised {type(exc).__name__}: {exc}\n{details}")
+            error = exc.error if isinstance(exc, Escaped) else exc
+            details = "".join(traceback.format_exception(error)).rstrip()
+            self.get_logger().error(f"{name}() raised {type(error).__name__}: {error}\n{details}")
             return ERROR
         if not isinstance(result, TransitionCallbackReturn):
             self.get_logger().error(

@@ -1,0 +1,280 @@
+"""Containment: what one plugin or one peer does never takes the container down.
+
+Each test runs a real ``container run`` beside the test's own client node and
+drives it as a careless plugin or a hostile peer would.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from composition_interfaces.srv import LoadNode
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from std_msgs.msg import Int64
+
+from container import AsyncioExecutor
+from tests.component_support import (
+    IMPORT_ROOT,
+    ContainerClient,
+    graph_nodes,
+    install_test_plugin,
+    load_request,
+    parameter,
+    wait_until,
+)
+from tests.container_support import ContainerProcess
+
+#: Short timeouts, so that a cut-short transition shows within a test.
+CONTAINER = "container:\n  name: ComponentManager\n  unload_timeout: 1.0\n"
+
+
+@pytest.fixture
+def container(
+    run_container: Callable[..., ContainerProcess], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> ContainerProcess:
+    """An empty container that also sees the ``tests-faults`` plugin."""
+    site = install_test_plugin(tmp_path / "site", distribution="tests-faults", module="tests.fault_plugin")
+    path = os.pathsep.join([str(site), str(IMPORT_ROOT), os.environ.get("PYTHONPATH", "")])
+    monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
+    return run_container(CONTAINER)
+
+
+@pytest.fixture
+def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
+    node = Node("containment_client", context=context)
+    executor.add_node(node)
+    yield node
+    executor.remove_node(node)
+    node.destroy_node()
+
+
+@pytest.fixture
+def client(container: ContainerProcess, client_node: Node, executor: AsyncioExecutor) -> ContainerClient:
+    return ContainerClient(client_node, executor)
+
+
+def faulty(fault: str, where: str, *, style: str = "plain", name: str = "faulty") -> LoadNode.Request:
+    plugin = "tests_faults::FaultyAsync" if style == "async" else "tests_faults::Faulty"
+    return load_request(
+        "tests_faults",
+        plugin,
+        name=name,
+        parameters=[parameter("fault", fault), parameter("where", where)],
+    )
+
+
+def state_of(client: ContainerClient, name: str) -> str:
+    getter = client.node.create_client(GetState, f"{name}/get_state")
+    try:
+        assert getter.wait_for_service(timeout_sec=10.0)
+        return str(client.call(getter, GetState.Request()).current_state.label)
+    finally:
+        client.node.destroy_client(getter)
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_unload_during_a_transition_cancels_it_and_answers_everyone(
+    container: ContainerProcess, client: ContainerClient, executor: AsyncioExecutor, style: str
+) -> None:
+    loaded = client.load(faulty("await" if style == "async" else "sleep", "configure", style=style))
+    assert loaded.success, loaded.error_message
+    changer = client.node.create_client(ChangeState, "/faulty/change_state")
+    assert changer.wait_for_service(timeout_sec=10.0)
+    pending = changer.call_async(ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
+    assert wait_until(executor, lambda: state_of(client, "/faulty") == "configuring")
+    unloaded = client.unload(loaded.unique_id)
+    assert unloaded.success
+    assert "cancelled" in unloaded.error_message
+    executor.spin_until_future_complete(pending, timeout_sec=10.0)
+    assert pending.done() and not pending.result().success, "the caller was left waiting"
+    assert client.list() == []
+    # The process lives on, and serves a new node under the same name.
+    again = client.load(faulty("raise", "timer", name="faulty"))
+    assert again.success, again.error_message
+    assert container.process.poll() is None
+
+
+def test_sigint_during_a_transition_exits_cleanly(container: ContainerProcess, client: ContainerClient) -> None:
+    loaded = client.load(faulty("await", "configure", style="async"))
+    assert loaded.success
+    changer = client.node.create_client(ChangeState, "/faulty/change_state")
+    assert changer.wait_for_service(timeout_sec=10.0)
+    changer.call_async(ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
+    assert wait_until(client.executor, lambda: state_of(client, "/faulty") == "configuring")
+    code = container.stop(sig=signal.SIGINT)
+    output = "\n".join(container.lines)
+    assert code == 0, output  # 139 (SIGSEGV) before
+    assert "cancelled" in output
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_sys_exit_in_a_callback_sends_only_that_node_through_error_processing(
+    container: ContainerProcess, client: ContainerClient, style: str
+) -> None:
+    healthy = client.load(load_request(name="talker"))
+    loaded = client.load(faulty("exit", "timer", style=style))
+    assert healthy.success and loaded.success
+    changer = client.node.create_client(ChangeState, "/faulty/change_state")
+    assert changer.wait_for_service(timeout_sec=10.0)
+    for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+        assert client.call(changer, ChangeState.Request(transition=Transition(id=transition))).success
+    container.wait_for_line("raised SystemExit")
+    container.wait_for_line("Error processing done: the node is unconfigured")
+    assert state_of(client, "/faulty") == "unconfigured"
+    assert container.process.poll() is None
+    assert client.unload(loaded.unique_id).success
+    assert [name for _, name in client.list()] == ["/talker"]
+
+
+@pytest.mark.parametrize("fault", ["exit", "raise"])
+def test_a_constructor_that_fails_leaves_nothing_behind(
+    container: ContainerProcess, client: ContainerClient, executor: AsyncioExecutor, fault: str
+) -> None:
+    refused = client.load(faulty(fault, "constructor"))
+    assert not refused.success
+    assert "Component constructor threw an exception" in refused.error_message
+    # A parameter of the wrong type: refused by the constructor half way.
+    wrong = client.load(load_request(name="talker", parameters=[parameter("rate", 5)]))
+    assert not wrong.success
+    assert wait_until(executor, lambda: not {"/faulty", "/talker"} & graph_nodes(client.node))
+    right = client.load(load_request(name="talker", parameters=[parameter("rate", 5.0)]))
+    assert right.success
+    assert wait_until(executor, lambda: "/talker" in graph_nodes(client.node))
+    names = [name for name, _ in client.node.get_node_names_and_namespaces()]
+    assert names.count("talker") == 1
+    assert container.process.poll() is None
+
+
+def test_a_blocking_constructor_is_refused_in_time_and_blocks_no_one(
+    run_container: Callable[..., ContainerProcess],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    client_node: Node,
+    executor: AsyncioExecutor,
+) -> None:
+    site = install_test_plugin(tmp_path / "site", distribution="tests-faults", module="tests.fault_plugin")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), str(IMPORT_ROOT)]))
+    container = run_container("container:\n  load_timeout: 1.0\n")
+    client = ContainerClient(client_node, executor)
+    pending = client.load_client.call_async(faulty("busy", "constructor"))
+    # While the constructor spins, the container still answers.
+    assert client.list() == []
+    executor.spin_until_future_complete(pending, timeout_sec=20.0)
+    assert pending.done()
+    assert not pending.result().success
+    assert "did not return within 1 s" in pending.result().error_message
+    assert container.process.poll() is None
+
+
+def test_request_strings_are_clipped_in_logs_and_answers(
+    container: ContainerProcess, client: ContainerClient
+) -> None:
+    huge = "x" * 1_000_000
+    refused = client.load(load_request(huge, f"{huge}::Node"))
+    assert not refused.success
+    assert len(refused.error_message) < 1000
+    line = container.wait_for_line("Refused to load")
+    assert len(line) < 1000 and "characters)" in line
+
+
+def test_removed_node_starts_none_of_its_queued_callbacks(context: Context, executor: AsyncioExecutor) -> None:
+    listener = Node("removal_listener", context=context)
+    talker = Node("removal_talker", context=context)
+    started: list[int] = []
+    release = threading.Event()
+    first = threading.Event()
+
+    def slow(message: Int64) -> None:
+        started.append(message.data)
+        first.set()
+        release.wait(10.0)
+
+    listener.create_subscription(Int64, "removal", slow, 10)
+    sentinel = threading.Event()
+    talker.create_subscription(Int64, "removal", lambda _: sentinel.set() if release.is_set() else None, 10)
+    publisher = talker.create_publisher(Int64, "removal", 10)
+    executor.add_node(listener)
+    executor.add_node(talker)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        assert wait_for_matches(publisher, 2)
+        for number in range(10):
+            publisher.publish(Int64(data=number))
+        assert first.wait(10.0)
+        executor.remove_node(listener)
+        release.set()
+        # A later message, through the same executor, marks "after": by the
+        # time it arrives, anything queued before would have started.
+        publisher.publish(Int64(data=99))
+        assert sentinel.wait(10.0)
+        assert started == [0]
+    finally:
+        release.set()
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        listener.destroy_node()
+        talker.destroy_node()
+
+
+def wait_for_matches(publisher: Publisher, count: int, *, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while publisher.get_subscription_count() < count:
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)  # discovery offers no event to wait on (rclpy#929)
+    return True
+
+
+@pytest.fixture
+def fault_site(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Child processes see the ``tests-faults`` plugin."""
+    site = install_test_plugin(tmp_path / "site", distribution="tests-faults", module="tests.fault_plugin")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), str(IMPORT_ROOT)]))
+
+
+@pytest.mark.usefixtures("fault_site")
+def test_threads_a_plugin_leaves_behind_are_named_and_do_not_hold_the_exit(
+    run_container: Callable[..., ContainerProcess],
+) -> None:
+    container = run_container(
+        "nodes:\n"
+        "  - {package: tests_faults, plugin: tests_faults::Faulty, name: leaky,\n"
+        "     parameters: [{fault: thread, where: constructor}]}\n"
+    )
+    started = time.monotonic()
+    code = container.stop(sig=signal.SIGINT, timeout=10.0)
+    output = "\n".join(container.lines)
+    assert code != 0, output
+    assert "threads left behind: leaked-by-constructor" in output
+    assert time.monotonic() - started < 5.0 + 2.0  # the shutdown timeout, plus 2 s
+
+
+@pytest.mark.usefixtures("fault_site")
+def test_a_second_sigint_exits_at_once_without_a_traceback(
+    run_container: Callable[..., ContainerProcess],
+) -> None:
+    container = run_container(
+        "container: {unload_timeout: 60.0}\n"
+        "nodes:\n"
+        "  - {package: tests_faults, plugin: tests_faults::FaultyAsync, name: stubborn, autostart: true,\n"
+        "     parameters: [{fault: await, where: deactivate, transition_timeout: 60.0}]}\n"
+    )
+    container.process.send_signal(signal.SIGINT)
+    container.wait_for_line("Shutting down")
+    started = time.monotonic()
+    code = container.stop(sig=signal.SIGINT, timeout=5.0)
+    output = "\n".join(container.lines)
+    assert code == 130, output
+    assert time.monotonic() - started < 2.0
+    assert "Traceback" not in output

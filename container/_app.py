@@ -62,7 +62,6 @@ class ContainerApp:
                 on_callback_error=contain_fault,
             )
         namespace = config.namespace if config.namespace.startswith("/") else f"/{config.namespace}"
-        full_name = f"{namespace.rstrip('/')}/{config.name}"
         manager = ComponentManager(
             registry=registry,
             executor=executor,
@@ -70,7 +69,7 @@ class ContainerApp:
             namespace=namespace,
             context=context,
             parameter_overrides=node_parameters(
-                config.parameters, full_name=full_name, base_dir=config.base_dir
+                config.parameters, full_name=config.full_name, base_dir=config.base_dir
             ),
             unload_timeout=config.unload_timeout,
             load_timeout=config.load_timeout,

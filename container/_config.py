@@ -34,13 +34,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
+from rclpy.exceptions import InvalidNamespaceException, InvalidNodeNameException
+from rclpy.validate_namespace import validate_namespace
+from rclpy.validate_node_name import validate_node_name
 
 from . import checks
 from ._errors import ConfigError
 from ._params import ParameterSource
+from ._yaml import read_yaml
 
-__all__ = ["ContainerConfig", "NodeSpec", "load_config", "parse_config"]
+__all__ = ["ContainerConfig", "NodeSpec", "load_config", "parse_config", "read_yaml"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +78,12 @@ class ContainerConfig:
     manager: Mapping[str, Any] | None = None
     base_dir: Path | None = None
 
+    @property
+    def full_name(self) -> str:
+        """The container node's full name (``/ns/name``)."""
+        namespace = self.namespace if self.namespace.startswith("/") else f"/{self.namespace}"
+        return f"{namespace.rstrip('/')}/{self.name}"
+
 
 _CONTAINER_KEYS = {
     "name",
@@ -95,18 +104,6 @@ _NODE_KEYS = {
     "extra_arguments",
     "autostart",
 }
-
-
-def read_yaml(path: str | Path) -> Any:
-    """Read a YAML file; a missing file or bad YAML is a :class:`ConfigError`."""
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read: {exc.strerror}", source=str(path)) from exc
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"not valid YAML: {exc}", source=str(path)) from exc
 
 
 def load_config(path: str | Path) -> ContainerConfig:
@@ -135,8 +132,8 @@ def parse_config(
     if manager is not None:
         manager = _mapping(manager, f"{source}: manager")
     return ContainerConfig(
-        name=_string(container.get("name", "ComponentManager"), f"{source}: container.name"),
-        namespace=_string(container.get("namespace", "/"), f"{source}: container.namespace"),
+        name=_node_name(container.get("name", "ComponentManager"), f"{source}: container.name"),
+        namespace=_namespace(container.get("namespace", "/"), f"{source}: container.namespace"),
         parameters=_parameter_sources(container.get("parameters"), f"{source}: container.parameters"),
         plugins_allow=None if allow is None else _strings(allow, f"{source}: container.plugins.allow"),
         plugins_block=_strings(plugins.get("block") or [], f"{source}: container.plugins.block"),
@@ -244,6 +241,24 @@ def _no_unknown(value: Mapping[str, Any], known: set[str], where: str) -> None:
             f"unknown key(s) {', '.join(map(repr, unknown))}; expected {', '.join(sorted(known))}",
             source=where,
         )
+
+
+def _node_name(value: Any, where: str) -> str:
+    name = checks.string(value, where=where)
+    try:
+        validate_node_name(name)
+    except InvalidNodeNameException as exc:
+        raise ConfigError(f"not a valid node name: {' '.join(str(exc).split())}", source=where) from None
+    return name
+
+
+def _namespace(value: Any, where: str) -> str:
+    namespace = checks.string(value, where=where)
+    try:
+        validate_namespace(namespace if namespace.startswith("/") else f"/{namespace}")
+    except InvalidNamespaceException as exc:
+        raise ConfigError(f"not a valid namespace: {' '.join(str(exc).split())}", source=where) from None
+    return namespace
 
 
 def _string(value: Any, where: str) -> str:

@@ -18,6 +18,7 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rclpy.parameter import Parameter, parameter_dict_from_yaml_file
 
 from ._errors import ConfigError
+from ._yaml import read_yaml
 
 __all__ = ["ParameterSource", "node_parameters", "parameters_from_mapping"]
 
@@ -45,13 +46,7 @@ def parameters_from_file(path: Path, *, node_names: Iterable[str]) -> list[Param
     :param node_names: the keys that name the node (full name, with and
         without the leading slash, plain name); ``/**`` always applies.
     """
-    try:
-        with path.open(encoding="utf-8") as stream:
-            content = yaml.safe_load(stream)
-    except OSError as exc:
-        raise ConfigError(f"cannot read parameter file: {exc.strerror}", source=str(path)) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"not valid YAML: {exc}", source=str(path)) from exc
+    content = read_yaml(path)
     if not isinstance(content, dict):
         raise ConfigError("a ROS parameter file maps node names to ros__parameters", source=str(path))
     targets = [name for name in node_names if name in content]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import signal
 import subprocess
 import sys
@@ -77,6 +78,13 @@ nodes:
     assert proc.stop() == 0
 
 
+#: Ten levels of nine aliases each: 449 bytes that a plain YAML load expands
+#: to 9**10 (3.5 billion) strings.
+BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + "".join(
+    f"{name}: &{name} [{', '.join([f'*{previous}'] * 9)}]\n" for previous, name in itertools.pairwise("abcdefghij")
+)
+
+
 @pytest.mark.parametrize(
     ("config", "message"),
     [
@@ -85,11 +93,22 @@ nodes:
         ("container:\n  reentrant_limit: 0\n", "must be >= 1, not 0"),
         ("nodes: [\n", "not valid YAML"),
         ("nodes:\n  - {package: a, plugin: b, remappings: [[x]]}\n", "remappings[0]"),
+        ("container:\n  name: 'bad name'\n", "container.name: not a valid node name"),
+        ("container:\n  namespace: '/bad//ns'\n", "container.namespace: not a valid namespace"),
+        ("container:\n  parameters: [missing.yaml]\n", "missing.yaml: cannot read"),
+        ("container:\n  unload_timeout: .nan\n", "container.unload_timeout: must be a finite number"),
+        ("container:\n  unload_timeout: .inf\n", "container.unload_timeout: must be a finite number"),
+        ("container:\n  load_timeout: -1\n", "container.load_timeout: must be positive"),
+        ("nodes: []\nnodes: []\n", "key 'nodes' appears twice (line 2"),
+        ("a: &a [*a]\n", "an alias refers to itself"),
+        (BILLION_LAUGHS, "expands to more than 100,000 values"),
+        (b"container:\n  name: caf\xe9\n", "not UTF-8 text"),
+        ("# " + "x" * (1 << 20) + "\n", "larger than 1024 KiB"),
     ],
 )
-def test_invalid_config_is_refused_with_its_place(tmp_path: Path, config: str, message: str) -> None:
+def test_invalid_config_is_refused_with_its_place(tmp_path: Path, config: str | bytes, message: str) -> None:
     path = tmp_path / "bad.yaml"
-    path.write_text(config, encoding="utf-8")
+    path.write_bytes(config if isinstance(config, bytes) else config.encode("utf-8"))
     result = subprocess.run(
         [sys.executable, "-m", "container", "run", str(path)],
         cwd=REPO,
@@ -97,5 +116,6 @@ def test_invalid_config_is_refused_with_its_place(tmp_path: Path, config: str, m
         text=True,
         timeout=60,
     )
-    assert result.returncode == 2
+    assert result.returncode == 2, result.stderr
     assert message in result.stderr
+    assert "Traceback" not in result.stderr

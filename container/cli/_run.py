@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 from .._config import load_config
 from .._errors import ConfigError
+from .._params import node_parameters
 from .._runtime import configure_logging
 
 if TYPE_CHECKING:
@@ -31,6 +32,9 @@ def _run(args: argparse.Namespace) -> int:
     configure_logging(verbose=args.verbose)
     try:
         config = load_config(args.config)
+        # The container node's own parameter files, read now so that a
+        # missing or broken one is a usage error, not a failure at start-up.
+        node_parameters(config.parameters, full_name=config.full_name, base_dir=config.base_dir)
         settings = None
         if config.manager is not None:
             from ..lifecycle import ManagerSettings

@@ -278,3 +278,19 @@ def test_a_second_sigint_exits_at_once_without_a_traceback(
     assert code == 130, output
     assert time.monotonic() - started < 2.0
     assert "Traceback" not in output
+
+
+def test_every_concurrent_change_state_request_is_answered(
+    container: ContainerProcess, client: ContainerClient, executor: AsyncioExecutor
+) -> None:
+    """Twenty peers ask at once; the node's lane once dropped all but its QoS depth."""
+    assert client.load(load_request(name="talker")).success
+    # One client each, as separate peers: a single client's own response
+    # history (keep last 10) would drop answers that arrive in one burst.
+    changers = [client.node.create_client(ChangeState, "/talker/change_state") for _ in range(20)]
+    assert all(changer.wait_for_service(timeout_sec=10.0) for changer in changers)
+    request = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))
+    pending = [changer.call_async(request) for changer in changers]
+    wait_until(executor, lambda: all(future.done() for future in pending), timeout=20.0)
+    assert "".join("x" if future.done() else "." for future in pending) == "x" * 20
+    assert sum(future.result().success for future in pending) == 1

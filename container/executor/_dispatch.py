@@ -448,9 +448,13 @@ class Dispatcher:
     def entry(self, entity: Any, node: Node, kind: str) -> _Entry:
         if kind == "waitable":
             is_async, depth = True, _WAITABLE_DEPTH
-        elif kind == "subscription" or kind == "service":
+        elif kind == "subscription":
             is_async = inspect.iscoroutinefunction(entity.callback)
             depth = max(1, entity.qos_profile.depth)
+        elif kind == "service":
+            # A request dropped here would leave its caller waiting for good:
+            # every request taken is answered (DDS's own history bounds them).
+            is_async, depth = inspect.iscoroutinefunction(entity.callback), _WAITABLE_DEPTH
         elif kind == "client":
             is_async, depth = False, 1
         else:

@@ -294,3 +294,11 @@ def test_every_concurrent_change_state_request_is_answered(
     wait_until(executor, lambda: all(future.done() for future in pending), timeout=20.0)
     assert "".join("x" if future.done() else "." for future in pending) == "x" * 20
     assert sum(future.result().success for future in pending) == 1
+
+
+def test_a_heartbeat_period_below_10_ms_is_refused(container: ContainerProcess, client: ContainerClient) -> None:
+    refused = client.load(load_request(name="talker", parameters=[parameter("bond_heartbeat_period", 1e-9)]))
+    assert not refused.success
+    assert "at least 0.01 s" in refused.error_message
+    off = client.load(load_request(name="talker", parameters=[parameter("bond_heartbeat_period", 0.0)]))
+    assert off.success, off.error_message

@@ -34,6 +34,7 @@ __all__ = [
     "DEFAULT_HEARTBEAT_PERIOD",
     "DEFAULT_HEARTBEAT_TIMEOUT",
     "HEARTBEAT_TOPIC",
+    "MIN_HEARTBEAT_PERIOD",
     "Heartbeat",
     "HeartbeatPublisher",
     "HeartbeatWatch",
@@ -44,6 +45,8 @@ __all__ = [
 HEARTBEAT_TOPIC = "/bond"
 #: Nav2 nodes beat every 0.1 s.
 DEFAULT_HEARTBEAT_PERIOD = 0.1
+#: Shortest period accepted, on both sides: 100 heartbeats a second.
+MIN_HEARTBEAT_PERIOD = 0.01
 #: bond's DEFAULT_HEARTBEAT_TIMEOUT; informational in the message.
 DEFAULT_HEARTBEAT_TIMEOUT = 4.0
 

@@ -38,7 +38,7 @@ from std_srvs.srv import Trigger
 from .. import checks
 from .._errors import ConfigError, TransitionError
 from ._client import LifecycleClient, transition_id
-from ._heartbeat import HeartbeatWatch
+from ._heartbeat import MIN_HEARTBEAT_PERIOD, HeartbeatWatch
 
 __all__ = ["LifecycleManager", "ManagerSettings"]
 
@@ -137,6 +137,8 @@ def _check_value(key: str, value: Any, where: str) -> Any:
         return checks.boolean(value, where=where)
     if isinstance(default, int):
         return checks.integer(value, where=where, minimum=0)
+    if key == "bond_heartbeat_period":
+        return checks.number(value, where=where, minimum=MIN_HEARTBEAT_PERIOD)
     if isinstance(default, float):
         return checks.number(value, where=where)
     names = checks.strings(value, where=where)

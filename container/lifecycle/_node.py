@@ -48,7 +48,7 @@ from .._compat import change_state_service, managed_entities, query_services, st
 from .._errors import TransitionError
 from .._text import clip
 from ..executor._bridge import Escaped, contained, in_thread
-from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
+from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, MIN_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
 __all__ = ["LifecycleNode"]
 
@@ -121,6 +121,14 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
             heartbeat_period,
             "Seconds between heartbeats on /bond for a lifecycle manager; <= 0 disables them.",
         )
+        if 0 < period < MIN_HEARTBEAT_PERIOD:
+            # 1e-9 would publish as fast as the loop can: a core spent on heartbeats.
+            raise TransitionError(
+                f"parameter 'bond_heartbeat_period' must be 0 (off) or at least "
+                f"{MIN_HEARTBEAT_PERIOD:g} s, not {period:g}",
+                node=self.get_fully_qualified_name(),
+                transition="create",
+            )
         # rclpy binds its synchronous handler at construction; ours awaits.
         change_state_service(self).callback = self._serve_change_state
         # rclpy serves get_state and the like in the default group, where a

@@ -15,7 +15,7 @@ from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from container import AsyncioExecutor
+from container import AsyncioExecutor, ConfigError
 from container.lifecycle._manager import STARTUP, LifecycleManager, ManagerSettings
 from container.lifecycle._node import LifecycleNode
 from tests.container_support import ContainerProcess
@@ -323,3 +323,9 @@ def test_manager_command_refuses_bad_input_with_exit_2(
         code = int(exc.code or 0)
     assert code == 2
     assert message in capsys.readouterr().err
+
+
+def test_heartbeat_periods_below_10_ms_are_refused() -> None:
+    with pytest.raises(ConfigError, match=r"bond_heartbeat_period: must be >= 0.01"):
+        ManagerSettings.from_mapping({"bond_heartbeat_period": 1e-9})
+    assert ManagerSettings.from_mapping({"bond_heartbeat_period": 0.01}).parameters["bond_heartbeat_period"] == 0.01

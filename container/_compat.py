@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import inspect
+import sys
 from collections.abc import Callable
+from types import FrameType
 from typing import TYPE_CHECKING, Any, TypeAlias
 
 import rclpy.timer
@@ -55,6 +57,7 @@ __all__ = [
     "state_machine",
     "state_machine_if_built",
     "subscription_wants_info",
+    "thread_frame",
     "waitable_futures",
 ]
 
@@ -84,6 +87,7 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ),
     ("rclpy.lifecycle.LifecycleNodeMixin", "_service_get_transition_graph", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.node.Node", "_Node__node", "rclpy 1.0-10.x (instance attribute)"),
+    ("sys", "_current_frames", "CPython 2.5-3.14; what faulthandler and py-spy read"),
     ("argparse", "_SubParsersAction", "CPython 3.2-3.14; what add_subparsers() returns"),
 )
 
@@ -98,6 +102,11 @@ leave_task: Callable[[asyncio.AbstractEventLoop, asyncio.Task[Any]], None] = asy
 def running_loop() -> asyncio.AbstractEventLoop | None:
     """The running loop of this thread, or ``None`` (no exception on the hot path)."""
     return asyncio._get_running_loop()
+
+
+def thread_frame(ident: int) -> FrameType | None:
+    """The frame another thread is executing now (for a stuck thread's stack)."""
+    return sys._current_frames().get(ident)
 
 
 # -- argparse ---------------------------------------------------------------------

@@ -20,7 +20,7 @@ from std_srvs.srv import Trigger
 
 from container import LifecycleNode, RegisterNodeType, hookimpl
 
-FAULTS = ("raise", "exit", "busy", "sleep", "await", "thread")
+FAULTS = ("raise", "exit", "busy", "sleep", "await", "thread", "slow")
 WHERES = (
     "constructor",
     "configure",
@@ -37,6 +37,8 @@ TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 #: How long "forever" lasts: longer than any test waits, short enough that
 #: a thread left behind does not outlive the test run by much.
 FOREVER_S = 120.0
+#: How long the ``slow`` fault (not a fault: just slow) takes, then succeeds.
+SLOW_S = 0.5
 
 
 class FaultInjected(RuntimeError):
@@ -56,11 +58,15 @@ def _misbehave_plainly(fault: str, where: str) -> None:
         time.sleep(FOREVER_S)
     elif fault == "thread":
         threading.Thread(target=time.sleep, args=(FOREVER_S,), name=f"leaked-by-{where}").start()
+    elif fault == "slow":
+        time.sleep(SLOW_S)
 
 
 async def _misbehave(fault: str, where: str) -> None:
     if fault == "await":
         await asyncio.sleep(FOREVER_S)
+    elif fault == "slow":
+        await asyncio.sleep(SLOW_S)
     else:
         _misbehave_plainly(fault, where)
 

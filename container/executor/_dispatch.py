@@ -32,6 +32,7 @@ import functools
 import inspect
 import logging
 import threading
+import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
 from rclpy.event_handler import EventHandler, QoSSubscriptionEventType
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
+from rclpy.node import Node
 from rclpy.waitable import NumberOfEntities
 
 from .._compat import (
@@ -58,7 +60,6 @@ if TYPE_CHECKING:
     import asyncio
 
     from rclpy.context import Context
-    from rclpy.node import Node
 
 __all__: list[str] = []
 
@@ -390,6 +391,13 @@ class Dispatcher:
         self._eager: collections.deque[tuple[Lane, Work]] = collections.deque()
         self._active = threading.Event()
         self._closed = False
+        #: When the loop thread last came back from rcl (``None`` while it
+        #: waits there, or while nobody spins): the watchdog's evidence.
+        self.busy_since: float | None = None
+        #: Whether another thread (the loop watchdog) waits in the loop's place.
+        self.relieving = False
+        #: Wakes whoever waits on the hot wait set.
+        self.wake_relief: Callable[[], None] = lambda: None
 
     # -- threads ----------------------------------------------------------------
     def start(self) -> None:
@@ -421,6 +429,28 @@ class Dispatcher:
 
     def bind_loop_thread(self, ident: int | None) -> None:
         self._loop_thread = ident
+        self.busy_since = time.monotonic() if ident is not None else None
+
+    def relieve(self, timeout_ns: int) -> int:
+        """Wait and dispatch from a thread other than the loop's, while it is away."""
+        self.relieving = True
+        try:
+            return self.wait_and_dispatch(timeout_ns)
+        finally:
+            self.relieving = False
+
+    def describe_task(self, task: object) -> str | None:
+        """Which node's which callback a lane's runner task carries, if it is one."""
+        for lane in self.lanes():
+            work = lane.work_of(task)
+            if work is not None:
+                owner = work.token.node if work.token is not None else None
+                try:
+                    name = owner.get_fully_qualified_name() if isinstance(owner, Node) else None
+                except Exception:  # a node destroyed meanwhile
+                    name = None
+                return f"{describe(work.entity)} of node {name}" if name else describe(work.entity)
+        return None
 
     @property
     def loop_thread(self) -> int | None:
@@ -475,10 +505,16 @@ class Dispatcher:
             self._retire_lanes()
         eager = self._on_loop_thread()
         self._dispatching = eager
+        if eager:
+            self.busy_since = None
+            if self.relieving:
+                self.wake_relief()  # it holds the wait set; let it go at once
         try:
             flags = self._hot.wait_and_dispatch(timeout_ns)
         finally:
             self._dispatching = False
+            if eager:
+                self.busy_since = time.monotonic()
         if eager:
             queue = self._eager
             while queue:
@@ -559,45 +595,41 @@ class Dispatcher:
             self.submit(entry, sub.callback, (taken[0],))
 
     def take_response(self, entry: _Entry) -> None:
+        """Take every response waiting: a burst beyond the reader's depth would lose answers."""
         cli = entry.entity
-        try:
-            with cli.handle:
-                header, response = cli.handle.take_response(cli.srv_type.Response)
-        except InvalidHandle:
-            return
-        if header is None:
-            return
-        try:
-            future = cli.get_pending_request(header.request_id.sequence_number)
-        except KeyError:
-            return  # the caller cancelled the request
-        adopt_future(future, self._future_executor)
-        future.set_result(response)
-        self._on_response()
+        while True:
+            try:
+                with cli.handle:
+                    header, response = cli.handle.take_response(cli.srv_type.Response)
+            except InvalidHandle:
+                return
+            if header is None:
+                return
+            try:
+                future = cli.get_pending_request(header.request_id.sequence_number)
+            except KeyError:
+                continue  # the caller cancelled the request
+            adopt_future(future, self._future_executor)
+            future.set_result(response)
+            self._on_response()
 
     def take_request(self, entry: _Entry) -> None:
+        """Take every request waiting, each to be answered.
+
+        All at once, not one per wait: service requests sit in a keep-last
+        history (depth 10 by default), and twenty peers asking at once would
+        otherwise lose the oldest before their turn came.
+        """
         srv = entry.entity
-        try:
-            with srv.handle:
-                request, header = srv.handle.service_take_request(srv.srv_type.Request)
-        except InvalidHandle:
-            return
-        if header is None:
-            return
-        callback = srv.callback
-        response_type = srv.srv_type.Response
-        if entry.is_async:
-
-            async def serve_async() -> None:
-                srv.send_response(await callback(request, response_type()), header)
-
-            self.run(entry, serve_async)
-        else:
-
-            def serve() -> None:
-                srv.send_response(callback(request, response_type()), header)
-
-            self.run(entry, serve)
+        while True:
+            try:
+                with srv.handle:
+                    request, header = srv.handle.service_take_request(srv.srv_type.Request)
+            except InvalidHandle:
+                return
+            if header is None:
+                return
+            self.run(entry, _serving(srv, request, header, is_async=entry.is_async))
 
     def take_waitable(self, entry: _Entry) -> None:
         waitable = entry.entity
@@ -681,6 +713,23 @@ class Dispatcher:
         self._cold.close(timeout=timeout)
         self._cold_wake.destroy()
         return joined
+
+
+def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable[[], Any]:
+    """The call that runs a service callback on ``request`` and sends its answer."""
+    callback = srv.callback
+    response_type = srv.srv_type.Response
+    if is_async:
+
+        async def serve_async() -> None:
+            srv.send_response(await callback(request, response_type()), header)
+
+        return serve_async
+
+    def serve() -> None:
+        srv.send_response(callback(request, response_type()), header)
+
+    return serve
 
 
 def _entities_of(node: Node, kind: str) -> list[Any]:

@@ -41,6 +41,7 @@ from ._bridge import adapt, as_exception, contained, mirror
 from ._dispatch import WOKEN, Dispatcher, describe, format_error
 from ._lanes import Lane, Work
 from ._selector import RclSelector
+from ._watchdog import LoopWatchdog
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -93,6 +94,9 @@ class AsyncioExecutor(Executor):
         containment (the container sends the node through error processing).
     :param shutdown_timeout: seconds :meth:`shutdown` waits for running
         callbacks by default.
+    :param stall_after: seconds the loop thread may spend in one callback
+        before the watchdog reports it and waits in rcl in its place
+        (``None``: no watchdog).
     """
 
     def __init__(
@@ -102,6 +106,7 @@ class AsyncioExecutor(Executor):
         reentrant_limit: int = 8,
         on_callback_error: CallbackErrorHandler | None = None,
         shutdown_timeout: float = 5.0,
+        stall_after: float | None = 1.0,
     ) -> None:
         if reentrant_limit < 1:
             raise ExecutorError(f"reentrant_limit must be at least 1, not {reentrant_limit}")
@@ -109,6 +114,8 @@ class AsyncioExecutor(Executor):
         self._reentrant_limit = reentrant_limit
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout
+        self._stall_after = stall_after
+        self._watchdog: LoopWatchdog | None = None
         # One guard condition wakes the loop for everything: entities changed
         # (rclpy's base class), a file descriptor is ready (the selector's
         # watcher), a hand-over arrived in the inbox. Each guard condition in
@@ -136,6 +143,16 @@ class AsyncioExecutor(Executor):
         _live.add(self)
 
     # -- public surface ---------------------------------------------------------
+    @property
+    def shutdown_timeout(self) -> float:
+        """Seconds :meth:`shutdown` waits for running callbacks by default."""
+        return self._shutdown_timeout
+
+    @property
+    def watchdog(self) -> LoopWatchdog | None:
+        """The loop watchdog while the executor spins its own loop."""
+        return self._watchdog
+
     @property
     def state(self) -> ExecutorState:
         """Where the executor is in its life: idle, spinning, stopping or shut down."""
@@ -429,9 +446,13 @@ class AsyncioExecutor(Executor):
             with self._spinning_on(self._loop):
                 self._selector.attach(self._wait)
                 started = True
+                watchdog = self._start_watchdog()
                 try:
                     self._loop.run_until_complete(main)
                 finally:
+                    if watchdog is not None:
+                        watchdog.stop()
+                        self._watchdog = None
                     self._selector.attach(None)
         finally:
             if not started:
@@ -470,6 +491,32 @@ class AsyncioExecutor(Executor):
                 self._release(self._shutdown_timeout)
             with self._state_changed:
                 self._move(ExecutorState.SHUT_DOWN if self._closed else ExecutorState.IDLE)
+
+    def _start_watchdog(self) -> LoopWatchdog | None:
+        if self._stall_after is None:
+            return None
+        dispatcher = self._dispatcher
+        dispatcher.wake_relief = self._guard_trigger
+        self._watchdog = LoopWatchdog(
+            busy_since=lambda: dispatcher.busy_since,
+            loop_thread=lambda: dispatcher.loop_thread,
+            relieve=dispatcher.relieve,
+            rewake=self._guard_trigger,
+            describe=self._describe_loop_work,
+            stall_after=self._stall_after,
+        )
+        return self._watchdog
+
+    def _describe_loop_work(self) -> str:
+        """What the loop thread runs now: which node's which callback, if a lane's."""
+        task = asyncio.current_task(self._loop)
+        if task is None:
+            return "a callback outside any task"
+        described = self._dispatcher.describe_task(task)
+        if described is not None:
+            return described
+        coro = task.get_coro()
+        return f"task {task.get_name()!r} ({getattr(coro, '__qualname__', coro)})"
 
     def _make_dispatcher(self, loop: asyncio.AbstractEventLoop) -> Dispatcher:
         return Dispatcher(

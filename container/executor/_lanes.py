@@ -229,6 +229,11 @@ class Lane:
             if current is not None and current.token is not None and current.token.node is node:
                 runner.task.cancel()
 
+    def work_of(self, task: object) -> Work | None:
+        """The work a runner task of this lane carries now, if ``task`` is one."""
+        runner = self._runners.get(task)  # type: ignore[call-overload]
+        return runner.current if runner is not None else None
+
     def running(self, node: object) -> list[Work]:
         """``node``'s work started and not yet done."""
         with self._lock:

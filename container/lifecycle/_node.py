@@ -25,6 +25,7 @@ the container, :meth:`LifecycleNode.transition`).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import inspect
 import traceback
@@ -65,6 +66,10 @@ _CALLBACKS = {
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
 ERROR = TransitionCallbackReturn.ERROR
+
+#: How long past ``transition_timeout`` a ``change_state`` caller waits for
+#: the node's own timeout to answer, before the answer is a timeout.
+_ANSWER_MARGIN_S = 1.0
 
 #: How long a cancelled transition may take to fail back to its start state.
 _FAIL_BACK_S = 1.0
@@ -391,16 +396,17 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
     def trigger_shutdown(self) -> TransitionCallbackReturn:
         return self._trigger_now("shutdown")
 
-    def _trigger_now(self, label: str) -> TransitionCallbackReturn:
+    def _trigger_now(self, request: str | int) -> TransitionCallbackReturn:
         """Run a transition to completion in the caller's thread (sync callbacks only).
 
         :raises TransitionError: the transition is unavailable, another one is
             running, or a callback is asynchronous.
         """
+        label = str(request)
         name = self.get_fully_qualified_name()
         if self._transition_lock.locked():
             raise TransitionError("another transition is running", node=name, transition=label)
-        transition_id = self._resolve(label)
+        transition_id = self._resolve(request)
         if transition_id is None:
             raise TransitionError(
                 f"not available from state '{self.lifecycle_state.label}'",
@@ -426,21 +432,41 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         raise TransitionError("a callback returned an awaitable", node=name, transition=label)
 
     # -- the change_state service ------------------------------------------------
-    async def _serve_change_state(
+    def _serve_change_state(
         self,
         request: lifecycle_msgs.srv.ChangeState.Request,
         response: lifecycle_msgs.srv.ChangeState.Response,
     ) -> lifecycle_msgs.srv.ChangeState.Response:
+        """Carry out a requested transition; answer within ``transition_timeout`` whatever happens.
+
+        A plain callback, so it runs on a lane thread and waits there for the
+        transition, which runs on the event loop: if an ``async def``
+        callback blocks the loop itself, this still answers ``success=false``
+        once ``transition_timeout`` (plus a second) has passed.
+        """
         # rclpy resolves a label first when one is given; so do we.
         wanted: str | int = request.transition.label or request.transition.id
+        loop = getattr(self.executor, "loop", None)
+        if not isinstance(loop, asyncio.AbstractEventLoop):
+            # An rclpy executor: run synchronous callbacks inline, as rclpy does.
+            try:
+                response.success = self._trigger_now(wanted) is SUCCESS
+            except TransitionError as exc:
+                self.get_logger().error(str(exc))
+                response.success = False
+            return response
+        limit = self._timeout(None)
+        pending = asyncio.run_coroutine_threadsafe(self._request(wanted, timeout=None), loop)
         try:
-            response.success = await self._request(wanted, timeout=None) is SUCCESS
-        except asyncio.CancelledError:
-            # Cut short by end_transition (the node is going away): answer
-            # the caller rather than leave it waiting for good.
-            task = asyncio.current_task()
-            if task is not None:
-                task.uncancel()
+            response.success = pending.result(None if limit is None else limit + _ANSWER_MARGIN_S) is SUCCESS
+        except concurrent.futures.TimeoutError:
+            self.get_logger().error(
+                f"Transition {clip(repr(wanted))} did not end within {limit:g} s (transition_timeout): "
+                "is the event loop stuck in a callback? Answered success=false"
+            )
+            response.success = False
+        except concurrent.futures.CancelledError:
+            # Cut short by end_transition (the node is going away).
             response.success = False
         return response
 

@@ -16,6 +16,7 @@ from rclpy.context import Context
 
 from ._config import ContainerConfig
 from ._container import ComponentManager, requests_from_specs
+from ._diagnostics import LoopDiagnostics
 from ._errors import ContainerError
 from ._params import node_parameters
 from ._registry import PluginRegistry
@@ -45,6 +46,7 @@ class ContainerApp:
     executor: AsyncioExecutor
     manager: ComponentManager
     services: ContainerServices
+    diagnostics: LoopDiagnostics
     stopping: asyncio.Event = field(default_factory=asyncio.Event)
 
     @classmethod
@@ -75,10 +77,11 @@ class ContainerApp:
             load_timeout=config.load_timeout,
         )
         services = ContainerServices(manager)
+        diagnostics = LoopDiagnostics(manager, executor)
         executor.add_node(manager)
         for failure in registry.failures:
             manager.get_logger().error(f"Plugin skipped: {failure}")
-        return cls(config, context, registry, executor, manager, services)
+        return cls(config, context, registry, executor, manager, services, diagnostics)
 
     async def serve(
         self, *, extensions: tuple[Extension, ...] = (), stopping: asyncio.Event | None = None
@@ -111,6 +114,7 @@ class ContainerApp:
     def close(self) -> None:
         """Destroy the container node; the executor is its owner's to shut down."""
         self.services.destroy()
+        self.diagnostics.close()
         self.executor.remove_node(self.manager)
         self.manager.destroy_node()
 
@@ -129,7 +133,11 @@ def run_container(config: ContainerConfig, *, extensions: tuple[Extension, ...] 
     return run_session(
         main,
         server=True,
-        executor_options={"reentrant_limit": config.reentrant_limit, "on_callback_error": contain_fault},
+        executor_options={
+            "reentrant_limit": config.reentrant_limit,
+            "on_callback_error": contain_fault,
+            "shutdown_timeout": config.shutdown_timeout,
+        },
     )
 
 

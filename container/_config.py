@@ -10,6 +10,7 @@
       reentrant_limit: 8
       unload_timeout: 5.0           # seconds each step of taking a node down may take
       load_timeout: 10.0            # seconds a node's constructor may take
+      shutdown_timeout: 5.0         # seconds a stuck event loop may hold up SIGINT/SIGTERM
     nodes:
       - package: lifecycle_container
         plugin: lifecycle_container::Talker
@@ -74,6 +75,7 @@ class ContainerConfig:
     reentrant_limit: int = 8
     unload_timeout: float = 5.0
     load_timeout: float = 10.0
+    shutdown_timeout: float = 5.0
     nodes: tuple[NodeSpec, ...] = ()
     manager: Mapping[str, Any] | None = None
     base_dir: Path | None = None
@@ -93,6 +95,7 @@ _CONTAINER_KEYS = {
     "reentrant_limit",
     "unload_timeout",
     "load_timeout",
+    "shutdown_timeout",
 }
 _NODE_KEYS = {
     "package",
@@ -145,6 +148,9 @@ def parse_config(
             container.get("unload_timeout", 5.0), f"{source}: container.unload_timeout"
         ),
         load_timeout=_positive_float(container.get("load_timeout", 10.0), f"{source}: container.load_timeout"),
+        shutdown_timeout=_positive_float(
+            container.get("shutdown_timeout", 5.0), f"{source}: container.shutdown_timeout"
+        ),
         nodes=tuple(
             _node(entry, base_dir=base_dir, where=f"{source}: nodes[{index}]")
             for index, entry in enumerate(nodes_value)

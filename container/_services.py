@@ -7,10 +7,11 @@ container exactly like rclcpp's. Every request goes through
 paths ``container run`` uses, and a bad request only ever costs its own
 ``success=false`` answer: the container serves on.
 
-The callbacks are ``async def`` so they run on the executor's loop thread,
-where the container's bookkeeping lives; load and unload share one mutually
-exclusive group so that requests apply in the order they arrive, while
-``list_nodes`` has its own group and answers even during a slow unload.
+Load and unload are ``async def`` so they run on the executor's loop
+thread, where the container's bookkeeping lives, and share one mutually
+exclusive group so that requests apply in the order they arrive;
+``list_nodes`` is plain, in a group of its own, and answers even during a
+slow unload or while a plugin's callback blocks the loop.
 """
 
 from __future__ import annotations
@@ -122,7 +123,9 @@ class ContainerServices:
         response.error_message = "; ".join(notes)
         return response
 
-    async def _list(self, request: ListNodes.Request, response: ListNodes.Response) -> Any:
+    def _list(self, request: ListNodes.Request, response: ListNodes.Response) -> Any:
+        # Plain, so it answers from its lane's thread even while an async
+        # callback holds the event loop.
         loaded = self._manager.loaded()
         response.full_node_names = [entry.full_name for entry in loaded]
         response.unique_ids = [entry.unique_id for entry in loaded]

@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -47,7 +49,45 @@ EXIT_USAGE = 2
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
+#: How often the hard stop looks whether the loop is still stuck.
+_HARD_STOP_POLL_S = 0.1
+
 _log = logging.getLogger("container")
+
+
+def _arm_hard_stop(session: Session, signum: int, frame: object) -> None:
+    """Python-level signal handler: make sure a stuck loop cannot keep the process alive.
+
+    The orderly stop goes through the loop (asyncio's own handling of the
+    same signal). If the loop is stuck in a callback and stays stuck for the
+    executor's shutdown timeout, this ends the process anyway, naming what
+    was stuck.
+    """
+    if session.hard_stop is None:
+        session.hard_stop = threading.Thread(
+            target=_hard_stop, args=(session, signum), name="hard-stop", daemon=True
+        )
+        session.hard_stop.start()
+
+
+def _hard_stop(session: Session, signum: int) -> None:
+    watchdog = session.executor.watchdog
+    if watchdog is None:
+        return
+    limit = session.executor.shutdown_timeout
+    while session.executor.watchdog is watchdog:  # ends when the spin does
+        stall = watchdog.stall
+        if stall is not None and time.monotonic() - stall.since >= limit:
+            name = signal.Signals(signum).name
+            _log.error(
+                f"{name}: the event loop has been stuck for {time.monotonic() - stall.since:.1f} s "
+                f"in {stall.what}; exiting without a clean shutdown"
+            )
+            logging.shutdown()
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(exit_code_for(signum))
+        time.sleep(_HARD_STOP_POLL_S)
 
 
 def exit_code_for(signum: int) -> int:
@@ -67,6 +107,8 @@ class Session:
     executor: AsyncioExecutor
     stopping: asyncio.Event = field(default_factory=asyncio.Event)
     signal: int | None = None
+    #: Started by the first signal: ends the process if the loop stays stuck.
+    hard_stop: threading.Thread | None = None
 
     @contextlib.contextmanager
     def client_node(self, name: str) -> Iterator[Node]:
@@ -109,8 +151,8 @@ def run_session(
     clean = False
     try:
         executor = AsyncioExecutor(context=context, **(executor_options or {}))
+        session = Session(context, executor)
         try:
-            session = Session(context, executor)
             codes: list[int] = []
             executor.spin_until_future_complete(_guarded(main, session, server=server, codes=codes))
             if codes:
@@ -119,6 +161,8 @@ def run_session(
                 code = exit_code_for(session.signal)
         finally:
             clean = executor.shutdown()
+            if session.hard_stop is not None:
+                session.hard_stop.join(1.0)
     except KeyboardInterrupt:
         code = exit_code_for(signal.SIGINT)
     finally:
@@ -155,6 +199,9 @@ async def _guarded(
 
     for signum in _SIGNALS:
         loop.add_signal_handler(signum, on_signal, signum)
+        # asyncio runs on_signal on the loop, which an async def callback may
+        # hold for good; this runs in the main thread whatever it executes.
+        signal.signal(signum, functools.partial(_arm_hard_stop, session))
     try:
         codes.append(await main(session))
     except asyncio.CancelledError:

@@ -6,6 +6,7 @@ drives it as a careless plugin or a hostile peer would.
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import threading
@@ -15,12 +16,13 @@ from pathlib import Path
 
 import pytest
 from composition_interfaces.srv import LoadNode
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.publisher import Publisher
-from std_msgs.msg import Int64
+from std_msgs.msg import Int64, String
 
 from container import AsyncioExecutor
 from tests.component_support import (
@@ -322,3 +324,44 @@ def test_a_heartbeat_period_below_10_ms_is_refused(container: ContainerProcess, 
     assert "at least 0.01 s" in refused.error_message
     off = client.load(load_request(name="talker", parameters=[parameter("bond_heartbeat_period", 0.0)]))
     assert off.success, off.error_message
+
+
+STUCK_LOOP = """
+container: {shutdown_timeout: 1.0}
+nodes:
+  - {package: lifecycle_container, plugin: lifecycle_container::Talker, name: talker,
+     parameters: [{rate: 10.0}], autostart: true}
+  - {package: tests_faults, plugin: tests_faults::FaultyAsync, name: hog, autostart: true,
+     parameters: [{fault: busy, where: timer}]}
+"""
+
+
+@pytest.mark.usefixtures("fault_site")
+def test_a_loop_stuck_in_an_async_callback_stops_neither_plain_nodes_nor_the_exit(
+    run_container: Callable[..., ContainerProcess], client_node: Node, executor: AsyncioExecutor
+) -> None:
+    container = run_container(STUCK_LOOP)
+    heard: list[float] = []
+    client_node.create_subscription(String, "/chatter", lambda _: heard.append(time.monotonic()), 10)
+    statuses: list[DiagnosticStatus] = []
+
+    def diagnosed(message: DiagnosticArray) -> None:
+        statuses.extend(message.status)
+
+    client_node.create_subscription(DiagnosticArray, "/diagnostics", diagnosed, 10)
+    report = container.wait_for_line("event loop stuck for")
+    assert "hog" in report and "_tick" in report
+    # The plain talker keeps its rate, the diagnostics say what is stuck,
+    # and the container still answers.
+    assert wait_until(executor, lambda: len(heard) >= 20, timeout=10.0)
+    assert max(b - a for a, b in itertools.pairwise(heard[-20:])) < 3 * 0.1
+    assert wait_until(
+        executor, lambda: any(s.level == DiagnosticStatus.ERROR and "stuck" in s.message for s in statuses)
+    )
+    assert [name for _, name in ContainerClient(client_node, executor).list()] == ["/talker", "/hog"]
+    started = time.monotonic()
+    code = container.stop(sig=signal.SIGINT, timeout=10.0)
+    output = "\n".join(container.lines)
+    assert code != 0, output
+    assert time.monotonic() - started < 1.0 + 2.0
+    assert "exiting without a clean shutdown" in output

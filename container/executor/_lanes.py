@@ -335,7 +335,9 @@ class Lane:
             if _retired(item):
                 done, error, resume = True, Retired(), None
             else:
+                runner.current = item  # what the loop runs, should it get stuck here
                 done, error, resume = runner.context.run(self._first_step, runner.task, item)
+                runner.current = None
             if not done:
                 assert resume is not None
                 self._idle_runners.pop()

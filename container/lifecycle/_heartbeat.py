@@ -100,7 +100,10 @@ class HeartbeatPublisher:
         self._publisher: Publisher | None = Node.create_publisher(node, status, topic, _QOS)
         self._timer: Timer | None = Node.create_timer(node, period, self._beat)
 
-    async def _beat(self) -> None:
+    def _beat(self) -> None:
+        # Plain, not async: it must not wait for the event loop, which
+        # another node's callback may hold; a hang of this node's own
+        # default group still silences it, which is what tells a hang.
         self._publish(active=True)
 
     def _publish(self, *, active: bool) -> None:

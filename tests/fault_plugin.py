@@ -45,30 +45,33 @@ class FaultInjected(RuntimeError):
     """What the ``raise`` fault raises."""
 
 
-def _misbehave_plainly(fault: str, where: str) -> None:
+def _misbehave_plainly(fault: str, where: str, forever: float = FOREVER_S) -> None:
+    # Said before doing it, so a test knows the fault has struck.
+    print(f"misbehaving: {fault} in {where}", flush=True)
     if fault == "raise":
         raise FaultInjected(f"fault in {where}")
     if fault == "exit":
         sys.exit(3)
     if fault == "busy":
-        deadline = time.monotonic() + FOREVER_S
+        deadline = time.monotonic() + forever
         while time.monotonic() < deadline:
             pass
     elif fault in ("sleep", "await"):
-        time.sleep(FOREVER_S)
+        time.sleep(forever)
     elif fault == "thread":
-        threading.Thread(target=time.sleep, args=(FOREVER_S,), name=f"leaked-by-{where}").start()
+        threading.Thread(target=time.sleep, args=(forever,), name=f"leaked-by-{where}").start()
     elif fault == "slow":
         time.sleep(SLOW_S)
 
 
-async def _misbehave(fault: str, where: str) -> None:
+async def _misbehave(fault: str, where: str, forever: float = FOREVER_S) -> None:
     if fault == "await":
-        await asyncio.sleep(FOREVER_S)
+        print(f"misbehaving: {fault} in {where}", flush=True)
+        await asyncio.sleep(forever)
     elif fault == "slow":
         await asyncio.sleep(SLOW_S)
     else:
-        _misbehave_plainly(fault, where)
+        _misbehave_plainly(fault, where, forever)
 
 
 class Faulty(LifecycleNode):
@@ -80,8 +83,10 @@ class Faulty(LifecycleNode):
         super().__init__(node_name, **kwargs)
         self.fault = str(self.declare_parameter("fault", "raise").value)
         self.where = str(self.declare_parameter("where", "timer").value)
+        #: How long "forever" lasts for this node, in seconds.
+        self.forever = float(self.declare_parameter("forever", FOREVER_S).value)
         if self.where == "constructor":
-            _misbehave_plainly(self.fault, self.where)
+            _misbehave_plainly(self.fault, self.where, self.forever)
         self.hits = 0
         if self.where == "timer":
             self.create_timer(0.05, self._tick)
@@ -96,7 +101,7 @@ class Faulty(LifecycleNode):
 
     def _tick(self) -> None:
         if self._once():
-            _misbehave_plainly(self.fault, self.where)
+            _misbehave_plainly(self.fault, self.where, self.forever)
 
     def _poked(self, message: String) -> None:
         self._tick()
@@ -108,7 +113,7 @@ class Faulty(LifecycleNode):
 
     def _transition(self, label: str) -> TransitionCallbackReturn:
         if label == self.where:
-            _misbehave_plainly(self.fault, label)
+            _misbehave_plainly(self.fault, label, self.forever)
         return TransitionCallbackReturn.SUCCESS
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -134,7 +139,7 @@ class FaultyAsync(Faulty):
 
     async def _tick(self) -> None:  # type: ignore[override]
         if self._once():
-            await _misbehave(self.fault, self.where)
+            await _misbehave(self.fault, self.where, self.forever)
 
     async def _poked(self, message: String) -> None:  # type: ignore[override]
         await self._tick()
@@ -146,7 +151,7 @@ class FaultyAsync(Faulty):
 
     async def _transition_async(self, label: str) -> TransitionCallbackReturn:
         if label == self.where:
-            await _misbehave(self.fault, label)
+            await _misbehave(self.fault, label, self.forever)
         return TransitionCallbackReturn.SUCCESS
 
     async def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:

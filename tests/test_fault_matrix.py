@@ -4,7 +4,7 @@ A node of ``tests_faults`` raises, calls ``sys.exit()``, blocks (a busy
 loop, ``time.sleep``, awaiting forever) or leaks a non-daemon thread, in its
 constructor, in each transition, or in a timer, subscription or service
 callback, with plain and ``async def`` callbacks: 93 cells, all in one
-container beside a talker publishing at 10 Hz. For every cell the container
+container beside a talker publishing at 5 Hz. For every cell the container
 survives, the talker keeps its rate, the faulty node ends in the state the
 README's containment table gives, and unloading it works.
 
@@ -37,7 +37,14 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from container import AsyncioExecutor
-from tests.component_support import IMPORT_ROOT, ContainerClient, install_test_plugin, load_request, parameter
+from tests.component_support import (
+    IMPORT_ROOT,
+    ContainerClient,
+    install_test_plugin,
+    load_request,
+    parameter,
+    wait_until,
+)
 from tests.container_support import ContainerProcess
 from tests.fault_plugin import TRANSITIONS, WHERES
 
@@ -46,7 +53,7 @@ TIMEOUT = 0.5
 #: How long a blocking fault blocks: beyond every timeout.
 FOREVER = 2.0
 #: The talker's period; no gap may exceed three of them.
-PERIOD = 0.1
+PERIOD = 0.2
 
 CONTAINER = f"""
 container: {{unload_timeout: {TIMEOUT}, load_timeout: {TIMEOUT}, shutdown_timeout: 2.0}}
@@ -82,7 +89,9 @@ def expected_state(style: str, fault: str, where: str) -> str:
             return GOAL[where]
         if fault in ("raise", "exit"):
             return "unconfigured"  # error processing; on_error succeeds
-        return START[where]  # timed out: failed back
+        # Timed out: the transition fails, back to its start state; rcl's
+        # shutdown ends in finalized whether it succeeds or fails.
+        return "finalized" if where == "shutdown" else START[where]
     return "unconfigured" if fault in ("raise", "exit") else "active"
 
 
@@ -130,7 +139,9 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     node.create_subscription(String, "/chatter", heard, QoSProfile(depth=1000))  # type: ignore[arg-type]
     try:
         container.wait_for_line("ready with")
-        yield Rig(container, ContainerClient(node, executor), stamps, lock)
+        rig = Rig(container, ContainerClient(node, executor), stamps, lock)
+        assert wait_until(executor, lambda: len(stamps) >= 2), "the talker was never heard"
+        yield rig
     finally:
         container.close()
         executor.shutdown(timeout_sec=5.0)
@@ -151,20 +162,34 @@ def state(rig: Rig, name: str) -> str:
     return str(call(rig, GetState, f"/{name}/get_state", GetState.Request()).current_state.label)
 
 
+PRIMARY = ("unconfigured", "inactive", "active", "finalized")
+
+
+def settled_state(rig: Rig, name: str, *, timeout: float = 10.0) -> str:
+    """The node's state once no transition is in progress (a late one may still be ending)."""
+    deadline = time.monotonic() + timeout
+    while (now := state(rig, name)) not in PRIMARY and time.monotonic() < deadline:
+        rig.client.executor.spin_once(timeout_sec=0.05)
+    return now
+
+
 def change(rig: Rig, name: str, label: str) -> bool:
     request = ChangeState.Request(transition=Transition(id=IDS[label], label=label))
     # Answered within transition_timeout (+1 s) whatever the callback does.
     return bool(call(rig, ChangeState, f"/{name}/change_state", request, timeout=TIMEOUT + 5.0).success)
 
 
-def trigger(rig: Rig, name: str, where: str) -> None:
+def trigger(rig: Rig, name: str, where: str, *, struck: str, mark: int) -> None:
+    """Make the node's subscription or service callback run (its timer runs by itself)."""
     node = rig.client.node
     if where == "subscription":
         publisher = node.create_publisher(String, f"/{name}/poke", 10)
         deadline = time.monotonic() + 10.0
-        while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
-            rig.client.executor.spin_once(timeout_sec=0.02)
-        publisher.publish(String(data="poke"))
+        # Published until the callback ran: the first ones may go out
+        # before the subscription has matched.
+        while not any(struck in line for line in rig.container.lines[mark:]) and time.monotonic() < deadline:
+            publisher.publish(String(data="poke"))
+            rig.client.executor.spin_once(timeout_sec=0.05)
         node.destroy_publisher(publisher)
     elif where == "service":
         poke = node.create_client(Trigger, f"/{name}/poke")
@@ -173,10 +198,20 @@ def trigger(rig: Rig, name: str, where: str) -> None:
 
 
 def largest_gap(rig: Rig, since: float, until: float) -> float:
+    """The talker's largest gap between publications over ``[since, until]``, edges included."""
+
+    def after_until() -> bool:
+        with rig.lock:
+            return bool(rig.stamps) and rig.stamps[-1] > until
+
+    # Messages wait in the subscription's history until the client spins.
+    assert wait_until(rig.client.executor, after_until, timeout=10.0), "the talker fell silent"
     with rig.lock:
-        stamps = [s for s in rig.stamps if since <= s <= until]
-    assert len(stamps) >= 2, "the talker published nothing during the cell"
-    return max(b - a for a, b in itertools.pairwise(stamps))
+        stamps = sorted(rig.stamps)
+    first = max((i for i, s in enumerate(stamps) if s < since), default=0)
+    last = min(i for i, s in enumerate(stamps) if s > until)
+    window = stamps[first : last + 1]
+    return max(b - a for a, b in itertools.pairwise(window))
 
 
 @pytest.mark.timeout(120)
@@ -210,7 +245,7 @@ def test_fault_cell(rig: Rig, style: str, fault: str, where: str) -> None:
             assert change(rig, name, where) == (fault == "thread")
         elif where != "constructor":
             assert change(rig, name, "configure") and change(rig, name, "activate")
-            trigger(rig, name, where)
+            trigger(rig, name, where, struck=f"misbehaving: {fault} in {where}", mark=mark)
         if where != "constructor":
             rig.container.wait_for_line(f"misbehaving: {fault} in {where}", start=mark)
         if blocks_the_loop(style, fault):
@@ -218,10 +253,10 @@ def test_fault_cell(rig: Rig, style: str, fault: str, where: str) -> None:
             rig.container.wait_for_line("event loop free again", start=mark, timeout=FOREVER + 10.0)
         if fault in ("raise", "exit") and where not in TRANSITIONS:
             rig.container.wait_for_line("Error processing done", start=mark)
-        final = state(rig, name)
+        final = settled_state(rig, name)
         unloaded = rig.client.unload(loaded.unique_id)
         assert unloaded.success
         assert name not in [full.lstrip("/") for _, full in rig.client.list()]
     assert rig.container.process.poll() is None, "the container died"
-    assert final == expected
+    assert final == expected, f"{final}\n" + "\n".join(rig.container.lines[mark:])
     assert largest_gap(rig, started, time.time()) < 3 * PERIOD

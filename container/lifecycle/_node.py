@@ -28,6 +28,7 @@ import asyncio
 import concurrent.futures
 import contextlib
 import inspect
+import threading
 import traceback
 import weakref
 from collections.abc import AsyncIterator, Callable
@@ -266,7 +267,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
             return final
 
     async def _request(
-        self, request: str | int, *, timeout: float | None
+        self, request: str | int, *, timeout: float | None, abandoned: threading.Event | None = None
     ) -> TransitionCallbackReturn | None:
         async with self._transitioning():
             transition_id = self._resolve(request)
@@ -274,7 +275,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 self._refuse(request)
                 return None
             return await self._carry_out(
-                transition_id, timeout=self._timeout(timeout), inline=False
+                transition_id, timeout=self._timeout(timeout), inline=False, abandoned=abandoned
             )
 
     def _timeout(self, timeout: float | None) -> float | None:
@@ -306,7 +307,14 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         timeout: float | None,
         inline: bool,
         forced: TransitionCallbackReturn | None = None,
+        abandoned: threading.Event | None = None,
     ) -> TransitionCallbackReturn:
+        """Drive one transition through rcl's state machine.
+
+        :param abandoned: set when whoever asked was already answered
+            ``success=false`` (the loop was stuck past the timeout): the
+            transition then fails, whatever its callback returns late.
+        """
         start = self.lifecycle_state
         self._machine("trigger_transition_by_id", transition_id, True)
         middle = self.lifecycle_state
@@ -318,6 +326,12 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 outcome = forced
             else:
                 outcome = await self._invoke(middle, start, timeout=timeout, inline=inline)
+            if abandoned is not None and abandoned.is_set() and outcome == SUCCESS:
+                self.get_logger().error(
+                    f"{_CALLBACKS.get(middle.state_id, 'the callback')}() returned after its caller "
+                    "was answered success=false; the transition fails"
+                )
+                outcome = FAILURE
             self._machine("trigger_transition_by_label", outcome.to_label(), True)
             if outcome == ERROR:
                 recovery = await self._invoke(
@@ -356,7 +370,10 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                     _discard(result)
                     raise TypeError(f"{name}() is asynchronous; await node.transition() instead")
             elif inspect.iscoroutinefunction(callback):
-                result = await asyncio.wait_for(contained(callback(previous)), timeout)
+                # A task of its own, named for the loop watchdog's report.
+                running = asyncio.ensure_future(contained(callback(previous)))
+                running.set_name(f"{name}() of {self.get_fully_qualified_name()}")
+                result = await asyncio.wait_for(running, timeout)
             else:
                 result = await asyncio.wait_for(
                     in_thread(lambda: callback(previous), name=f"transition:{name}"), timeout
@@ -456,7 +473,15 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 response.success = False
             return response
         limit = self._timeout(None)
-        pending = asyncio.run_coroutine_threadsafe(self._request(wanted, timeout=None), loop)
+
+        async def requested() -> TransitionCallbackReturn | None:
+            task = asyncio.current_task()
+            if task is not None:  # named for the loop watchdog's report
+                task.set_name(f"transition {clip(repr(wanted))} of {self.get_fully_qualified_name()}")
+            return await self._request(wanted, timeout=None, abandoned=abandoned)
+
+        abandoned = threading.Event()
+        pending = asyncio.run_coroutine_threadsafe(requested(), loop)
         try:
             response.success = pending.result(None if limit is None else limit + _ANSWER_MARGIN_S) is SUCCESS
         except concurrent.futures.TimeoutError:
@@ -464,6 +489,9 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
                 f"Transition {clip(repr(wanted))} did not end within {limit:g} s (transition_timeout): "
                 "is the event loop stuck in a callback? Answered success=false"
             )
+            # The answer was failure: so is the outcome, once the loop gets to it.
+            abandoned.set()
+            pending.cancel()
             response.success = False
         except concurrent.futures.CancelledError:
             # Cut short by end_transition (the node is going away).

@@ -52,6 +52,9 @@ DEFAULT_HEARTBEAT_TIMEOUT = 4.0
 
 _QOS = QoSProfile(depth=10)
 
+#: Instances remembered per node: the current one, a respawned one, a few strays.
+_INSTANCES_KEPT = 8
+
 
 def status_type() -> Any:
     """``bond.msg.Status``, or ``None`` when the generated package is missing.
@@ -156,7 +159,8 @@ class HeartbeatWatch:
     ) -> None:
         status = _require_status_type()
         self._node = node
-        self._seen: dict[str, Heartbeat] = {}
+        #: Per node, the last heartbeat of each instance of it.
+        self._seen: dict[str, dict[str, Heartbeat]] = {}
         self._changed: asyncio.Event | None = None
         # rclpy's annotation knows no async callbacks; AsyncioExecutor runs them.
         self._subscription: Subscription | None = node.create_subscription(
@@ -168,13 +172,20 @@ class HeartbeatWatch:
         )
 
     async def _receive(self, message: Any) -> None:
-        self._seen[message.id] = Heartbeat(time.monotonic(), message.instance_id, message.active)
+        instances = self._seen.setdefault(message.id, {})
+        instances[message.instance_id] = Heartbeat(time.monotonic(), message.instance_id, message.active)
+        if len(instances) > _INSTANCES_KEPT:  # a peer inventing instance ids costs nothing
+            del instances[min(instances, key=lambda key: instances[key].received)]
         if self._changed is not None:
             self._changed.set()
             self._changed = None
 
-    def last(self, node_name: str) -> Heartbeat | None:
-        return self._seen.get(node_name)
+    def last(self, node_name: str, *, instance: str | None = None) -> Heartbeat | None:
+        """The last heartbeat of ``node_name``: of ``instance`` if given, else of any instance."""
+        instances = self._seen.get(node_name, {})
+        if instance is not None:
+            return instances.get(instance)
+        return max(instances.values(), key=lambda seen: seen.received, default=None)
 
     async def wait(self, node_name: str, *, after: float, timeout: float) -> Heartbeat | None:
         """Wait for a live heartbeat of ``node_name`` received after ``after``.
@@ -183,7 +194,7 @@ class HeartbeatWatch:
         """
         deadline = time.monotonic() + timeout
         while True:
-            seen = self._seen.get(node_name)
+            seen = self.last(node_name)
             if seen is not None and seen.active and seen.received > after:
                 return seen
             remaining = deadline - time.monotonic()

@@ -202,6 +202,10 @@ class LifecycleManager(Node):
         #: Bumped by every command, so a pending respawn knows it was overtaken.
         self._generation = 0
         self._tasks: set[asyncio.Task[Any]] = set()
+        #: The instance of each node whose heartbeats count (seen at activation).
+        self._instances: dict[str, str] = {}
+        #: Nodes lost and not back within the respawn window.
+        self._stragglers: set[str] = set()
 
         calls = ReentrantCallbackGroup()
         self._lifecycle = {
@@ -325,13 +329,17 @@ class LifecycleManager(Node):
     async def _expect_heartbeat(self, node: str, *, since: float) -> None:
         if self._watch is None:
             return
-        if await self._watch.wait(node, after=since, timeout=self.bond_timeout) is None:
+        beat = await self._watch.wait(node, after=since, timeout=self.bond_timeout)
+        if beat is None:
             raise TransitionError(
                 f"no heartbeat on /bond within {self.bond_timeout:g} s (heartbeats off on the "
                 "node? set the manager's bond_timeout to 0 to manage nodes without them)",
                 node=node,
                 transition="activate",
             )
+        # From now on only this instance's heartbeats count for the node: a
+        # peer (or a stale process) beating under its name hides nothing.
+        self._instances[node] = beat.instance_id
 
     # -- one node, one step ---------------------------------------------------------
     async def _step(self, node: str, label: str, *, retry: bool = True) -> bool:
@@ -383,12 +391,15 @@ class LifecycleManager(Node):
 
     # -- heartbeats -------------------------------------------------------------------
     async def _check_heartbeats(self) -> None:
-        if self._watch is None or not self.system_active or self._busy.locked():
+        if self._watch is None or self._busy.locked():
+            return
+        self._catch_stragglers()
+        if not self.system_active:
             return
         now = time.monotonic()
         lost = []
         for node in self.node_names:
-            seen = self._watch.last(node)
+            seen = self._watch.last(node, instance=self._instances.get(node))
             if seen is None or not seen.active or now - seen.received > self.bond_timeout:
                 lost.append(node)
         if lost:
@@ -430,6 +441,8 @@ class LifecycleManager(Node):
             if back is None:
                 self.status += f"; {node} did not come back within {self.respawn_max_duration:g} s"
                 self.get_logger().error(self.status)
+                # Should it come back later, it is brought where its peers are.
+                self._stragglers.update(lost)
                 return
         if generation != self._generation:
             return  # a command came in meanwhile: it decides
@@ -437,6 +450,27 @@ class LifecycleManager(Node):
         async with self._busy:
             await self._take_down(("deactivate", "cleanup"), self.node_names)
             await self._command(STARTUP)
+
+    def _catch_stragglers(self) -> None:
+        """A node back after the respawn window must not stay active alone."""
+        assert self._watch is not None
+        now = time.monotonic()
+        for node in list(self._stragglers):
+            seen = self._watch.last(node)
+            if seen is None or not seen.active or now - seen.received > self.bond_timeout:
+                continue
+            self._stragglers.discard(node)
+            self.get_logger().warning(
+                f"{node} came back after the respawn window; bringing it to unconfigured like its peers"
+            )
+            self._spawn(self._reset_straggler(node))
+
+    async def _reset_straggler(self, node: str) -> None:
+        async with self._busy:
+            outcome = await self._take_down(("deactivate", "cleanup"), [node])
+        if outcome.errors:
+            self.status += f"; {node} came back and could not be reset: " + "; ".join(map(str, outcome.errors))
+            self.get_logger().error(self.status)
 
     # -- running ----------------------------------------------------------------------
     async def run(self) -> None:

@@ -329,3 +329,32 @@ def test_heartbeat_periods_below_10_ms_are_refused() -> None:
     with pytest.raises(ConfigError, match=r"bond_heartbeat_period: must be >= 0.01"):
         ManagerSettings.from_mapping({"bond_heartbeat_period": 1e-9})
     assert ManagerSettings.from_mapping({"bond_heartbeat_period": 0.01}).parameters["bond_heartbeat_period"] == 0.01
+
+
+def test_a_heartbeat_from_another_instance_never_hides_a_crash(
+    run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
+) -> None:
+    """A peer beating ``active`` for a killed node, under another instance id, is not the node."""
+    from bond.msg import Status
+
+    remote = run_container(TALKER.format(name="b"))
+    main = run_container(WITH_MANAGER)
+    main.wait_for_line("Managed nodes are active")
+    impostor = Node("impostor", context=context)
+    publisher = impostor.create_publisher(Status, "/bond", 10)
+    impostor.create_timer(
+        0.05, lambda: publisher.publish(Status(id="/b", instance_id="impostor", active=True, heartbeat_period=0.05))
+    )
+    executor.add_node(impostor)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        mark = len(main.lines)
+        remote.process.send_signal(signal.SIGKILL)
+        killed_at = time.monotonic()
+        main.wait_for_line("Heartbeat of /b lost", start=mark, timeout=BOND_TIMEOUT + 10)
+        assert time.monotonic() - killed_at < BOND_TIMEOUT + MARGIN + 0.5
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        impostor.destroy_node()

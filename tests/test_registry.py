@@ -201,6 +201,18 @@ def test_import_error_is_reported_and_good_plugin_still_loads(
     assert any("broken-plugin" in m and "no_such_module_xyz" in m for m in messages)
 
 
+def test_plugin_that_exits_at_import_is_reported_and_skipped(make_dist: MakeDist, group: str) -> None:
+    make_dist("exiting-plugin", {"nodes": "exiting_nodes"}, exiting_nodes="import sys\nsys.exit(3)\n")
+    make_dist("good", {"nodes": "good_nodes"}, good_nodes=GOOD)
+
+    registry = PluginRegistry(group=group)
+
+    [failure] = registry.failures
+    assert failure.distribution == "exiting-plugin"
+    assert "SystemExit: 3" in str(failure)
+    assert sorted(registry.types) == ["good::Listener", "good::Talker"]
+
+
 def test_misspelled_hook_argument_is_reported(make_dist: MakeDist, group: str) -> None:
     make_dist(
         "typo-plugin",

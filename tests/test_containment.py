@@ -189,7 +189,10 @@ def test_request_strings_are_clipped_in_logs_and_answers(
     assert len(line) < 1000 and "characters)" in line
 
 
-def test_removed_node_starts_none_of_its_queued_callbacks(context: Context, executor: AsyncioExecutor) -> None:
+@pytest.mark.parametrize("how", ["remove_node", "destroy_node"])
+def test_removed_node_starts_none_of_its_queued_callbacks(
+    context: Context, executor: AsyncioExecutor, how: str
+) -> None:
     listener = Node("removal_listener", context=context)
     talker = Node("removal_talker", context=context)
     started: list[int] = []
@@ -214,7 +217,10 @@ def test_removed_node_starts_none_of_its_queued_callbacks(context: Context, exec
         for number in range(10):
             publisher.publish(Int64(data=number))
         assert first.wait(10.0)
-        executor.remove_node(listener)
+        if how == "remove_node":
+            executor.remove_node(listener)
+        else:
+            listener.destroy_node()  # rclpy's executors start none of its queued callbacks either
         release.set()
         # A later message, through the same executor, marks "after": by the
         # time it arrives, anything queued before would have started.
@@ -225,7 +231,8 @@ def test_removed_node_starts_none_of_its_queued_callbacks(context: Context, exec
         release.set()
         executor.shutdown(timeout_sec=5.0)
         spinner.join(5.0)
-        listener.destroy_node()
+        if how == "remove_node":
+            listener.destroy_node()
         talker.destroy_node()
 
 

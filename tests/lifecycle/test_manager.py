@@ -358,3 +358,31 @@ def test_a_heartbeat_from_another_instance_never_hides_a_crash(
         executor.shutdown(timeout_sec=5.0)
         spinner.join(5.0)
         impostor.destroy_node()
+
+
+def test_a_node_back_after_the_respawn_window_is_reset_like_its_peers(
+    run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
+) -> None:
+    """Stopped past the window, a node comes back active; it must not stay active alone."""
+    remote = run_container(TALKER.format(name="b"))
+    main = run_container(WITH_MANAGER.replace("bond_respawn_max_duration: 30.0", "bond_respawn_max_duration: 1.0"))
+    main.wait_for_line("Managed nodes are active")
+    observer = Node("observer", context=context)
+    executor.add_node(observer)
+    log = TransitionLog(observer, ["/b"])
+    log.wait_matched()
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        mark = len(main.lines)
+        remote.process.send_signal(signal.SIGSTOP)
+        main.wait_for_line("/b did not come back", start=mark, timeout=BOND_TIMEOUT + 10)
+        after = len(log)
+        remote.process.send_signal(signal.SIGCONT)
+        main.wait_for_line("/b came back after the respawn window", start=mark, timeout=10)
+        log.wait_for("/b", "unconfigured", after=after, timeout=10)
+    finally:
+        remote.process.send_signal(signal.SIGCONT)
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        observer.destroy_node()

@@ -29,6 +29,7 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from rclpy.utilities import try_shutdown  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
+from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E402
 from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
 
 
@@ -73,6 +74,28 @@ def host(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[..., 
         machine = getattr(node, "_state_machine", None)
         if machine is not None:
             machine.destroy_when_not_in_use()
+
+
+@pytest.fixture
+def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
+    """A node of the test's own, on ``executor``, to call containers and nodes from."""
+    node = Node("test_client", context=context)
+    executor.add_node(node)
+    yield node
+    executor.remove_node(node)
+    node.destroy_node()
+
+
+@pytest.fixture
+def see_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[..., None]:
+    """Make child processes see a test plugin distribution whose entry point is a module of tests/."""
+
+    def see(*, distribution: str = "test-nodes", module: str = "tests.component_support") -> None:
+        site = install_test_plugin(tmp_path / "site", distribution=distribution, module=module)
+        path = os.pathsep.join([str(site), str(IMPORT_ROOT), os.environ.get("PYTHONPATH", "")])
+        monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
+
+    return see
 
 
 @pytest.fixture

@@ -7,12 +7,10 @@ drives it as a careless plugin or a hostile peer would.
 from __future__ import annotations
 
 import itertools
-import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
-from pathlib import Path
+from collections.abc import Callable
 
 import pytest
 from composition_interfaces.srv import LoadNode
@@ -26,10 +24,8 @@ from std_msgs.msg import Int64, String
 
 from container import AsyncioExecutor
 from tests.component_support import (
-    IMPORT_ROOT,
     ContainerClient,
     graph_nodes,
-    install_test_plugin,
     load_request,
     parameter,
     wait_until,
@@ -41,23 +37,10 @@ CONTAINER = "container:\n  name: ComponentManager\n  unload_timeout: 1.0\n"
 
 
 @pytest.fixture
-def container(
-    run_container: Callable[..., ContainerProcess], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> ContainerProcess:
+def container(run_container: Callable[..., ContainerProcess], see_plugin: Callable[..., None]) -> ContainerProcess:
     """An empty container that also sees the ``tests-faults`` plugin."""
-    site = install_test_plugin(tmp_path / "site", distribution="tests-faults", module="tests.fault_plugin")
-    path = os.pathsep.join([str(site), str(IMPORT_ROOT), os.environ.get("PYTHONPATH", "")])
-    monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
+    see_plugin(distribution="tests-faults", module="tests.fault_plugin")
     return run_container(CONTAINER)
-
-
-@pytest.fixture
-def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
-    node = Node("containment_client", context=context)
-    executor.add_node(node)
-    yield node
-    executor.remove_node(node)
-    node.destroy_node()
 
 
 @pytest.fixture
@@ -157,15 +140,10 @@ def test_a_constructor_that_fails_leaves_nothing_behind(
     assert container.process.poll() is None
 
 
+@pytest.mark.usefixtures("fault_site")
 def test_a_blocking_constructor_is_refused_in_time_and_blocks_no_one(
-    run_container: Callable[..., ContainerProcess],
-    tmp_path: Path,
-    monkeypatch: pytest.MonkeyPatch,
-    client_node: Node,
-    executor: AsyncioExecutor,
+    run_container: Callable[..., ContainerProcess], client_node: Node, executor: AsyncioExecutor
 ) -> None:
-    site = install_test_plugin(tmp_path / "site", distribution="tests-faults", module="tests.fault_plugin")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), str(IMPORT_ROOT)]))
     container = run_container("container:\n  load_timeout: 1.0\n")
     client = ContainerClient(client_node, executor)
     pending = client.load_client.call_async(faulty("busy", "constructor"))
@@ -246,10 +224,9 @@ def wait_for_matches(publisher: Publisher, count: int, *, timeout: float = 10.0)
 
 
 @pytest.fixture
-def fault_site(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def fault_site(see_plugin: Callable[..., None]) -> None:
     """Child processes see the ``tests-faults`` plugin."""
-    site = install_test_plugin(tmp_path / "site", distribution="tests-faults", module="tests.fault_plugin")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), str(IMPORT_ROOT)]))
+    see_plugin(distribution="tests-faults", module="tests.fault_plugin")
 
 
 @pytest.mark.usefixtures("fault_site")

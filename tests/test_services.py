@@ -6,21 +6,16 @@ the client, over DDS, exactly like ``ros2 component``.
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable, Iterator
-from pathlib import Path
+from collections.abc import Callable
 
 import pytest
 from rcl_interfaces.srv import GetParameters
-from rclpy.context import Context
 from rclpy.node import Node
 
 from container import AsyncioExecutor
 from tests.component_support import (
-    IMPORT_ROOT,
     ContainerClient,
     graph_nodes,
-    install_test_plugin,
     load_request,
     parameter,
     wait_until,
@@ -31,25 +26,10 @@ EMPTY = "container:\n  name: ComponentManager\n"
 
 
 @pytest.fixture
-def container(
-    run_container: Callable[..., ContainerProcess],
-    tmp_path: Path,
-    monkeypatch: pytest.MonkeyPatch,
-) -> ContainerProcess:
+def container(run_container: Callable[..., ContainerProcess], see_plugin: Callable[..., None]) -> ContainerProcess:
     """An empty ``container run`` that also sees the ``test-nodes`` plugin."""
-    site = install_test_plugin(tmp_path / "site")
-    path = os.pathsep.join([str(site), str(IMPORT_ROOT), os.environ.get("PYTHONPATH", "")])
-    monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
+    see_plugin()
     return run_container(EMPTY)
-
-
-@pytest.fixture
-def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
-    node = Node("services_test_client", context=context)
-    executor.add_node(node)
-    yield node
-    executor.remove_node(node)
-    node.destroy_node()
 
 
 @pytest.fixture

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import pytest
@@ -203,19 +205,48 @@ BOND_TIMEOUT = 1.0
 MARGIN = 1.0
 
 
-def test_killed_node_in_another_process_resets_the_rest_and_respawn_restarts_them(
-    run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
-) -> None:
+@dataclass
+class System:
+    """Node /b in a process of its own, /a and /c with the manager in another, and an observer."""
+
+    remote: ContainerProcess
+    main: ContainerProcess
+    observer: Node
+    log: TransitionLog
+
+
+@contextlib.contextmanager
+def managed_system(
+    run_container: Callable[..., ContainerProcess],
+    context: Context,
+    executor: AsyncioExecutor,
+    *,
+    manager: str = WITH_MANAGER,
+    watched: tuple[str, ...] = ("/a", "/c"),
+) -> Iterator[System]:
+    """Bring the system up and spin ``executor`` for the observer until the test ends."""
     remote = run_container(TALKER.format(name="b"))
-    main = run_container(WITH_MANAGER)
+    main = run_container(manager)
     main.wait_for_line("Managed nodes are active")
     observer = Node("observer", context=context)
     executor.add_node(observer)
-    log = TransitionLog(observer, ["/a", "/c"])
+    log = TransitionLog(observer, list(watched))
     log.wait_matched()
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     try:
+        yield System(remote, main, observer, log)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        observer.destroy_node()
+
+
+def test_killed_node_in_another_process_resets_the_rest_and_respawn_restarts_them(
+    run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
+) -> None:
+    with managed_system(run_container, context, executor) as system:
+        remote, main, log = system.remote, system.main, system.log
         mark = len(main.lines)
         remote.process.send_signal(signal.SIGKILL)
         killed_at = time.monotonic()
@@ -233,10 +264,6 @@ def test_killed_node_in_another_process_resets_the_rest_and_respawn_restarts_the
         main.wait_for_line("Managed nodes are active", start=mark, timeout=30)
         log.wait_for("/a", "active", after=after_reset)
         log.wait_for("/c", "active", after=after_reset)
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
-        observer.destroy_node()
     assert main.stop() == 0
 
 
@@ -337,52 +364,30 @@ def test_a_heartbeat_from_another_instance_never_hides_a_crash(
     """A peer beating ``active`` for a killed node, under another instance id, is not the node."""
     from bond.msg import Status
 
-    remote = run_container(TALKER.format(name="b"))
-    main = run_container(WITH_MANAGER)
-    main.wait_for_line("Managed nodes are active")
-    impostor = Node("impostor", context=context)
-    publisher = impostor.create_publisher(Status, "/bond", 10)
-    impostor.create_timer(
-        0.05, lambda: publisher.publish(Status(id="/b", instance_id="impostor", active=True, heartbeat_period=0.05))
-    )
-    executor.add_node(impostor)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
-        mark = len(main.lines)
-        remote.process.send_signal(signal.SIGKILL)
+    with managed_system(run_container, context, executor) as system:
+        publisher = system.observer.create_publisher(Status, "/bond", 10)
+        system.observer.create_timer(
+            0.05, lambda: publisher.publish(Status(id="/b", instance_id="impostor", active=True))
+        )
+        mark = len(system.main.lines)
+        system.remote.process.send_signal(signal.SIGKILL)
         killed_at = time.monotonic()
-        main.wait_for_line("Heartbeat of /b lost", start=mark, timeout=BOND_TIMEOUT + 10)
+        system.main.wait_for_line("Heartbeat of /b lost", start=mark, timeout=BOND_TIMEOUT + 10)
         assert time.monotonic() - killed_at < BOND_TIMEOUT + MARGIN + 0.5
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
-        impostor.destroy_node()
 
 
 def test_a_node_back_after_the_respawn_window_is_reset_like_its_peers(
     run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
 ) -> None:
     """Stopped past the window, a node comes back active; it must not stay active alone."""
-    remote = run_container(TALKER.format(name="b"))
-    main = run_container(WITH_MANAGER.replace("bond_respawn_max_duration: 30.0", "bond_respawn_max_duration: 1.0"))
-    main.wait_for_line("Managed nodes are active")
-    observer = Node("observer", context=context)
-    executor.add_node(observer)
-    log = TransitionLog(observer, ["/b"])
-    log.wait_matched()
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
-        mark = len(main.lines)
-        remote.process.send_signal(signal.SIGSTOP)
-        main.wait_for_line("/b did not come back", start=mark, timeout=BOND_TIMEOUT + 10)
-        after = len(log)
-        remote.process.send_signal(signal.SIGCONT)
-        main.wait_for_line("/b came back after the respawn window", start=mark, timeout=10)
-        log.wait_for("/b", "unconfigured", after=after, timeout=10)
-    finally:
-        remote.process.send_signal(signal.SIGCONT)
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
-        observer.destroy_node()
+    short_window = WITH_MANAGER.replace("bond_respawn_max_duration: 30.0", "bond_respawn_max_duration: 1.0")
+    with managed_system(run_container, context, executor, manager=short_window, watched=("/b",)) as system:
+        mark = len(system.main.lines)
+        system.remote.process.send_signal(signal.SIGSTOP)
+        try:
+            system.main.wait_for_line("/b did not come back", start=mark, timeout=BOND_TIMEOUT + 10)
+            after = len(system.log)
+        finally:
+            system.remote.process.send_signal(signal.SIGCONT)
+        system.main.wait_for_line("/b came back after the respawn window", start=mark, timeout=10)
+        system.log.wait_for("/b", "unconfigured", after=after, timeout=10)

@@ -39,9 +39,14 @@ from composition_interfaces.srv import LoadNode, UnloadNode
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 
+from container import AsyncioExecutor
+
 cycles, tds = int(sys.argv[1]), sys.argv[2] == "on"
 rclpy.init()
 node = Node("_soak_client")
+# rclpy's SingleThreadedExecutor spent 85% of a core here and set the pace.
+executor = AsyncioExecutor()
+executor.add_node(node)
 load = node.create_client(LoadNode, "/ComponentManager/_container/load_node")
 unload = node.create_client(UnloadNode, "/ComponentManager/_container/unload_node")
 change = node.create_client(ChangeState, "/talker/change_state")
@@ -50,7 +55,7 @@ for client in (load, unload):
 
 def call(client, request):
     future = client.call_async(request)
-    rclpy.spin_until_future_complete(node, future, timeout_sec=30.0)
+    executor.spin_until_future_complete(future, timeout_sec=30.0)
     if not future.done():
         sys.exit(f"no answer from {client.srv_name}")
     return future.result()
@@ -76,6 +81,7 @@ for cycle in range(1, cycles + 1):
         print(f"cycle {cycle} {time.monotonic() - started:.3f}", flush=True)
         sys.stdin.readline()
         started = time.monotonic()
+executor.shutdown()
 node.destroy_node()
 rclpy.shutdown()
 """

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import logging
-import os
 import sys
 import threading
 
@@ -22,10 +20,9 @@ def main() -> int:
     """
     code = _main()
     if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
-        logging.shutdown()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code or 1)
+        from ._session import exit_now  # rclpy only loads when a session ran
+
+        exit_now(code or 1)
     return code
 
 

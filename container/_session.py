@@ -29,7 +29,7 @@ import threading
 import time
 from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NoReturn
 
 import rclpy
 from rclpy.context import Context
@@ -40,7 +40,7 @@ from rclpy.utilities import try_shutdown
 from ._runtime import use_fast_discovery
 from .executor import AsyncioExecutor
 
-__all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "Session", "exit_code_for", "run_session"]
+__all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "Session", "exit_code_for", "exit_now", "run_session"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -83,11 +83,22 @@ def _hard_stop(session: Session, signum: int) -> None:
                 f"{name}: the event loop has been stuck for {time.monotonic() - stall.since:.1f} s "
                 f"in {stall.what}; exiting without a clean shutdown"
             )
-            logging.shutdown()
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(exit_code_for(signum))
+            exit_now(exit_code_for(signum))
         time.sleep(_HARD_STOP_POLL_S)
+
+
+def exit_now(code: int) -> NoReturn:
+    """End the process at once with ``code``, whatever threads still run.
+
+    For what an orderly exit cannot do: a stuck loop, a second signal,
+    threads a plugin left behind (Python's exit would join them). Logs and
+    standard streams are flushed first.
+    """
+    with contextlib.suppress(Exception):
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(code)
 
 
 def exit_code_for(signum: int) -> int:
@@ -187,9 +198,7 @@ async def _guarded(
             # A second signal: the user wants out now, whatever is still running.
             name = signal.Signals(signum).name
             print(f"{name} again: exiting at once", file=sys.stderr, flush=True)
-            with contextlib.suppress(Exception):
-                logging.shutdown()
-            os._exit(exit_code_for(signum))
+            exit_now(exit_code_for(signum))
         session.signal = signum
         if server:
             _log.info(f"{signal.Signals(signum).name} received: shutting down")

@@ -357,8 +357,11 @@ class Dispatcher:
         on_done: Callable[[], None],
         on_response: Callable[[], None],
         progress: Callable[[], asyncio.Future[None]],
+        wake: Callable[[], None],
     ) -> None:
         self.context = context
+        #: Triggers one of the executor's guard conditions in the hot wait set.
+        self._wake = wake
         self._nodes = nodes
         self._loop = loop
         self._post = post
@@ -396,8 +399,6 @@ class Dispatcher:
         self.busy_since: float | None = None
         #: Whether another thread (the loop watchdog) waits in the loop's place.
         self.relieving = False
-        #: Wakes whoever waits on the hot wait set.
-        self.wake_relief: Callable[[], None] = lambda: None
 
     # -- threads ----------------------------------------------------------------
     def start(self) -> None:
@@ -508,7 +509,7 @@ class Dispatcher:
         if eager:
             self.busy_since = None
             if self.relieving:
-                self.wake_relief()  # it holds the wait set; let it go at once
+                self._wake()  # it holds the wait set; let it go at once
         try:
             flags = self._hot.wait_and_dispatch(timeout_ns)
         finally:

@@ -496,7 +496,6 @@ class AsyncioExecutor(Executor):
         if self._stall_after is None:
             return None
         dispatcher = self._dispatcher
-        dispatcher.wake_relief = self._guard_trigger
         self._watchdog = LoopWatchdog(
             busy_since=lambda: dispatcher.busy_since,
             loop_thread=lambda: dispatcher.loop_thread,
@@ -531,6 +530,7 @@ class AsyncioExecutor(Executor):
             on_done=self._callback_completed,
             on_response=self._notify_progress,
             progress=self._progress_future,
+            wake=self._guard_trigger,
         )
 
     def _own_guards(self) -> list[tuple[Any, int]]:

@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from ._registry import ENTRY_POINT_GROUP, NodeType, PluginRegistry
     from ._services import ContainerServices
     from .executor import AsyncioExecutor, CallbackErrorHandler
+    from .intra import copy_message, enable_intra_process, hand_over
     from .lifecycle import LifecycleManager, LifecycleNode, ManagerSettings, contain_fault
 
 __all__ = [
@@ -57,6 +58,9 @@ __all__ = [
     "RegisterNodeType",
     "TransitionError",
     "contain_fault",
+    "copy_message",
+    "enable_intra_process",
+    "hand_over",
     "hookimpl",
     "hookspec",
 ]
@@ -76,6 +80,9 @@ _LAZY = {
     "LifecycleNode": ".lifecycle",
     "ManagerSettings": ".lifecycle",
     "contain_fault": ".lifecycle",
+    "copy_message": ".intra",
+    "enable_intra_process": ".intra",
+    "hand_over": ".intra",
 }
 
 

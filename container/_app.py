@@ -9,19 +9,21 @@ releases the executor and reports any thread left behind.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+import sys
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 
 from rclpy.context import Context
+from rclpy.exceptions import ParameterException
 
 from ._config import ContainerConfig
-from ._container import ComponentManager, requests_from_specs
+from ._container import ComponentManager, requests_from_specs, type_label
 from ._diagnostics import LoopDiagnostics
 from ._errors import ContainerError
 from ._params import node_parameters
 from ._registry import PluginRegistry
 from ._services import ContainerServices
-from ._session import EXIT_OK, Session, run_session
+from ._session import EXIT_OK, EXIT_USAGE, Session, run_session
 from .executor import AsyncioExecutor
 from .lifecycle import LifecycleManager, ManagerSettings, contain_fault
 
@@ -75,6 +77,7 @@ class ContainerApp:
             ),
             unload_timeout=config.unload_timeout,
             load_timeout=config.load_timeout,
+            use_intra_process_comms=config.use_intra_process_comms,
         )
         services = ContainerServices(manager)
         diagnostics = LoopDiagnostics(manager, executor)
@@ -95,7 +98,7 @@ class ContainerApp:
                 await self.manager.load_and_start(request, timeout=self.config.unload_timeout)
             except ContainerError as exc:
                 # A bad entry costs that node only; the container serves on.
-                log.error(f"Could not start {request.package}::{request.plugin}: {exc}")
+                log.error(f"Could not start {type_label(request.package, request.plugin)}: {exc}")
         running = [asyncio.ensure_future(extension(self)) for extension in extensions]
         log.info(
             f"Container '{self.manager.get_fully_qualified_name()}' ready with "
@@ -119,11 +122,23 @@ class ContainerApp:
         self.manager.destroy_node()
 
 
-def run_container(config: ContainerConfig, *, extensions: tuple[Extension, ...] = ()) -> int:
-    """Run a container process until SIGINT or SIGTERM; return the exit code."""
+def run_container(
+    config: ContainerConfig, *, extensions: tuple[Extension, ...] = (), ros_args: Sequence[str] = ()
+) -> int:
+    """Run a container process until SIGINT or SIGTERM; return the exit code.
+
+    :param ros_args: the command line's ROS arguments; rcl applies them to
+        the container node (its name, namespace, parameters, remaps) and to
+        logging, not to the nodes it loads unless a load forwards them.
+    """
 
     async def main(session: Session) -> int:
-        app = ContainerApp.create(config, context=session.context, executor=session.executor)
+        try:
+            app = ContainerApp.create(config, context=session.context, executor=session.executor)
+        except ParameterException as exc:
+            # A container parameter of the wrong type (--params-file, -p, the file).
+            print(f"container run: {' '.join(str(exc).split())}", file=sys.stderr)
+            return EXIT_USAGE
         try:
             await app.serve(extensions=extensions, stopping=session.stopping)
         finally:
@@ -138,6 +153,7 @@ def run_container(config: ContainerConfig, *, extensions: tuple[Extension, ...] 
             "on_callback_error": contain_fault,
             "shutdown_timeout": config.shutdown_timeout,
         },
+        ros_args=ros_args,
     )
 
 
@@ -164,13 +180,22 @@ def manager_extension(settings: ManagerSettings) -> Callable[[ContainerApp], Awa
     return run
 
 
-def run_manager(settings: ManagerSettings) -> int:
+def run_manager(settings: ManagerSettings, *, ros_args: Sequence[str] = ()) -> int:
     """Run a manager as its own process until SIGINT or SIGTERM; the exit code.
 
     Like Nav2's, a manager process that stops leaves the nodes as they are.
+
+    :param ros_args: the command line's ROS arguments, for the manager node
+        (``-r __node:=``, ``--params-file`` with Nav2's parameters, ...);
+        ``settings`` win over them, as constructor overrides do in rclpy.
     """
     async def main(session: Session) -> int:
-        manager = LifecycleManager(settings, context=session.context)
+        try:
+            manager = LifecycleManager(settings, context=session.context, use_global_arguments=True)
+        except ParameterException as exc:
+            # A parameter of the wrong type in --params-file or -p.
+            print(f"container manager: {' '.join(str(exc).split())}", file=sys.stderr)
+            return EXIT_USAGE
         session.executor.add_node(manager)
         running = asyncio.ensure_future(manager.run())
         try:
@@ -182,4 +207,4 @@ def run_manager(settings: ManagerSettings) -> int:
             manager.destroy_node()
         return EXIT_OK
 
-    return run_session(main, server=True)
+    return run_session(main, server=True, ros_args=ros_args)

@@ -41,6 +41,7 @@ __all__ = [
     "TIMER_INFO",
     "InvalidROSArgsError",
     "SubParsers",
+    "UnknownROSArgsError",
     "WaitSet",
     "adopt_future",
     "change_state_service",
@@ -50,9 +51,11 @@ __all__ = [
     "fire_timer",
     "is_built",
     "leave_task",
+    "loop_is_idle",
     "managed_entities",
     "query_services",
     "running_loop",
+    "runs_plain_callback",
     "set_event_index",
     "state_machine",
     "state_machine_if_built",
@@ -89,6 +92,9 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.node.Node", "_Node__node", "rclpy 1.0-10.x (instance attribute)"),
     ("sys", "_current_frames", "CPython 2.5-3.14; what faulthandler and py-spy read"),
     ("argparse", "_SubParsersAction", "CPython 3.2-3.14; what add_subparsers() returns"),
+    ("rclpy.action.server.ActionServer", "_execute_goal", "rclpy 1.0-10.x; create_task()s the execute callback"),
+    ("asyncio.base_events.BaseEventLoop", "_ready", "CPython 3.4-3.14 (instance attribute)"),
+    ("asyncio.base_events.BaseEventLoop", "_stopping", "CPython 3.4-3.14 (instance attribute)"),
 )
 
 # -- asyncio ----------------------------------------------------------------------
@@ -102,6 +108,11 @@ leave_task: Callable[[asyncio.AbstractEventLoop, asyncio.Task[Any]], None] = asy
 def running_loop() -> asyncio.AbstractEventLoop | None:
     """The running loop of this thread, or ``None`` (no exception on the hot path)."""
     return asyncio._get_running_loop()
+
+
+def loop_is_idle(loop: asyncio.AbstractEventLoop) -> bool:
+    """Whether asyncio has nothing to run before its next select: no ready callback, no stop asked."""
+    return not loop._ready and not loop._stopping  # type: ignore[attr-defined]
 
 
 def thread_frame(ident: int) -> FrameType | None:
@@ -120,6 +131,8 @@ SubParsers: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 WaitSet: Any = rclpy_implementation.WaitSet
 #: What rcl raises for malformed ``--ros-args``.
 InvalidROSArgsError: type[Exception] = rclpy_implementation.RCLInvalidROSArgsError
+#: What rcl raises for ``--ros-args`` it does not know (``--bogus``); ``args[0]`` lists them.
+UnknownROSArgsError: type[Exception] = rclpy_implementation.UnknownROSArgsError
 
 # -- executors, entities, futures -------------------------------------------------
 
@@ -158,6 +171,21 @@ def subscription_wants_info(subscription: Subscription) -> bool:
 def adopt_future(future: Future, executor: object) -> None:
     """Make ``executor`` run ``future``'s done-callbacks, as rclpy's executors do."""
     future._set_executor(executor)
+
+
+def runs_plain_callback(function: Callable[..., Any], args: tuple[Any, ...]) -> bool:
+    """Whether a coroutine function will call a plain callback among ``args`` inline.
+
+    rclpy's action server hands the user's execute callback to
+    ``executor.create_task(self._execute_goal, execute_callback, goal_handle)``,
+    a coroutine that runs it through ``await_or_execute``: a plain callback
+    is then called inside the coroutine, and may block for the whole goal.
+    Recognised by the coroutine's code naming ``await_or_execute``.
+    """
+    code = getattr(function, "__code__", None)
+    if code is None or "await_or_execute" not in code.co_names:
+        return False
+    return any(callable(arg) and not inspect.iscoroutinefunction(arg) for arg in args)
 
 
 def waitable_futures(waitable: Waitable) -> list[Future]:

@@ -11,6 +11,7 @@
       unload_timeout: 5.0           # seconds each step of taking a node down may take
       load_timeout: 10.0            # seconds a node's constructor may take
       shutdown_timeout: 5.0         # seconds a stuck event loop may hold up SIGINT/SIGTERM
+      use_intra_process_comms: false  # the default of the nodes' extra argument
     nodes:
       - package: lifecycle_container
         plugin: lifecycle_container::Talker
@@ -76,6 +77,7 @@ class ContainerConfig:
     unload_timeout: float = 5.0
     load_timeout: float = 10.0
     shutdown_timeout: float = 5.0
+    use_intra_process_comms: bool = False
     nodes: tuple[NodeSpec, ...] = ()
     manager: Mapping[str, Any] | None = None
     base_dir: Path | None = None
@@ -96,6 +98,7 @@ _CONTAINER_KEYS = {
     "unload_timeout",
     "load_timeout",
     "shutdown_timeout",
+    "use_intra_process_comms",
 }
 _NODE_KEYS = {
     "package",
@@ -150,6 +153,9 @@ def parse_config(
         load_timeout=_positive_float(container.get("load_timeout", 10.0), f"{source}: container.load_timeout"),
         shutdown_timeout=_positive_float(
             container.get("shutdown_timeout", 5.0), f"{source}: container.shutdown_timeout"
+        ),
+        use_intra_process_comms=_bool(
+            container.get("use_intra_process_comms", False), f"{source}: container.use_intra_process_comms"
         ),
         nodes=tuple(
             _node(entry, base_dir=base_dir, where=f"{source}: nodes[{index}]")

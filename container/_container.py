@@ -31,6 +31,7 @@ from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
 from ._text import clip
 from .executor._bridge import Escaped, in_thread
+from .intra import enable_intra_process
 from .lifecycle import LifecycleNode, _transitions
 
 if TYPE_CHECKING:
@@ -38,13 +39,20 @@ if TYPE_CHECKING:
 
     from .executor import AsyncioExecutor
 
-__all__ = ["ComponentManager", "LoadRequest", "LoadedNode"]
+__all__ = ["ComponentManager", "LoadRequest", "LoadedNode", "type_label"]
 
 #: The rclpy parameter that starts a node's ~/get_type_description service.
 TYPE_DESCRIPTION_SERVICE = "start_type_description_service"
 
-#: Extra arguments rclcpp's container accepts, with their expected type.
-_EXTRA_ARGUMENTS: dict[str, type] = {"use_intra_process_comms": bool}
+#: Extra arguments accepted, with their expected type: rclcpp's container's
+#: (``use_intra_process_comms``, see :mod:`container.intra`;
+#: ``forward_global_arguments``), and ``autostart``, which brings a lifecycle
+#: node to active after loading.
+_EXTRA_ARGUMENTS: dict[str, type] = {
+    "use_intra_process_comms": bool,
+    "forward_global_arguments": bool,
+    "autostart": bool,
+}
 
 #: How rclcpp names the types in its refusals.
 _TYPE_WORDS: dict[type, str] = {bool: "boolean"}
@@ -53,12 +61,19 @@ _TYPE_WORDS: dict[type, str] = {bool: "boolean"}
 _LOG_LEVELS = {0, 10, 20, 30, 40, 50}
 
 
+def type_label(package: str, plugin: str) -> str:
+    """How logs name a requested type: ``package::Type``, whether or not ``plugin`` has the package."""
+    return plugin if "::" in plugin else f"{package}::{plugin}"
+
+
 @dataclass(frozen=True, slots=True)
 class LoadRequest:
     """What to load: the fields of composition_interfaces/LoadNode, plus ``autostart``.
 
     ``parameters`` holds rclpy parameters, inline mappings or parameter files
-    (resolved against ``base_dir``), later entries winning.
+    (resolved against ``base_dir``), later entries winning. ``autostart`` is
+    also read from ``extra_arguments`` (``-e autostart:=true``), so a LoadNode
+    request can ask for it.
     """
 
     package: str
@@ -71,6 +86,16 @@ class LoadRequest:
     log_level: int = 0
     autostart: bool = False
     base_dir: Path | None = None
+
+    @property
+    def wants_autostart(self) -> bool:
+        """``autostart``, from the field or the extra argument."""
+        return self.autostart or self.extra_arguments.get("autostart") is True
+
+    def wants_intra_process(self, default: bool) -> bool:
+        """``use_intra_process_comms`` from the extra arguments, else ``default``."""
+        value = self.extra_arguments.get("use_intra_process_comms")
+        return default if value is None else value is True
 
 
 @dataclass(eq=False, slots=True)
@@ -90,6 +115,8 @@ class ComponentManager(Node):
     :param registry: the node types that may be loaded.
     :param executor: where loaded nodes run.
     :param unload_timeout: seconds each lifecycle step of an unload may take.
+    :param use_intra_process_comms: whether a loaded node joins intra-process
+        communication when its request does not say.
     """
 
     def __init__(
@@ -103,18 +130,22 @@ class ComponentManager(Node):
         parameter_overrides: Sequence[Parameter] = (),
         unload_timeout: float = 5.0,
         load_timeout: float = 10.0,
+        use_intra_process_comms: bool = False,
     ) -> None:
         super().__init__(
             name,
             namespace=namespace,
             context=context,
             parameter_overrides=list(parameter_overrides),
-            use_global_arguments=False,
+            # The command line's ROS arguments are the container node's (as
+            # rclcpp's): launch_ros names it with -r __node:= and -r __ns:=.
+            use_global_arguments=True,
         )
         self.registry = registry
         self._host = executor
         self.unload_timeout = unload_timeout
         self.load_timeout = load_timeout
+        self.use_intra_process_comms = use_intra_process_comms
         self._background: set[asyncio.Task[None]] = set()
         self._ids = itertools.count(1)
         self._loaded: dict[int, LoadedNode] = {}
@@ -144,14 +175,21 @@ class ComponentManager(Node):
         :raises LoadError: with a message fit for a LoadNode response.
         """
         node_type = self.registry.resolve(request.package, request.plugin)
-        extra = _check_extra_arguments(request.extra_arguments)
+        forward_global_arguments = _check_extra_arguments(request.extra_arguments)
         if request.log_level not in _LOG_LEVELS:
             raise LoadError(f"Invalid log_level {request.log_level}: expected one of 0, 10, 20, 30, 40, 50")
         remaps = [_check_remap(rule) for rule in request.remap_rules]
         name = request.name or _default_name(node_type)
         namespace = _absolute(request.namespace or "/")
-        full_name = f"{namespace.rstrip('/')}/{name}"
+        # The name the node will have: rcl applies the request's remap rules
+        # (__node:=, __ns:=) over the name it is constructed with.
+        full_name = _remapped_name(name, namespace, remaps)
         self._refuse_duplicate(full_name)
+        if forward_global_arguments:
+            self.get_logger().warning(
+                f"Loading {clip(full_name)} with forward_global_arguments: the container's own ROS "
+                "arguments (its name, namespace, parameters, remaps) apply to that node too"
+            )
         try:
             overrides = _overrides(request, full_name)
         except ConfigError as exc:
@@ -164,6 +202,7 @@ class ComponentManager(Node):
             # (-p start_type_description_service:=true).
             overrides.append(Parameter(TYPE_DESCRIPTION_SERVICE, value=False))
         cli_args = ["--ros-args", *(part for rule in remaps for part in ("-r", rule))] if remaps else None
+        intra_process = request.wants_intra_process(self.use_intra_process_comms)
         node_class = node_type.node_class
         built: list[Node] = []
 
@@ -177,10 +216,12 @@ class ComponentManager(Node):
                 namespace=namespace,
                 context=self.context,
                 cli_args=cli_args,
-                use_global_arguments=False,
+                # rclcpp's default: the container's command line is the container's.
+                use_global_arguments=forward_global_arguments,
                 parameter_overrides=overrides,
-                **extra,
             )
+            if intra_process:
+                enable_intra_process(node)
             return node
 
         construction = asyncio.ensure_future(in_thread(construct, name=f"construct:{clip(full_name)}"))
@@ -234,9 +275,18 @@ class ComponentManager(Node):
         so that it can be inspected; the failure is raised.
         """
         loaded = await self.load(request)
-        if request.autostart and _transitions.is_lifecycle(loaded.node):
-            await _transitions.bring_up(self._host, loaded.node, timeout=timeout)
+        if request.wants_autostart:
+            await self.start(loaded, timeout=timeout)
         return loaded
+
+    async def start(self, loaded: LoadedNode, *, timeout: float) -> None:
+        """Configure and activate a loaded lifecycle node (a plain node has nothing to do).
+
+        :param timeout: seconds each transition may take.
+        :raises TransitionError: a transition failed; the node stays where it stopped.
+        """
+        if _transitions.is_lifecycle(loaded.node):
+            await _transitions.bring_up(self._host, loaded.node, timeout=timeout)
 
     # -- unload -------------------------------------------------------------------
     async def unload(self, unique_id: int) -> tuple[LoadedNode, list[str]]:
@@ -326,7 +376,8 @@ def _destroy(node: Node) -> None:
         state_machine(node).destroy_when_not_in_use()
 
 
-def _check_extra_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
+def _check_extra_arguments(arguments: Mapping[str, Any]) -> bool:
+    """Check the extra arguments; return ``forward_global_arguments`` (rclcpp's default: false)."""
     for key, value in arguments.items():
         expected = _EXTRA_ARGUMENTS.get(key)
         if expected is None:
@@ -335,9 +386,25 @@ def _check_extra_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
             raise LoadError(
                 f"Extra component argument '{key}' must be a {_TYPE_WORDS[expected]}"
             )
-    # Intra-process communication does not exist in rclpy; accepted, as rclcpp
-    # users pass it out of habit, and without effect.
-    return {}
+    return arguments.get("forward_global_arguments") is True
+
+
+def _remapped_name(name: str, namespace: str, rules: Sequence[str]) -> str:
+    """The full name rcl gives a node constructed as ``namespace``/``name`` with ``rules``.
+
+    rcl uses the first rule that matches, a rule prefixed ``node:`` only for
+    the node constructed as ``node``. The constructed node's own name is
+    checked again: a class may pick another name, and global arguments may
+    apply too.
+    """
+    found: dict[str, str] = {}
+    for rule in rules:
+        source, _, target = rule.partition(":=")
+        node, _, source = source.rpartition(":")
+        if source in ("__node", "__ns") and node in ("", name):
+            found.setdefault(source, target)
+    namespace = found.get("__ns", namespace)
+    return f"{namespace.rstrip('/')}/{found.get('__node', name)}"
 
 
 #: ``from:=to``, optionally node-specific (``node:from:=to``); rcl checks the rest.

@@ -5,7 +5,9 @@ They are what makes a node a component container to ``ros2 component`` and
 container exactly like rclcpp's. Every request goes through
 :meth:`ComponentManager.load` / :meth:`ComponentManager.unload`, the same code
 paths ``container run`` uses, and a bad request only ever costs its own
-``success=false`` answer: the container serves on.
+``success=false`` answer: the container serves on. A request whose extra
+arguments hold ``autostart: true`` also configures and activates the node
+before it is answered, so that launch files bring nodes up on any launch_ros.
 
 Load and unload are ``async def`` so they run on the executor's loop
 thread, where the container's bookkeeping lives, and share one mutually
@@ -23,7 +25,7 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.parameter import Parameter
 
-from ._container import LoadRequest
+from ._container import LoadRequest, type_label
 from ._errors import ContainerError, LoadError
 from ._text import CLIP_LIMIT, clip
 
@@ -97,17 +99,29 @@ class ContainerServices:
 
     async def _load(self, request: LoadNode.Request, response: LoadNode.Response) -> Any:
         log = self._manager.get_logger()
+        what = clip(type_label(request.package_name, request.plugin_name))
         try:
-            loaded = await self._manager.load(load_request_from_msg(request))
+            load = load_request_from_msg(request)
+            loaded = await self._manager.load(load)
         except ContainerError as exc:
-            what = clip(f"{request.package_name}::{request.plugin_name}")
             log.error(f"Refused to load {what}: {clip(str(exc))}")
             response.success = False
             response.error_message = clip(str(exc), limit=4 * CLIP_LIMIT)
             return response
-        response.success = True
         response.full_node_name = loaded.full_name
         response.unique_id = loaded.unique_id
+        response.success = True
+        if load.wants_autostart:
+            try:
+                await self._manager.start(loaded, timeout=self._manager.unload_timeout)
+            except ContainerError as exc:
+                # Loaded, and stays so to be inspected or unloaded by its id
+                # (as a container file's node that fails to come up does).
+                log.error(f"Loaded {what} as '{loaded.full_name}' but autostart failed: {clip(str(exc))}")
+                response.success = False
+                response.error_message = clip(
+                    f"Loaded as unique_id {loaded.unique_id} but autostart failed: {exc}", limit=4 * CLIP_LIMIT
+                )
         return response
 
     async def _unload(self, request: UnloadNode.Request, response: UnloadNode.Response) -> Any:

@@ -4,8 +4,10 @@ Every command (``container run``, ``container manager``, ``container load``,
 ``container lifecycle ...``) runs its work through :func:`run_session`, so all
 of them start ROS and end alike:
 
-* a fresh context initialised with no command-line arguments, so that the
-  command's own ``-p name:=value`` is never read by rcl as a remap rule;
+* a fresh context initialised with only the command line's ROS arguments
+  (the ``--ros-args ... [--]`` sections, :func:`container.cli.split_ros_args`),
+  which rcl parses with its own semantics; the command's own ``-p
+  name:=value`` is never read by rcl as a remap rule;
 * rclpy's signal handlers off, and SIGINT/SIGTERM handled on the event loop
   (rclpy's would shut the context down under the nodes' feet);
 * the exit code: what ``main`` returns; for a command cut short by a signal,
@@ -27,7 +29,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
@@ -142,6 +144,7 @@ def run_session(
     *,
     server: bool = False,
     executor_options: dict[str, Any] | None = None,
+    ros_args: Sequence[str] = (),
 ) -> int:
     """Run ``main`` on a fresh context and executor; return the process exit code.
 
@@ -149,13 +152,17 @@ def run_session(
         first signal by itself (``main`` awaits ``session.stopping``); for any
         other command a signal cancels ``main``.
     :param executor_options: keyword arguments for :class:`AsyncioExecutor`.
+    :param ros_args: ROS arguments (``--ros-args`` sections) for the context:
+        rcl applies them to the nodes created with global arguments and
+        configures logging (``--log-level``) from them.
     """
     use_fast_discovery()
     before = set(threading.enumerate())
     context = Context()
     try:
-        # No arguments: rcl would read the command's own ones (-p x:=y) as ROS arguments.
-        rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+        # Only the ROS sections: rcl would read the command's own arguments
+        # (-p x:=y) as deprecated ROS arguments.
+        rclpy.init(args=["container", *ros_args], context=context, signal_handler_options=SignalHandlerOptions.NO)
     except KeyboardInterrupt:
         return exit_code_for(signal.SIGINT)
     code = EXIT_FAILURE

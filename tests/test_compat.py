@@ -34,7 +34,9 @@ def samples(context: Context) -> Iterator[dict[str, Callable[[], Any]]]:
     )
     subscription = node.create_subscription(String, "probe", lambda _: None, 10)
     handlers = [w for w in node.waitables if type(w).__name__ == "EventHandler"]
+    loop = asyncio.new_event_loop()
     yield {
+        "asyncio.base_events.BaseEventLoop": lambda: loop,
         "rclpy.event_handler.EventHandler": lambda: handlers[0],
         "rclpy.subscription.Subscription": lambda: subscription,
         "rclpy.waitable.Waitable": lambda: Waitable(MutuallyExclusiveCallbackGroup()),
@@ -42,6 +44,7 @@ def samples(context: Context) -> Iterator[dict[str, Callable[[], Any]]]:
         "rclpy.lifecycle.LifecycleNodeMixin": lambda: node,
         "rclpy.node.Node": lambda: node,
     }
+    loop.close()
     executor.shutdown()
     node.destroy_publisher(publisher)
     node.destroy_node()

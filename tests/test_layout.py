@@ -12,6 +12,7 @@ import pytest
 import container
 import container.checks
 import container.executor
+import container.intra
 import container.lifecycle
 from tests.container_support import REPO
 
@@ -20,12 +21,14 @@ PACKAGE = REPO / "container"
 #: Where each part may import from inside ``container``; anything else is upward.
 ALLOWED = {
     "container.executor": ("container._compat", "container._errors", "container.executor"),
+    "container.intra": ("container._compat", "container._errors", "container.executor", "container.intra"),
     "container.lifecycle": (
         "container._compat",
         "container._errors",
         "container._text",
         "container.checks",
         "container.executor",
+        "container.intra",
         "container.lifecycle",
     ),
 }
@@ -85,11 +88,15 @@ def test_public_names_are_exactly_these() -> None:
         "ConfigError", "ContainerError", "ContainerServices", "DeviceError", "ExecutorError",
         "LifecycleManager", "LifecycleNode", "LoadError", "LoadRequest", "LoadedNode",
         "ManagerSettings", "NodeType", "PluginError", "PluginRegistry", "RegisterNodeType",
-        "TransitionError", "contain_fault", "hookimpl", "hookspec",
+        "TransitionError", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
+        "hookimpl", "hookspec",
     ])  # fmt: skip
     assert container.executor.__all__ == ["AsyncioExecutor", "CallbackErrorHandler", "ExecutorState"]
     assert container.lifecycle.__all__ == ["LifecycleManager", "LifecycleNode", "ManagerSettings", "contain_fault"]
     assert container.checks.__all__ == ["boolean", "integer", "number", "string", "strings"]
+    assert container.intra.__all__ == [
+        "copy_message", "enable_intra_process", "hand_over", "intra_process_enabled",
+    ]  # fmt: skip
 
 
 def test_importing_the_package_does_not_start_ros() -> None:

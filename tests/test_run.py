@@ -10,8 +10,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from rcl_interfaces.srv import GetParameters
+from rclpy.node import Node
 
+from container import AsyncioExecutor
+from tests.component_support import ContainerClient, load_request, parameter, wait_until
 from tests.container_support import REPO, ContainerProcess
+from tests.process_support import LoggedProcess
 
 DEMO = """
 nodes:
@@ -119,3 +124,59 @@ def test_invalid_config_is_refused_with_its_place(tmp_path: Path, config: str | 
     assert result.returncode == 2, result.stderr
     assert message in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_without_a_file_an_empty_container_takes_its_ros_arguments_like_rclcpps(
+    client_node: Node, executor: AsyncioExecutor
+) -> None:
+    proc = LoggedProcess([
+        sys.executable, "-m", "container", "run",
+        "--ros-args", "-r", "__node:=named", "-r", "__ns:=/ns", "-p", "use_sim_time:=true",
+        "-r", "chatter:=/global_chatter", "--",
+        "--verbose",  # after "--": the command's own again
+    ])
+    try:
+        proc.wait_for_line("Container '/ns/named' ready with 0 node(s)")
+        client = ContainerClient(client_node, executor, "/ns/named")
+        get = client_node.create_client(GetParameters, "/ns/named/get_parameters")
+        assert get.wait_for_service(timeout_sec=20.0)
+        assert client.call(get, GetParameters.Request(names=["use_sim_time"])).values[0].bool_value is True
+        # The container's ROS arguments are its own; a load forwards them only when asked.
+        forward = [parameter("forward_global_arguments", True)]
+        plain = client.load(load_request(plugin="lifecycle_container::Listener", name="plain"))
+        assert plain.full_node_name == "/plain", plain.error_message
+        # All of them: -r __node:=named renames a forwarded node too (rclcpp warns of it).
+        clash = client.load(load_request(plugin="lifecycle_container::Listener", extra_arguments=forward))
+        assert "A node named '/ns/named' is the container itself" in clash.error_message
+        # The request's own rules come first, as the node's local arguments do in rcl.
+        forwarded = client.load(load_request(
+            plugin="lifecycle_container::Listener", remap_rules=["__node:=forwarded"], extra_arguments=forward,
+        ))
+        assert forwarded.full_node_name == "/ns/forwarded", forwarded.error_message
+
+        def topics(name: str, namespace: str) -> list[str]:
+            return [topic for topic, _ in client_node.get_subscriber_names_and_types_by_node(name, namespace)]
+
+        assert wait_until(
+            executor,
+            lambda: "/chatter" in topics("plain", "/") and "/global_chatter" in topics("forwarded", "/ns"),
+        )
+        assert proc.stop() == 0
+    finally:
+        proc.close()
+
+
+def test_invalid_ros_arguments_are_a_usage_error() -> None:
+    for ros_args, message in (
+        (["-r", "nonsense"], "Couldn't parse remap rule: '-r nonsense'"),
+        (["--bogus"], "unknown ROS arguments: ['--bogus']"),
+        (["--params-file", "/no/such/file.yaml"], "Couldn't parse params file"),
+    ):
+        result = subprocess.run(
+            [sys.executable, "-m", "container", "run", "--ros-args", *ros_args],
+            cwd=REPO, capture_output=True, text=True, timeout=60,
+        )
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.startswith("container run: invalid ROS arguments: "), result.stderr
+        assert message in result.stderr
+        assert "Traceback" not in result.stderr

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
+from lifecycle_msgs.srv import GetState
 from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 
@@ -119,6 +120,11 @@ BAD_LOADS = [
     ("extra argument of the wrong type",
      load_request(name="extra", extra_arguments=[parameter("use_intra_process_comms", 1)]),
      "Extra component argument 'use_intra_process_comms' must be a boolean"),
+    ("forward_global_arguments of the wrong type",
+     load_request(name="extra", extra_arguments=[parameter("forward_global_arguments", "no")]),
+     "Extra component argument 'forward_global_arguments' must be a boolean"),
+    ("duplicate through a node-specific remap",
+     load_request(name="talker", remap_rules=["talker:__node:=first"]), "'/first' is already loaded"),
     ("invalid node name", load_request(name="not a name!"), "Invalid node name"),
     ("invalid namespace", load_request(name="ok", namespace="/bad//ns"), "Invalid node name or namespace"),
     ("invalid remap rule", load_request(name="remapped", remap_rules=["nonsense"]), "Invalid remap rule"),
@@ -171,3 +177,23 @@ def test_unload_takes_the_node_down_its_lifecycle(
     shutdown = container.wait_for_line("[busy]: shutting down from unconfigured", start=start)
     assert container.lines.index(shutdown) < container.lines.index(unloaded)
     assert client.list() == []
+
+
+def test_autostart_extra_argument_brings_the_node_to_active(
+    client: ContainerClient, client_node: Node
+) -> None:
+    response = client.load(load_request(name="started", extra_arguments=[parameter("autostart", True)]))
+    assert (response.success, response.error_message) == (True, "")
+    get_state = client_node.create_client(GetState, "/started/get_state")
+    assert get_state.wait_for_service(timeout_sec=20.0)
+    assert client.call(get_state, GetState.Request()).current_state.label == "active"
+
+    # One that cannot come up stays loaded where it stopped, and the answer says so.
+    failed = client.load(load_request(
+        name="failing", parameters=[parameter("rate", -1.0)], extra_arguments=[parameter("autostart", True)]
+    ))
+    assert not failed.success
+    assert (failed.unique_id, failed.full_node_name) == (2, "/failing")
+    assert failed.error_message.startswith("Loaded as unique_id 2 but autostart failed: "), failed.error_message
+    assert client.list() == [(1, "/started"), (2, "/failing")]
+    assert client.unload(2).success

@@ -18,7 +18,7 @@ import asyncio
 import os
 import sys
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from ._types import name_value
@@ -78,7 +78,9 @@ def add_parser(subparsers: SubParsers) -> None:
         "-e", "--extra-argument", action="append", default=[], dest="extra_arguments",
         type=name_value, help="extra arguments for the container, in the 'name:=value' form",
     )
-    load.add_argument("-q", "--quiet", action="store_true", help="only print the component's unique ID")
+    load.add_argument(
+        "-q", "--quiet", action="store_true", help="only print the component's unique ID and node name"
+    )
     _add_spin_time(load)
     load.set_defaults(handler=_run_load)
 
@@ -166,7 +168,7 @@ def _run_load(args: argparse.Namespace) -> int:
         if not response.success:
             return _fail(f"Failed to load component: {response.error_message}")
         if args.quiet:
-            print(response.unique_id)
+            print(f"{response.unique_id}  {response.full_node_name}")
         else:
             print(
                 f"Loaded component {response.unique_id} into '{container}' "
@@ -174,7 +176,7 @@ def _run_load(args: argparse.Namespace) -> int:
             )
         return 0
 
-    return _with_node(load)
+    return _with_node(load, ros_args=getattr(args, "ros_args", ()))
 
 
 def _run_unload(args: argparse.Namespace) -> int:
@@ -195,7 +197,7 @@ def _run_unload(args: argparse.Namespace) -> int:
             print(uid if args.quiet else f"Unloaded component {uid} from '{container}' container node")
         return 0
 
-    return _with_node(unload)
+    return _with_node(unload, ros_args=getattr(args, "ros_args", ()))
 
 
 def _run_list(args: argparse.Namespace) -> int:
@@ -227,7 +229,7 @@ def _run_list(args: argparse.Namespace) -> int:
                     print(f"  {line}")
         return 0
 
-    return _with_node(listing)
+    return _with_node(listing, ros_args=getattr(args, "ros_args", ()))
 
 
 def _run_types(args: argparse.Namespace) -> int:
@@ -246,7 +248,7 @@ def _fail(message: str) -> int:
     return 1
 
 
-def _with_node(main: Callable[[Node], Awaitable[int]]) -> int:
+def _with_node(main: Callable[[Node], Awaitable[int]], *, ros_args: Sequence[str] = ()) -> int:
     """Run ``main`` with a hidden client node; return its exit code."""
     from .._session import Session, run_session
 
@@ -257,7 +259,7 @@ def _with_node(main: Callable[[Node], Awaitable[int]]) -> int:
             except _Failure as exc:
                 return _fail(str(exc))
 
-    return run_session(run)
+    return run_session(run, ros_args=ros_args)
 
 
 async def _poll(condition: Callable[[], T | None], *, timeout: float) -> T | None:

@@ -12,7 +12,7 @@ import asyncio
 import os
 import sys
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Sequence
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -66,7 +66,7 @@ def _usage(parser: argparse.ArgumentParser) -> int:
     return 2
 
 
-def _session(main: Callable[[Any], Coroutine[Any, Any, int]]) -> int:
+def _session(main: Callable[[Any], Coroutine[Any, Any, int]], *, ros_args: Sequence[str] = ()) -> int:
     """Run ``main(node)`` with a short-lived hidden node; return its exit code."""
     from .._session import Session, run_session
 
@@ -74,7 +74,7 @@ def _session(main: Callable[[Any], Coroutine[Any, Any, int]]) -> int:
         with session.client_node(f"_container_lifecycle_cli_{os.getpid()}") as node:
             return await main(node)
 
-    return run_session(run)
+    return run_session(run, ros_args=ros_args)
 
 
 def _lifecycle_nodes(node: Any, *, hidden: bool) -> list[str]:
@@ -131,7 +131,7 @@ def _nodes(args: argparse.Namespace) -> int:
             print(name)
         return 0
 
-    return _session(main)
+    return _session(main, ros_args=getattr(args, "ros_args", ()))
 
 
 def _get(args: argparse.Namespace) -> int:
@@ -153,7 +153,7 @@ def _get(args: argparse.Namespace) -> int:
             print(f"{label} [{state_id}]" if args.node_name else f"{name}: {label} [{state_id}]")
         return 0
 
-    return _session(main)
+    return _session(main, ros_args=getattr(args, "ros_args", ()))
 
 
 def _describe(transition: Any) -> str:
@@ -177,7 +177,7 @@ def _list(args: argparse.Namespace) -> int:
             print(f"\tGoal: {transition.goal_state.label}")
         return 0
 
-    return _session(main)
+    return _session(main, ros_args=getattr(args, "ros_args", ()))
 
 
 def _set(args: argparse.Namespace) -> int:
@@ -207,4 +207,4 @@ def _set(args: argparse.Namespace) -> int:
         print("Transitioning successful")
         return 0
 
-    return _session(main)
+    return _session(main, ros_args=getattr(args, "ros_args", ()))

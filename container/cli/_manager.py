@@ -1,9 +1,13 @@
-"""``container manager [FILE] [-p name:=value]...``: a lifecycle manager process.
+"""``container manager [FILE] [-p name:=value]... [--ros-args ...]``: a lifecycle manager process.
 
 ``FILE`` may be a container file (its ``manager:`` section is used), a Nav2
 parameter file (``lifecycle_manager: {ros__parameters: {...}}``), or a plain
 mapping of the manager's settings. ``-p`` overrides single parameters, with
 YAML values: ``-p node_names:=[/talker,/listener] -p autostart:=true``.
+ROS arguments apply to the manager node with rcl's semantics, as to Nav2's
+``lifecycle_manager``: ``--ros-args -r __node:=NAME --params-file nav2.yaml``
+(what launch_ros passes to the registered ``lifecycle_manager`` executable);
+the file and ``-p`` above win over them.
 """
 
 from __future__ import annotations
@@ -87,4 +91,4 @@ def _run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"container manager: {exc}", file=sys.stderr)
         return 2
-    return run_manager(settings)
+    return run_manager(settings, ros_args=getattr(args, "ros_args", ()))

@@ -1,4 +1,13 @@
-"""``container run CONFIG``: one container process hosting the configured nodes."""
+"""``container run [CONFIG] [--ros-args ...]``: one container process hosting the configured nodes.
+
+Without a file it starts an empty container, as rclcpp's ``component_container``
+does; the executables ``container index`` registers (``ros2 run
+lifecycle_container component_container``, launch_ros's
+``ComposableNodeContainer``) are this command. ROS arguments apply to the
+container node with rcl's semantics (``-r __node:=``, ``-r __ns:=``,
+``--params-file``, ``-p``, remaps, ``--log-level``); loaded nodes get them only
+when a load asks (``forward_global_arguments``), as in rclcpp.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +15,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
-from .._config import load_config
+from .._config import ContainerConfig, load_config
 from .._errors import ConfigError
 from .._params import node_parameters
 from .._runtime import configure_logging
@@ -20,10 +29,13 @@ __all__ = ["add_parser"]
 def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "run",
-        help="run a container with the nodes of a YAML file",
-        description="Run a container hosting the nodes a YAML file lists, until SIGINT or SIGTERM.",
+        help="run a container, with the nodes of a YAML file if given",
+        description=(
+            "Run a container until SIGINT or SIGTERM, hosting the nodes a YAML file lists "
+            "(none without a file). ROS arguments (--ros-args ...) apply to the container node."
+        ),
     )
-    parser.add_argument("config", help="the container's YAML file (see examples/)")
+    parser.add_argument("config", nargs="?", help="the container's YAML file (see examples/); none: empty")
     parser.add_argument("--verbose", action="store_true", help="log plugin loading in detail")
     parser.set_defaults(handler=_run)
 
@@ -31,7 +43,7 @@ def add_parser(subparsers: SubParsers) -> None:
 def _run(args: argparse.Namespace) -> int:
     configure_logging(verbose=args.verbose)
     try:
-        config = load_config(args.config)
+        config = load_config(args.config) if args.config else ContainerConfig()
         # The container node's own parameter files, read now so that a
         # missing or broken one is a usage error, not a failure at start-up.
         node_parameters(config.parameters, full_name=config.full_name, base_dir=config.base_dir)
@@ -43,10 +55,7 @@ def _run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"container run: {exc}", file=sys.stderr)
         return 2
-    from .._app import run_container
+    from .._app import manager_extension, run_container
 
-    if settings is None:
-        return run_container(config)
-    from .._app import manager_extension
-
-    return run_container(config, extensions=(manager_extension(settings),))
+    extensions = () if settings is None else (manager_extension(settings),)
+    return run_container(config, extensions=extensions, ros_args=getattr(args, "ros_args", ()))

@@ -11,6 +11,7 @@ project that waits for an rclpy future from asyncio code goes through here:
 * :func:`drive` runs a coroutine that may ``await`` rclpy futures directly
   (rclpy-style code), parking it on a progress signal instead of spinning;
   :func:`adapt` wraps one so that any asyncio task can await it;
+  :func:`drive_in_thread` runs one on a worker thread instead;
 * :func:`in_thread` awaits a plain call that may block (a constructor, a
   transition callback) on a thread of its own.
 """
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 import types
 from collections.abc import Awaitable, Callable, Coroutine, Generator
 from typing import Any, TypeVar
@@ -27,7 +29,17 @@ from rclpy.task import Future as RclFuture
 
 from .._compat import running_loop
 
-__all__ = ["Escaped", "adapt", "as_exception", "contained", "drive", "in_thread", "mirror", "result"]
+__all__ = [
+    "Escaped",
+    "adapt",
+    "as_exception",
+    "contained",
+    "drive",
+    "drive_in_thread",
+    "in_thread",
+    "mirror",
+    "result",
+]
 
 T = TypeVar("T")
 
@@ -193,3 +205,30 @@ async def in_thread(call: Callable[[], T], *, name: str) -> T:
 
     threading.Thread(target=run, name=name, daemon=True).start()
     return await outcome
+
+
+#: How long :func:`drive_in_thread` sleeps when its coroutine yields bare.
+_THREAD_POLL_S = 0.001
+
+
+def drive_in_thread(coro: Coroutine[Any, Any, T]) -> T:
+    """Run an rclpy-style coroutine to its end on the calling (worker) thread.
+
+    For rclpy's own coroutines that call a plain, possibly blocking, callback
+    (an action server's execute): they await nothing asyncio, only rclpy
+    futures, which yield a bare ``None`` until done, so a short sleep between
+    steps is all the waiting they need.
+
+    :raises RuntimeError: the coroutine awaited something of asyncio's,
+        which cannot run off the loop.
+    """
+    while True:
+        try:
+            yielded = coro.send(None)
+        except StopIteration as stop:
+            value: T = stop.value
+            return value
+        if yielded is not None:
+            coro.close()
+            raise RuntimeError(f"{getattr(coro, '__qualname__', coro)} awaited {yielded!r} off the event loop")
+        time.sleep(_THREAD_POLL_S)

@@ -134,10 +134,7 @@ def _is_hot_waitable(waitable: object) -> bool:
     )
 
 
-#: See :meth:`_WaitSet._events_due`.
-_EVENT_CHECK_EVERY = 64
-
-#: Longest wait without QoS events in the wait set (ns).
+#: Longest time without QoS events in the wait set (ns); see :meth:`_WaitSet._events_due_in`.
 _EVENT_SKIP_MAX_NS = 50_000_000
 
 _HOT = ("subscription", "timer", "client", "guard_condition")
@@ -163,8 +160,8 @@ class _WaitSet:
         self._dirty = True
         self._lock = threading.Lock()
         self._closed = False
-        self._waits_since_events = 0
-        self._busy = False
+        #: When the next wait must include the QoS events (monotonic ns).
+        self._events_next = 0
 
     def invalidate(self) -> None:
         self._dirty = True
@@ -227,10 +224,14 @@ class _WaitSet:
                     self._rebuild()
                 return self._wait_and_dispatch(self._table, timeout_ns)
             except Exception:
+                self._dirty = True
+                if not self._dispatcher.context.ok():
+                    # rclpy.shutdown() while spinning: handles went invalid
+                    # under us; the executor stops, nothing to report.
+                    return WOKEN
                 # Whatever went wrong stays ready (rcl wait sets are
                 # level-triggered) and is tried again; the executor lives on.
                 _log.exception("dispatching ROS work failed")
-                self._dirty = True
                 return WOKEN
 
     def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
@@ -252,13 +253,14 @@ class _WaitSet:
         add = wait_set.add_service
         for handle in handles["service"]:
             add(handle)
-        events = table.events if self._events_due() else ()
+        due_in = self._events_due_in() if table.events else 0
+        events = table.events if due_in == 0 else ()
         if events:
             add = wait_set.add_event
             indices = [add(event) for event, _ in events]
-        elif table.events and not 0 <= timeout_ns <= _EVENT_SKIP_MAX_NS:
+        elif table.events and not 0 <= timeout_ns <= due_in:
             # Blocking without the events: the next wait (with them) comes soon.
-            timeout_ns = _EVENT_SKIP_MAX_NS
+            timeout_ns = due_in
         for entry in table.waitables:
             entry.entity.add_to_wait_set(wait_set)
         wait_set.wait(timeout_ns)
@@ -267,30 +269,38 @@ class _WaitSet:
         dispatcher = self._dispatcher
         flags = 0
         by_pointer = table.by_pointer
+        # Ready pointers that are not in the table belong to waitables (an
+        # action server's services, a custom waitable's guard condition):
+        # the waitable itself finds and takes them below.
         guards_ready = wait_set.get_ready_entities("guard_condition")
         for pointer in guards_ready:
             own = table.own_guards.get(pointer)
             if own is not None:
                 flags |= own
-            else:
-                entry = by_pointer["guard_condition"][pointer]
-                dispatcher.submit(entry, entry.entity.callback, ())
+            elif (guard := by_pointer["guard_condition"].get(pointer)) is not None:
+                dispatcher.submit(guard, guard.entity.callback, ())
         if handles["timer"]:
+            timers = by_pointer["timer"]
             for pointer in wait_set.get_ready_entities("timer"):
-                dispatcher.take_timer(by_pointer["timer"][pointer])
+                if (timer := timers.get(pointer)) is not None:
+                    dispatcher.take_timer(timer)
         messages = wait_set.get_ready_entities("subscription") if handles["subscription"] else ()
         if messages:
             take = dispatcher.take_message
             subscriptions = by_pointer["subscription"]
             for pointer in messages:
-                take(subscriptions[pointer])
+                if (subscription := subscriptions.get(pointer)) is not None:
+                    take(subscription)
         if handles["client"]:
+            clients = by_pointer["client"]
             for pointer in wait_set.get_ready_entities("client"):
-                dispatcher.take_response(by_pointer["client"][pointer])
+                if (client := clients.get(pointer)) is not None:
+                    dispatcher.take_response(client)
         if handles["service"]:
+            services = by_pointer["service"]
             for pointer in wait_set.get_ready_entities("service"):
-                dispatcher.take_request(by_pointer["service"][pointer])
-        self._busy = bool(guards_ready or messages)
+                if (service := services.get(pointer)) is not None:
+                    dispatcher.take_request(service)
         if events:
             is_ready = wait_set.is_ready
             for index, (_, entry) in zip(indices, events, strict=True):
@@ -304,21 +314,28 @@ class _WaitSet:
                 dispatcher.take_waitable(entry)
         return flags
 
-    def _events_due(self) -> bool:
-        """Whether this wait should include QoS events.
+    def _events_due_in(self) -> int:
+        """Nanoseconds until a wait must include the QoS events again (0: this one).
 
-        Adding and checking them costs a call per event per wait, and events
-        are rare. A wait that may block (the last one found no traffic)
-        always includes them, so a ready event wakes an idle executor; under
-        steady traffic they are included every ``_EVENT_CHECK_EVERY`` waits,
-        and rcl wait sets are level-triggered, so a ready event waits at
-        most that many waits and is never lost.
+        Every publisher and subscription carries QoS event handlers (rclpy
+        adds incompatible-QoS and incompatible-type ones by default): ten
+        nodes bring sixty of them, and Fast DDS attaches and detaches every
+        entity of a wait set on every wait, which measured here was most of
+        an idle-ish executor's CPU. Events are rare and level-triggered (a
+        ready one stays ready until taken), so they are waited on at most
+        every ``_EVENT_SKIP_MAX_NS``: a QoS event is seen within 50 ms.
         """
-        self._waits_since_events += 1
-        if self._busy and self._waits_since_events < _EVENT_CHECK_EVERY:
-            return False
-        self._waits_since_events = 0
-        return True
+        now = time.monotonic_ns()
+        left = self._events_next - now
+        if left > 0:
+            return left
+        self._events_next = now + _EVENT_SKIP_MAX_NS
+        return 0
+
+    def settle(self, *, timeout: float) -> None:
+        """Wait until no thread is inside this wait set (it was woken first)."""
+        if self._lock.acquire(timeout=timeout):
+            self._lock.release()
 
     def close(self, *, timeout: float) -> None:
         """Release every handle, once no thread waits any more.
@@ -399,6 +416,11 @@ class Dispatcher:
         self.busy_since: float | None = None
         #: Whether another thread (the loop watchdog) waits in the loop's place.
         self.relieving = False
+        #: How many more callbacks may start (``None``: no limit); see :meth:`admit`.
+        self._permits: int | None = 0
+        self._held: collections.deque[tuple[object, Callable[[], None]]] = collections.deque()
+        self._held_per_entity: dict[int, int] = {}
+        self._gate_lock = threading.Lock()
 
     # -- threads ----------------------------------------------------------------
     def start(self) -> None:
@@ -416,10 +438,17 @@ class Dispatcher:
             self._cold_thread.start()
 
     def pause(self) -> None:
-        """Stop taking cold work until the next :meth:`start`."""
+        """Stop taking cold work until the next :meth:`start`; return once it stopped.
+
+        As with rclpy's executors, nothing waits on a node's entities once
+        the spin returned: the caller may destroy them (a waitable's own
+        handles, which the wait set cannot hold, included).
+        """
         self._active.clear()
         with contextlib.suppress(InvalidHandle):
             self._cold_wake.trigger()
+        if self._cold_thread is not None and self._cold_thread is not threading.current_thread():
+            self._cold.settle(timeout=1.0)
 
     def _serve_cold(self) -> None:
         while True:
@@ -645,9 +674,57 @@ class Dispatcher:
 
     # -- lanes ----------------------------------------------------------------
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
-        """Hand ``callback(*args)`` to the entry's lane."""
+        """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set)."""
         call: Callable[[], Any] = functools.partial(callback, *args) if args else callback
-        entry.lane.submit(Work(entry.entity, call, entry.is_async, entry.depth, entry.done, entry.token))
+        work = Work(entry.entity, call, entry.is_async, entry.depth, entry.done, entry.token)
+        if self._permits is None or self.admit(entry.entity, entry.depth, functools.partial(entry.lane.submit, work)):
+            entry.lane.submit(work)
+
+    # -- the gate: how many callbacks may start (spin_once) ------------------------
+    def admit(self, entity: object, depth: int, start: Callable[[], None]) -> bool:
+        """Whether a callback may start now; if not, ``start`` is kept until it may.
+
+        Without a limit (``spin``) everything starts. Under ``spin_once`` one
+        callback starts per call, as in rclpy: what was taken meanwhile waits
+        here, bounded per entity by its depth like the rcl queue it came from.
+        """
+        with self._gate_lock:
+            permits = self._permits
+            if permits is None:
+                return True
+            if permits > 0:
+                self._permits = permits - 1
+                return True
+            key = id(entity)
+            kept = self._held_per_entity.get(key, 0)
+            if kept >= depth:
+                for index, (old, _) in enumerate(self._held):
+                    if old is entity:
+                        del self._held[index]
+                        break
+            else:
+                self._held_per_entity[key] = kept + 1
+            self._held.append((entity, start))
+            return False
+
+    def limit(self, permits: int | None) -> None:
+        """Let ``permits`` more callbacks start (``None``: any number), those held first."""
+        released: list[Callable[[], None]] = []
+        with self._gate_lock:
+            self._permits = permits
+            while self._held and (self._permits is None or self._permits > 0):
+                entity, start = self._held.popleft()
+                key = id(entity)
+                left = self._held_per_entity[key] - 1
+                if left:
+                    self._held_per_entity[key] = left
+                else:
+                    del self._held_per_entity[key]
+                released.append(start)
+                if self._permits is not None:
+                    self._permits -= 1
+        for start in released:
+            start()
 
     def run(self, entry: _Entry, call: Callable[[], Any]) -> None:
         self.submit(entry, call, ())
@@ -714,6 +791,12 @@ class Dispatcher:
         self._cold.close(timeout=timeout)
         self._cold_wake.destroy()
         return joined
+
+    def deliver(
+        self, subscription: Any, node: Node, callback: Callable[..., Any], args: tuple[Any, ...]
+    ) -> None:
+        """Hand ``callback(*args)`` to ``subscription``'s lane like a taken message (any thread)."""
+        self.submit(self.entry(subscription, node, "subscription"), callback, args)
 
 
 def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable[[], Any]:

@@ -15,6 +15,7 @@ import os
 import select
 import selectors
 import threading
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -36,6 +37,7 @@ class RclSelector(selectors.BaseSelector):
         self._wake = wake
         self._fds_ready = False
         self._wait: WaitAndDispatch | None = None
+        self._idle: Callable[[], bool] | None = None
         self._armed = False
         self._rearm = threading.Event()
         self._stop_r, self._stop_w = os.pipe()
@@ -44,9 +46,16 @@ class RclSelector(selectors.BaseSelector):
         )
         self._watcher.start()
 
-    def attach(self, wait: WaitAndDispatch | None) -> None:
-        """Route blocking selects through ``wait`` (``None``: plain epoll)."""
+    def attach(self, wait: WaitAndDispatch | None, *, idle: Callable[[], bool] | None = None) -> None:
+        """Route blocking selects through ``wait`` (``None``: plain epoll).
+
+        :param idle: tells whether asyncio still has nothing to run after a
+            wait; while it has not, a select waits in rcl again instead of
+            returning: under steady ROS traffic whose callbacks finish in
+            their first step, the loop's own iteration is skipped.
+        """
         self._wait = wait
+        self._idle = idle
 
     # -- selectors.BaseSelector -----------------------------------------------
     def register(
@@ -79,8 +88,21 @@ class RclSelector(selectors.BaseSelector):
         if not self._armed:
             self._armed = True
             self._rearm.set()
-        wait(-1 if timeout is None else int(timeout * 1e9))
-        return self._fds_if_woken()
+        idle = self._idle
+        if idle is None:
+            wait(-1 if timeout is None else int(timeout * 1e9))
+            return self._fds_if_woken()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            if deadline is None:
+                wait(-1)
+            else:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return []
+                wait(int(left * 1e9))
+            if self._fds_ready or not idle():
+                return self._fds_if_woken()
 
     def _fds_if_woken(self) -> list[tuple[selectors.SelectorKey, int]]:
         if not self._fds_ready:

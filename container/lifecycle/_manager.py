@@ -169,6 +169,7 @@ class LifecycleManager(Node):
         *,
         context: Context | None = None,
         namespace: str | None = None,
+        use_global_arguments: bool = False,
     ) -> None:
         from nav2_msgs.srv import ManageLifecycleNodes
 
@@ -178,7 +179,10 @@ class LifecycleManager(Node):
             namespace=namespace or settings.namespace,
             context=context,
             parameter_overrides=[Parameter(k, value=v) for k, v in settings.parameters.items()],
-            use_global_arguments=False,
+            # A manager process of its own takes the command line's ROS
+            # arguments (name, namespace, --params-file); one inside a
+            # container leaves them to the container node.
+            use_global_arguments=use_global_arguments,
         )
         for key, default in PARAMETERS.items():
             self.declare_parameter(key, default)

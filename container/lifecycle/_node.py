@@ -50,6 +50,7 @@ from .._compat import change_state_service, managed_entities, query_services, st
 from .._errors import TransitionError
 from .._text import clip
 from ..executor._bridge import Escaped, contained, in_thread
+from ..intra import enable_intra_process
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, MIN_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
 __all__ = ["LifecycleNode"]
@@ -98,6 +99,8 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
 
     :param transition_timeout: default of the ``transition_timeout`` parameter.
     :param heartbeat_period: default of the ``bond_heartbeat_period`` parameter.
+    :param use_intra_process_comms: exchange messages in process with the
+        other such nodes of the context (:mod:`container.intra`).
     """
 
     def __init__(
@@ -106,6 +109,7 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
         *,
         transition_timeout: float = 10.0,
         heartbeat_period: float = DEFAULT_HEARTBEAT_PERIOD,
+        use_intra_process_comms: bool = False,
         **kwargs: Any,
     ) -> None:
         # Node.__init__ creates /parameter_events through create_publisher;
@@ -154,6 +158,8 @@ class LifecycleNode(rclpy.lifecycle.LifecycleNode):
             else:
                 self._heartbeat = HeartbeatPublisher(self, period=period)
         self._entities_follow_state = True
+        if use_intra_process_comms:
+            enable_intra_process(self)
 
     def _declare_seconds(self, name: str, default: float, description: str) -> float:
         # dynamic_typing: a YAML ``5`` (an integer) must be accepted for seconds.

@@ -25,13 +25,15 @@ CPU: utime + stime of the container process from ``/proc/<pid>/stat`` over
 Latency (lidar scenario), measured from the emulator's side and DDS's: the
 emulator process records the wall-clock time (``time.time_ns``, right after
 ``os.write`` returns) of every write holding a packet in which the angle
-wraps, i.e. the packet that completes a revolution. The subscriber takes
+passes the back of the sensor (180 degrees), i.e. the packet that completes
+a revolution. The subscriber takes
 each LaserScan with its DDS ``source_timestamp`` (the wall-clock time the
 publisher handed it to DDS, taken inside ``publish``) and ``received_timestamp``.
 A scan is matched to the latest recorded wrap write before its publish; the
-match is kept only if the scan's own end, ``header.stamp + scan_time`` (the
-device clock mapped to the host), lies within 30 ms of that write, so a
-missed revolution can never be matched to the wrong one. Only the scans
+match is kept only if the scan's own end (the time of its last-measured ray,
+``header.stamp`` or ``header.stamp + (n - 1) * time_increment`` whichever is
+later: the device clock mapped to the host) lies within 30 ms of that
+write, so a missed revolution can never be matched to the wrong one. Only the scans
 published during the CPU window count (the steady state, after the device
 clock mapping has settled). Printed: write -> publish (what the driver adds:
 pty, asyncio wake-up, parsing, assembly, message build) and write ->
@@ -107,8 +109,9 @@ def run_emulator(link_dir: str, record: str) -> None:
                 self._last_end = None
                 return
             rows = np.frombuffer(data, dtype=np.uint8).reshape(-1, 47).astype(np.int64)
-            start = rows[:, 4] | rows[:, 5] << 8
-            end = rows[:, 42] | rows[:, 43] << 8
+            # Angles past the back of the sensor, where the driver ends a revolution.
+            start = ((rows[:, 4] | rows[:, 5] << 8) - 18000) % 36000
+            end = ((rows[:, 42] | rows[:, 43] << 8) - 18000) % 36000
             before = np.concatenate(([self._last_end if self._last_end is not None else 0], end[:-1]))
             wrapped = (end < start) | (start < before - 18000)
             for k in np.flatnonzero(wrapped):
@@ -203,7 +206,9 @@ class Listener:
 
     def _scan(self, msg: Any, info: Any) -> None:
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        self.records.append((info["source_timestamp"], info["received_timestamp"], stamp, msg.scan_time))
+        # Ray 0 is measured first or last depending on the direction: the end is the later.
+        end = max(stamp, stamp + (len(msg.ranges) - 1) * msg.time_increment)
+        self.records.append((info["source_timestamp"], info["received_timestamp"], end, msg.scan_time))
 
     def _other(self, msg: Any, info: Any) -> None:
         self.records.append((info["source_timestamp"], info["received_timestamp"], 0.0, 0.0))
@@ -266,9 +271,9 @@ def latencies(
     unmatched = 0
     import bisect
 
-    for source, received, stamp, scan_time in records:
+    for source, received, end, _scan_time in records:
         k = bisect.bisect_right(writes, source) - 1
-        if k < 0 or abs(writes[k] / 1e9 - (stamp + scan_time)) > 0.03:
+        if k < 0 or abs(writes[k] / 1e9 - end) > 0.03:
             unmatched += 1
             continue
         to_publish.append((source - writes[k]) / 1e6)

@@ -48,8 +48,9 @@ def test_load_list_unload_like_ros2_component(run_container: Callable[..., Conta
     assert result.returncode == 0, result.stderr
     assert result.stdout == "Loaded component 2 into '/ComponentManager' container node as '/demo/ear'\n"
 
+    # ros2cli's -q: the id and the full name, two spaces apart, as `list` prints them.
     result = container_cli("load", "-q", "/ComponentManager", "lifecycle_container", "Talker", "-n", "quiet")
-    assert (result.returncode, result.stdout) == (0, "3\n"), result.stderr
+    assert (result.returncode, result.stdout) == (0, "3  /quiet\n"), result.stderr
 
     result = container_cli("list", "/ComponentManager")
     assert (result.returncode, result.stdout) == (0, "1  /talker\n2  /demo/ear\n3  /quiet\n"), result.stderr
@@ -68,6 +69,39 @@ def test_load_list_unload_like_ros2_component(run_container: Callable[..., Conta
     )
     result = container_cli("list", "/ComponentManager")
     assert (result.returncode, result.stdout) == (0, "2  /demo/ear\n"), result.stderr
+
+
+def test_load_names_the_node_after_its_remap_rules_and_takes_rclcpp_extras(
+    run_container: Callable[..., ContainerProcess],
+) -> None:
+    proc = run_container(EMPTY)
+    result = container_cli("load", "/ComponentManager", "lifecycle_container", "Talker")
+    assert result.returncode == 0, result.stderr
+    # The type's default name is taken; the remap rule gives another one, as rcl would.
+    result = container_cli(
+        "load", "/ComponentManager", "lifecycle_container", "Talker", "-r", "__node:=renamed",
+        "-e", "forward_global_arguments:=false", "-e", "autostart:=true",
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == "Loaded component 2 into '/ComponentManager' container node as '/renamed'\n"
+    result = container_cli("lifecycle", "get", "/renamed")
+    assert (result.returncode, result.stdout) == (0, "active [3]\n"), result.stderr
+    # The first rule that names the node wins over -n, as in rclcpp (its -n comes last).
+    result = container_cli(
+        "load", "-q", "/ComponentManager", "lifecycle_container", "Talker", "-n", "ignored",
+        "-r", "__node:=first_rule", "-r", "__ns:=/ns", "-r", "__node:=second_rule",
+    )
+    assert (result.returncode, result.stdout) == (0, "3  /ns/first_rule\n"), result.stderr
+    result = container_cli("load", "/ComponentManager", "lifecycle_container", "Talker", "-r", "__node:=renamed")
+    assert result.returncode == 1
+    assert "'/renamed' is already loaded (unique_id 2)" in result.stderr
+    result = container_cli(
+        "load", "/ComponentManager", "lifecycle_container", "Talker", "-n", "x", "-e", "autostart:=3"
+    )
+    assert result.returncode == 1
+    assert result.stderr == "Failed to load component: Extra component argument 'autostart' must be a boolean\n"
+    # Log lines name a type once.
+    assert not any("lifecycle_container::lifecycle_container" in line for line in proc.lines), proc.lines
 
 
 def test_refusals_print_the_reason_and_exit_1(run_container: Callable[..., ContainerProcess]) -> None:
@@ -124,7 +158,10 @@ def test_malformed_parameter_is_a_usage_error() -> None:
 def test_types_lists_the_installed_plugins() -> None:
     result = container_cli("types")
     assert result.returncode == 0, result.stderr
-    assert "lifecycle_container\n  lifecycle_container::Listener\n  lifecycle_container::Talker\n" in result.stdout
+    assert (
+        "lifecycle_container\n  lifecycle_container::Counter\n  lifecycle_container::Listener\n"
+        "  lifecycle_container::Talker\n"
+    ) in result.stdout
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -143,7 +144,7 @@ def test_revolutions_across_a_wrap_inside_and_between_packets() -> None:
     decoded = decode_bytes(data)
     assembler = ScanAssembler()
     scans = [scan for p in decoded.packets() for scan in assembler.push(p)]
-    assert decoded.revolutions() == len(scans) == 9
+    assert decoded.revolutions() == len(scans) == 10
 
 
 def test_device_times_unwrap(capture: Path) -> None:
@@ -195,8 +196,8 @@ def with_crc(packet: bytearray) -> bytes:
 def health_over_next_packet() -> bytes:
     """The first 3 bytes of a valid health frame whose CRC byte is ``54``.
 
-    Followed by a packet, the frame's last byte is the packet's header: the
-    parser accepts the frame and so skips that packet.
+    Followed by a packet, the frame's last byte is the packet's header: a
+    parser that accepted the frame would skip that packet.
     """
     code = next(c for c in range(256) if crc8(bytes((0x54, 0xE0, c))) == 0x54)
     return bytes((0x54, 0xE0, code))
@@ -231,18 +232,34 @@ def test_corruption_exactly_at_block_boundaries(block: int, monkeypatch: pytest.
 
 
 @pytest.mark.parametrize("block", [None, 300, 301, 302, 303, 330])
-def test_frame_overlapping_the_first_link_forces_a_full_scan(
-    block: int | None, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_a_packet_starting_inside_a_health_frame_wins(block: int | None, monkeypatch: pytest.MonkeyPatch) -> None:
     if block:
         small_blocks(monkeypatch, block)
     calls = full_scans(monkeypatch)
     generator = PacketGenerator("LD06", seed=4)
     data = generator.packets(6) + health_over_next_packet() + generator.packets(20)
     packets, parser = streaming(data)
-    assert parser.stats.health_frames == 1 and len(packets) == 6 + 19
+    assert parser.stats.health_frames == 0 and len(packets) == 6 + 20
+    assert parser.stats.skipped_bytes == 3
     assert_agree(data)
-    assert calls  # the health frame is scanned, the packet it covers was a link
+    assert not calls  # the false frame never unseats the chain's first link
+
+
+@pytest.mark.shared
+def test_real_capture_with_truncated_health_frames_spliced_in_keeps_every_packet(capture: Path) -> None:
+    """``54 E0 C8`` before every 10th packet: each would swallow the next header (issue 14)."""
+    data = capture.read_bytes()
+    offsets = decode_bytes(data).offsets.tolist()
+    spliced = bytearray()
+    for j, (a, b) in enumerate(pairwise([0, *offsets, len(data)])):
+        spliced += data[a:b]
+        if j % 10 == 0 and j < len(offsets):
+            spliced += bytes((0x54, 0xE0, 0xC8))
+    assert crc8(bytes((0x54, 0xE0, 0xC8))) == 0x54  # the frame would be complete and valid
+    packets, parser = streaming(bytes(spliced))
+    assert len(packets) == 863 and parser.stats.health_frames == 0
+    assert len(decode_bytes(bytes(spliced))) == 863
+    assert_agree(bytes(spliced))
 
 
 def test_packet_overlapping_the_first_link_forces_a_full_scan(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -332,6 +349,19 @@ def test_angle_range_equals_point_angles(capture: Path) -> None:
     assert decode_bytes(b"").angle_range() is None
 
 
+def reference_times(decoded: _bulk.DecodedStream) -> np.ndarray:
+    """Device times packet by packet: a step beyond one revolution is replaced by the rotation's time."""
+    times = [0]
+    for i in range(1, len(decoded)):
+        step = (int(decoded.timestamp[i]) - int(decoded.timestamp[i - 1])) % 30000
+        speed = int(decoded.speed[i])
+        if speed and step > 360_000 / speed:
+            turned = (int(decoded.start_angle[i]) - int(decoded.start_angle[i - 1])) % 36000
+            step = round(turned * 10 / speed)
+        times.append(times[-1] + step)
+    return np.array(times[: len(decoded)], dtype=np.int64)
+
+
 def test_device_times_with_out_of_range_stamps() -> None:
     rows = PacketGenerator("LD06", start_ms=29_000).rows(50)
     rows[10:12, 44:46] = 0xFF  # 65535: CRC-valid, yet beyond the 30 s clock
@@ -339,8 +369,23 @@ def test_device_times_with_out_of_range_stamps() -> None:
     decoded = decode_bytes(rows.tobytes())
     stamps = decoded.timestamp.astype(np.int64)
     assert stamps.max() == 65535
-    expected = np.concatenate(([0], np.cumsum(np.mod(np.diff(stamps), 30000))))
-    assert np.array_equal(decoded.device_times(), expected)
+    times = decoded.device_times()
+    assert np.array_equal(times, reference_times(decoded))
+    assert np.all(np.diff(times) <= 3)  # 2.7 ms a packet: the bad stamps are jumps, not time
+
+
+@pytest.mark.parametrize("jump_ms", [-5717, 5000, 29_000])
+def test_device_clock_jumps_are_not_time(jump_ms: int) -> None:
+    """A jump of the device clock (seen: 26,755 -> 21,038 ms) leaves times and rates right."""
+    rows = PacketGenerator("LD06", start_ms=26_000).rows(800)
+    stamps = (rows[:, 44].astype(np.int64) | rows[:, 45].astype(np.int64) << 8)
+    stamps[300:] = (stamps[300:] + jump_ms) % 30000
+    rows[:, 44], rows[:, 45] = stamps & 0xFF, stamps >> 8
+    rows[:, 46] = _bulk.crc_rows(rows)
+    decoded = decode_bytes(rows.tobytes())
+    steps = decoded.device_steps()
+    assert steps.max() <= 3 and steps.min() >= 2
+    assert decoded.device_elapsed() == pytest.approx(799 / 375 * 1000, abs=2)
 
 
 def test_crc_rows_matches_crc8() -> None:
@@ -424,8 +469,9 @@ def test_overlapping_packets_either_side_of_a_block_boundary(offset: int, monkey
 
 def reference_wraps(decoded: _bulk.DecodedStream) -> np.ndarray:
     """Whole-array version of :meth:`DecodedStream.wraps`, to check the chunked one."""
-    start = decoded.start_angle.astype(np.int32)
-    end = decoded.end_angle.astype(np.int32)
+    # Angles measured from the back of the sensor, where revolutions begin.
+    start = (decoded.start_angle.astype(np.int32) - 18000) % 36000
+    end = (decoded.end_angle.astype(np.int32) - 18000) % 36000
     span = end - start
     inside = np.flatnonzero(span < 0)
     k = -((start[inside].astype(np.int64) * 11 - 396000) // (span[inside].astype(np.int64) + 36000))
@@ -442,8 +488,7 @@ def test_summaries_do_not_depend_on_chunks(chunk: int, capture: Path, monkeypatc
     for data in (capture.read_bytes(), rows.tobytes(), corrupted_stream(1)[0], b""):
         decoded = decode_bytes(data)
         assert np.array_equal(decoded.wraps(), reference_wraps(decoded))
-        stamps = decoded.timestamp.astype(np.int64)
-        times = np.concatenate(([0], np.cumsum(np.mod(np.diff(stamps), 30000))))[: len(decoded)]
+        times = reference_times(decoded)
         assert np.array_equal(decoded.device_times(), times)
         assert np.array_equal(decoded.device_steps(), np.diff(times))
         assert decoded.device_elapsed() == (times[-1] if len(times) else 0)

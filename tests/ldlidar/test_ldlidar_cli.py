@@ -61,6 +61,37 @@ def test_decode_counts_faults(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert summary["revolutions"] == 10
 
 
+def clock_set_back(data: bytes, *, at: int, ms: int) -> bytes:
+    """*data* (back-to-back packets) with the device clock set back *ms* from packet *at* on."""
+    from ldlidar import decode_bytes
+    from ldlidar._bulk import crc_rows
+
+    decoded = decode_bytes(data)
+    rows = np.frombuffer(data, dtype=np.uint8)[decoded.offsets[:, None] + np.arange(47)].copy()
+    stamps = rows[:, 44].astype(np.int64) | rows[:, 45].astype(np.int64) << 8
+    stamps[at:] = (stamps[at:] - ms) % 30000
+    rows[:, 44], rows[:, 45] = stamps & 0xFF, stamps >> 8
+    rows[:, 46] = crc_rows(rows)
+    out: bytes = rows.tobytes()
+    return out
+
+
+@pytest.mark.parametrize("real", [False, True], ids=["generated", "real"])
+def test_decode_rates_survive_a_device_clock_jump(
+    real: bool, tmp_path: Path, capsys: pytest.CaptureFixture[str], request: pytest.FixtureRequest
+) -> None:
+    """Issue 14: 26,755 -> 21,038 ms was read as +24.3 s, and the summary said 4.2 Hz."""
+    data = request.getfixturevalue("capture").read_bytes() if real else PacketGenerator("LD06").packets(863)
+    path = tmp_path / "jump.bin"
+    path.write_bytes(clock_set_back(data, at=400, ms=5717))
+    assert main(["decode", "--json", str(path)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["packets"] == 863
+    assert summary["scan_rate_hz"] == pytest.approx(10, abs=0.1)
+    assert summary["packet_rate_hz"] == pytest.approx(379 if real else 375, abs=2)
+    assert summary["device_duration_s"] == pytest.approx(862 / (379 if real else 375), abs=0.02)
+
+
 @pytest.mark.parametrize("json_flag", [[], ["--json"]])
 def test_decode_missing_file_exits_2_with_a_message(tmp_path: Path, json_flag: list[str]) -> None:
     out = run_cli("decode", *json_flag, str(tmp_path / "nope.bin"))

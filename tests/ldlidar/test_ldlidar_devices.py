@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import time
+import tty
 from itertools import pairwise
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ldlidar import (
@@ -15,11 +18,13 @@ from ldlidar import (
     Emulator,
     Lidar,
     LidarError,
+    Replayer,
     ReplaySource,
     SerialSource,
     StreamParser,
     open_source,
 )
+from ldlidar._cli import main
 
 LIMIT = 10.0  # seconds any one test may take
 
@@ -140,9 +145,9 @@ async def test_emulator_states_are_guarded() -> None:
 
 
 @pytest.mark.asyncio
-async def test_replay_streams_a_capture_at_line_rate(capture: Path) -> None:
-    size = capture.stat().st_size
-    source = ReplaySource(capture, bytes_per_second=size * 4, chunk_size=1000)  # a quarter second
+async def test_replay_follows_the_devices_own_clock(capture: Path) -> None:
+    """Paced by the capture's timestamps (2.275 s of device time), not the line rate (1.76 s)."""
+    source = ReplaySource(capture, rate=4.0)
     loop = asyncio.get_running_loop()
     async with asyncio.timeout(LIMIT):
         await source.open()
@@ -152,17 +157,85 @@ async def test_replay_streams_a_capture_at_line_rate(capture: Path) -> None:
             data += chunk
         elapsed = loop.time() - begin
     assert data == capture.read_bytes()
-    assert elapsed >= 0.2
+    assert elapsed == pytest.approx(2.275 / 4, abs=0.05)
 
 
 @pytest.mark.asyncio
-async def test_file_url_opens_a_replay_at_the_baud_rate(capture: Path) -> None:
-    source = open_source(f"file://{capture}", baudrate=230400)
-    assert isinstance(source, ReplaySource)
-    assert source.bytes_per_second == 23040
+async def test_replayer_plays_a_capture_on_a_pty_at_the_devices_pace(capture: Path) -> None:
+    """``python -m ldlidar replay capture.bin --rate 4``: for any driver, at 4x the capture's own pace."""
+    loop = asyncio.get_running_loop()
+    async with asyncio.timeout(LIMIT), Replayer(capture, rate=4.0) as player:
+        source = SerialSource(player.link, baudrate=230400)
+        await source.open()
+        parser = StreamParser()
+        try:
+            while not parser.feed(await source.read()):
+                pass
+            begin = loop.time()
+            await player.finished.wait()
+            elapsed = loop.time() - begin
+            while parser.stats.packets < 863:
+                parser.feed(await source.read())
+        finally:
+            await source.close()
+    assert parser.stats.packets == 863 and parser.stats.crc_errors == 0
+    assert elapsed == pytest.approx(2.275 / 4, abs=0.06)
+    assert main(["replay", str(capture), "--rate", "0"]) == 2
+
+
+@pytest.mark.asyncio
+async def test_file_url_options() -> None:
+    replay = open_source("file:///tmp/capture.bin?rate=2.5&loop=1", baudrate=230400)
+    assert isinstance(replay, ReplaySource) and replay.rate == 2.5 and replay.device == "/tmp/capture.bin"
     assert isinstance(open_source("/dev/ttyUSB0", baudrate=921600), SerialSource)
+    for bad in ("file:///x.bin?speed=2", "file:///x.bin?rate=fast", "file:///x.bin?rate=0"):
+        with pytest.raises(DeviceError, match="bad replay URL"):
+            open_source(bad, baudrate=230400)
     with pytest.raises(DeviceError, match="cannot read"):
         await open_source("file:///nope.bin", baudrate=230400).open()
+
+
+def spliced_capture(capture: Path, tmp_path: Path) -> Path:
+    """The real capture with 40 packets cut out (a gap) and the device clock set back 5.7 s after it."""
+    from ldlidar import decode_bytes
+    from ldlidar._bulk import crc_rows
+
+    data = capture.read_bytes()
+    decoded = decode_bytes(data)
+    rows = np.frombuffer(data, dtype=np.uint8)[decoded.offsets[:, None] + np.arange(47)].copy()
+    rows = np.concatenate((rows[:300], rows[340:]))
+    stamps = rows[:, 44].astype(np.int64) | rows[:, 45].astype(np.int64) << 8
+    stamps[500:] = (stamps[500:] - 5717) % 30000
+    rows[:, 44], rows[:, 45] = stamps & 0xFF, stamps >> 8
+    rows[:, 46] = crc_rows(rows)
+    path = tmp_path / "spliced.bin"
+    path.write_bytes(rows.tobytes())
+    return path
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("rate", [1.0, 3.0])
+async def test_replayed_scans_keep_pace_across_gaps_and_clock_jumps(capture: Path, tmp_path: Path, rate: float) -> None:
+    """Issue 14: at line rate stamps stepped 77 ms for a scan_time of 100 ms, and went back at gaps."""
+    path = spliced_capture(capture, tmp_path)
+    scans = []
+    arrived = []
+    async with asyncio.timeout(LIMIT), Lidar(f"file://{path}?rate={rate:g}", bins=455) as lidar:
+        async for scan in lidar.scans():
+            scans.append(scan)
+            arrived.append(time.time())
+    # Both a gap of over a turn and the clock set back are jumps: the rotation, not the stamps, tells the time.
+    assert len(scans) >= 19 and lidar.assembler.clock.jumps == 2
+    stamps = np.array([s.stamp for s in scans])
+    steps = np.diff(stamps)
+    assert np.all(steps > 0)
+    # One revolution a step, in host seconds, as scan_time says; the gap is a whole turn or two.
+    periods = np.array([s.scan_time for s in scans])
+    assert periods == pytest.approx(0.1 / rate, rel=0.02)
+    ordinary = steps[steps < 1.5 * periods[1:]]
+    assert len(ordinary) >= len(steps) - 2
+    assert ordinary == pytest.approx(periods[1 : len(ordinary) + 1], rel=0.05)
+    assert np.all(np.array(arrived) - stamps < 0.1 / rate + 0.05)  # published right after each turn
 
 
 @pytest.mark.asyncio
@@ -192,7 +265,7 @@ async def test_lidar_open_times_out_on_a_silent_port() -> None:
     try:
         lidar = Lidar(os.ttyname(slave), timeout=0.3)
         async with asyncio.timeout(LIMIT):
-            with pytest.raises(DeviceError, match=r"no valid packet within 0\.3 s"):
+            with pytest.raises(DeviceError, match=r"silent: not one byte within 0\.3 s"):
                 await lidar.open()
     finally:
         os.close(master)
@@ -200,9 +273,35 @@ async def test_lidar_open_times_out_on_a_silent_port() -> None:
 
 
 @pytest.mark.asyncio
+async def test_lidar_open_tells_garbage_from_silence() -> None:
+    """Bytes that never form a packet (a wrong baud rate looks like this) get their own error."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    noise = np.random.default_rng(5).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+
+    async def babble() -> None:
+        for i in range(0, len(noise), 100):
+            os.write(master, noise[i : i + 100])
+            await asyncio.sleep(0.01)
+
+    try:
+        lidar = Lidar(os.ttyname(slave), timeout=0.3)
+        async with asyncio.timeout(LIMIT):
+            writer = asyncio.ensure_future(babble())
+            with pytest.raises(DeviceError, match=r"\d+ bytes within 0\.3 s but no valid packet") as info:
+                await lidar.open()
+            await writer
+        assert "wrong baud rate" in str(info.value) and "silent" not in str(info.value)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.asyncio
 async def test_lidar_reopens_after_unplug() -> None:
+    events: list[tuple[str, str]] = []
     async with asyncio.timeout(LIMIT), Emulator() as emu:
-        lidar = Lidar(emu.link, timeout=0.5, reopen_interval=0.05)
+        lidar = Lidar(emu.link, timeout=0.5, reopen_interval=0.05, on_event=lambda *e: events.append(e))
         await lidar.open()
         scans = 0
         unplugged = False
@@ -214,9 +313,39 @@ async def test_lidar_reopens_after_unplug() -> None:
                 asyncio.get_running_loop().call_later(0.3, lambda: asyncio.ensure_future(emu.replug()))
             if lidar.reopens and scans >= 4:
                 break
+        recovered = lidar.last_error
         await lidar.close()
     assert lidar.reopens == 1
     assert lidar.state == "closed"
+    assert recovered is None  # recovery clears the last error
+    kinds = [kind for kind, _ in events]
+    assert kinds == ["lost", "reconnected"], events
+    assert "device lost (port failed" in events[0][1]
+    assert re.search(r"reconnected after 0\.\d s \(\d+ attempt\(s\)\)", events[1][1])
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("poll", [0.02, None], ids=["polled", "on-arrival"])
+async def test_a_short_stall_is_reported_with_its_length(poll: float | None) -> None:
+    """No data for 0.4 s (less than the 1 s timeout): not lost, but never quiet."""
+    events: list[tuple[str, str]] = []
+    async with (
+        asyncio.timeout(LIMIT),
+        Emulator() as emu,
+        Lidar(emu.link, poll_interval=poll, on_event=lambda *e: events.append(e)) as lidar,
+    ):
+        scans = 0
+        async for _ in lidar.scans():
+            scans += 1
+            if scans == 3:
+                emu.pause()
+                asyncio.get_running_loop().call_later(0.4, emu.resume)
+            if scans == 8:
+                break
+    assert [kind for kind, _ in events] == ["stalled"], events
+    seconds = float(re.search(r"no data for (\d\.\d+) s", events[0][1]).group(1))  # type: ignore[union-attr]
+    assert 0.35 <= seconds < 0.6
+    assert lidar.stalls == 1 and lidar.reopens == 0
 
 
 @pytest.mark.asyncio
@@ -280,7 +409,7 @@ async def test_reopen_attempts_back_off_up_to_the_maximum(monkeypatch: pytest.Mo
     assert len(attempts) >= 6
     for gap, least in zip(gaps[:5], [0.1, 0.2, 0.2, 0.2, 0.2], strict=True):
         assert gap >= least * 0.99, gaps
-    assert lidar.last_error is not None
+    assert lidar.last_error is None  # recovered
 
 
 @pytest.mark.asyncio
@@ -345,8 +474,8 @@ async def test_polled_lidar_yields_each_revolution_soon_after_it_completes() -> 
     async with asyncio.timeout(LIMIT), Emulator() as emu, Lidar(emu.link, poll_interval=0.03) as lidar:
         delays: list[float] = []
         async for scan in lidar.scans():
-            # stamp + scan_time: the next turn's first ray, i.e. this one's end.
-            delays.append(time.time() - (scan.stamp + scan.scan_time))
+            # Upright, ray 0 is the turn's last measured: its end.
+            delays.append(time.time() - scan.stamp)
             if len(delays) == 25:
                 break
     delays = sorted(delays[5:])  # the clock mapping settles over the first turns

@@ -67,7 +67,7 @@ def test_a_stopped_reader_outranks_everything(failed: bool, level: bytes) -> Non
 
 def test_report_names_the_node_and_device_and_says_whether_it_publishes() -> None:
     device = lidar()
-    diagnostics = Diagnostics(device, node_name="front", emulated=True)
+    diagnostics = Diagnostics(device, node_name="front", emulated=False)
     device.stats.packets += 375
 
     inactive = diagnostics.report(stamp=Time(sec=7), node_state="inactive", scans=10, published=0)
@@ -76,7 +76,7 @@ def test_report_names_the_node_and_device_and_says_whether_it_publishes() -> Non
     assert inactive.header.stamp.sec == 7
     assert (status.name, status.hardware_id) == ("front: LiDAR", "LD06 on /dev/ttyUSB9")
     assert (status.level, status.message) == (OK, "streaming, not publishing (node inactive)")
-    assert values["emulated"] == "yes" and values["node state"] == "inactive"
+    assert values["emulated"] == "no" and values["node state"] == "inactive"
     assert (values["packets"], values["scans"], values["scans published"]) == ("375", "10", "0")
     assert float(values["packet rate (Hz)"]) > 0
 
@@ -86,3 +86,28 @@ def test_report_names_the_node_and_device_and_says_whether_it_publishes() -> Non
 
     [status] = diagnostics.report(stamp=Time(sec=9), node_state="active", scans=20, published=10).status
     assert status.level == ERROR and status.message.startswith("no data for")
+
+
+def test_simulated_scans_are_never_ok() -> None:
+    """``comm.serial_port: auto`` fell back to the emulator: WARN, and the message says so."""
+    device = lidar()
+    diagnostics = Diagnostics(device, node_name="front", emulated=True)
+    device.stats.packets += 375
+    [status] = diagnostics.report(stamp=Time(sec=7), node_state="active", scans=10, published=10).status
+    assert status.level == WARN
+    assert status.message == "simulated: no LiDAR found, scans come from the built-in emulator, publishing"
+    assert {v.key: v.value for v in status.values}["emulated"] == "yes"
+
+
+def test_recovery_clears_the_last_error() -> None:
+    """Only while the device is being reopened is there a last error to show."""
+    device = lidar()
+    diagnostics = Diagnostics(device, node_name="front", emulated=False)
+    device.state, device.last_error = "reconnecting", "port closed"
+    [status] = diagnostics.report(stamp=Time(sec=7), node_state="active", scans=0, published=0).status
+    assert {v.key: v.value for v in status.values}["last error"] == "port closed"
+    device.state, device.last_error, device.reopens = "open", None, 1  # what a reopen leaves
+    device.stats.packets += 375
+    [status] = diagnostics.report(stamp=Time(sec=8), node_state="active", scans=10, published=10).status
+    values = {v.key: v.value for v in status.values}
+    assert status.level == OK and values["last error"] == "none" and values["reconnects"] == "1"

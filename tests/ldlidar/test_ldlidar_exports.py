@@ -12,7 +12,7 @@ EXPECTED = {
     "PACKET_SIZE", "PACKET_TYPE", "POINTS_PER_PACKET", "TIMESTAMP_WRAP_MS",
     "DecodedStream", "DeviceClock", "DeviceError", "Direction", "Emulator", "Lidar",
     "LidarError", "Model", "Packet", "PacketGenerator", "ParserStats", "ProtocolError",
-    "ReplaySource", "Room", "Scan", "ScanAssembler", "SerialSource", "Source",
+    "ReplaySource", "Replayer", "Room", "Scan", "ScanAssembler", "SerialSource", "Source",
     "StreamParser", "crc8", "decode_bytes", "decode_file", "decode_packet",
     "encode_health", "encode_info", "encode_packet", "encode_png", "get_model",
     "open_source", "render_scan",
@@ -62,7 +62,7 @@ def test_decode_command_imports_neither_asyncio_serial_nor_rclpy(tmp_path: Path)
 
 def test_plugin_module_exports_the_node_and_its_hook() -> None:
     assert set(ldlidar.plugin.__all__) == {
-        "AUTO_PORT_PATTERNS", "DIAGNOSTICS_PERIOD", "SCAN_QOS", "LdLidarNode",
+        "AUTO_PORT_PATTERNS", "DIAGNOSTICS_PERIOD", "SCAN_QOS", "SCAN_QOS_OVERRIDES", "LdLidarNode",
         "find_serial_ports", "register_node_types", "to_laser_scan",
     }
     for name in ldlidar.plugin.__all__:

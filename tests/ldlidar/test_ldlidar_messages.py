@@ -31,3 +31,15 @@ def test_stamp_just_below_a_whole_second_rounds_up_cleanly() -> None:
     scan = next(s for p in parser.feed(generator.packets(120)) for s in assembler.push(p))
     stamp = to_laser_scan(dataclasses.replace(scan, stamp=41.9999999999), frame_id="x").header.stamp
     assert (stamp.sec, stamp.nanosec) == (42, 0)
+
+
+def test_a_reused_message_holds_only_the_latest_scan() -> None:
+    """The node fills one message per revolution (building a LaserScan costs more than filling one)."""
+    generator = PacketGenerator("LD06")
+    parser, assembler = StreamParser(), ScanAssembler(bins=0)
+    scans = [s for p in parser.feed(generator.packets(200)) for s in assembler.push(p, host_time=1e9)]
+    reused = to_laser_scan(scans[0], frame_id="laser")
+    for scan in scans[1:]:
+        again = to_laser_scan(scan, frame_id="laser", into=reused)
+        assert again is reused
+        assert again == to_laser_scan(scan, frame_id="laser")

@@ -96,9 +96,10 @@ def check_scan_fields(scans: list[LaserScan], *, bins: int = 455) -> None:
         assert len(scan.ranges) == bins == len(scan.intensities)
         span = scan.angle_max - scan.angle_min
         assert scan.angle_increment * (len(scan.ranges) - 1) == pytest.approx(span, rel=1e-5)
-        assert scan.angle_min == pytest.approx(-math.pi)
+        # Ray i covers [-pi + i * 2pi/n, -pi + (i + 1) * 2pi/n); upright, ray 0 is measured last.
+        assert scan.angle_min == pytest.approx(-math.pi + math.pi / bins)
         assert scan.scan_time == pytest.approx(0.1, abs=0.005)
-        assert scan.time_increment == pytest.approx(scan.scan_time / bins, rel=1e-3)
+        assert scan.time_increment == pytest.approx(-scan.scan_time / bins, rel=1e-3)
         assert (scan.range_min, scan.range_max) == pytest.approx((0.03, 15.0))
         finite = [r for r in scan.ranges if math.isfinite(r)]
         assert len(finite) > 0.8 * bins  # the emulated room has walls all round
@@ -192,7 +193,7 @@ def test_configure_fails_on_a_missing_port_and_can_be_retried(
         assert response.success is False
         state = await get.call_async(GetState.Request())
         assert state.current_state.label == "unconfigured"
-        assert node.lidar is None
+        assert node.lidar is None and node.emulator is None  # an explicit port never falls back
         await until(
             lambda: any("/dev/does-not-exist: cannot open" in m for m in logged(rosout, "nowhere")),
             "the logged reason",
@@ -216,6 +217,9 @@ def test_configure_fails_on_a_missing_port_and_can_be_retried(
         ("comm.timeout_msec", 0, "must be positive"),
         ("comm.poll_msec", 100, "must be within [0, 30]"),
         ("lidar.frame_id", "", "non-empty string"),
+        ("lidar.units", "MM", "only M (metres) is supported, not 'MM'"),
+        ("topic_name", "scan", "remap it instead"),
+        ("laser_scan_dir", "yes", "must be true or false"),
     ],
 )
 def test_configure_refuses_a_bad_parameter_naming_it(
@@ -256,6 +260,8 @@ def test_angle_crop_outside_a_turn_is_refused(executor: AsyncioExecutor, host: C
 
 def test_configure_times_out_on_a_silent_port(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
     master, slave = os.openpty()
+    observer = host(Node, "observer")
+    rosout = Recorder(observer, Log, "/rosout", ROSOUT_QOS)
 
     async def scenario() -> float:
         node: LdLidarNode = host(
@@ -268,6 +274,10 @@ def test_configure_times_out_on_a_silent_port(executor: AsyncioExecutor, host: C
         elapsed = time.monotonic() - began
         assert node.lifecycle_state.label == "unconfigured" and node.lidar is None
         assert openers(os.ttyname(slave)) == 1  # the test's own: the node closed its port
+        await until(
+            lambda: any("silent: not one byte within 0.3 s" in m for m in logged(rosout, "silent")),
+            "the reason, which is not a wrong baud rate",
+        )
         return elapsed
 
     try:
@@ -324,6 +334,12 @@ def test_auto_without_a_device_runs_the_emulator_until_cleanup(
     class Unplugged(LdLidarNode):
         auto_port_patterns = ()
 
+    observer = host(Node, "observer")
+    diagnostics = Recorder(observer, DiagnosticArray, "/diagnostics", 10)
+
+    def statuses() -> list[DiagnosticStatus]:
+        return [s for a in diagnostics.messages() for s in a.status if s.name == "auto_emu: LiDAR"]
+
     async def scenario() -> None:
         node: LdLidarNode = host(Unplugged, "auto_emu")
         assert await node.transition("configure")
@@ -333,6 +349,10 @@ def test_auto_without_a_device_runs_the_emulator_until_cleanup(
         assert node.port == emulator.link and os.path.exists(emulator.link)
         assert await node.transition("activate")
         await until(lambda: node.scans_published >= 3, "scans from the emulator")
+        # Simulated scans are never OK: a robot must not mistake them for its surroundings.
+        await until(lambda: any("publishing" in s.message for s in statuses()), "an active status", timeout=5)
+        active = [s for s in statuses() if s.message.endswith(", publishing")]
+        assert active and all(s.level == DiagnosticStatus.WARN and "simulated" in s.message for s in active)
         assert await node.transition("deactivate")
         assert await node.transition("cleanup")
         assert running == "running" and emulator.state == "closed" and node.emulator is None
@@ -357,6 +377,114 @@ def test_auto_prefers_an_attached_device(executor: AsyncioExecutor, host: Callab
     run(executor, scenario())
 
 
+# -- migration from other drivers ----------------------------------------------------------------
+def test_a_vendor_parameter_file_is_taken_with_notices_and_unknown_names_are_reported(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """ldlidar_stl_ros2's names mean ours (each with a notice); a typo is never silently ignored."""
+    observer = host(Node, "observer")
+    rosout = Recorder(observer, Log, "/rosout", ROSOUT_QOS)
+
+    async def scenario() -> None:
+        async with Emulator() as emu:
+            vendor = {
+                "product_name": "LDLiDAR_LD06",
+                "port_name": emu.link,
+                "port_baudrate": 230400,
+                "frame_id": "base_laser",
+                "laser_scan_dir": False,
+                "enable_angle_crop_func": True,
+                "angle_crop_min": 135.0,
+                "angle_crop_max": 225.0,
+                "lidar.bin": 360,  # a typo of ours
+                "general.debug_mode": True,
+            }
+            node: LdLidarNode = host(
+                LdLidarNode, "migrated", parameter_overrides=[Parameter(k, value=v) for k, v in vendor.items()]
+            )
+            assert await node.transition("configure")
+            assert node.port == emu.link
+            values = {name: node.get_parameter(name).value for name in ("lidar.frame_id", "lidar.rot_verse")}
+            assert values == {"lidar.frame_id": "base_laser", "lidar.rot_verse": "CW"}
+            assert node.get_parameter("lidar.enable_angle_crop").value is True
+            await until(
+                lambda: any("Unknown parameter 'lidar.bin'" in m for m in logged(rosout, "migrated")),
+                "the unknown parameter reported",
+            )
+            lines = logged(rosout, "migrated")
+            for old, ours in (("port_name", "comm.serial_port"), ("laser_scan_dir", "lidar.rot_verse")):
+                assert f"Parameter {old!r} (vendor driver) is deprecated: use {ours!r}" in lines
+            assert any("did you mean 'lidar.bins'?" in m for m in lines)
+            assert await node.transition("activate")
+            # general.debug_mode (the community driver's) is honoured: a debug line per revolution.
+            await until(lambda: any(m.startswith("scan ") for m in logged(rosout, "migrated")), "debug lines")
+            assert await node.transition("deactivate")
+            assert await node.transition("cleanup")
+
+    run(executor, scenario())
+
+
+def test_scan_qos_is_overridden_the_ros_way(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    observer = host(Node, "observer")
+
+    async def scenario() -> None:
+        async with Emulator() as emu:
+            node: LdLidarNode = host(
+                LdLidarNode,
+                "besteffort",
+                parameter_overrides=[
+                    *lidar_parameters(emu.link),
+                    Parameter("qos_overrides./besteffort/scan.publisher.reliability", value="best_effort"),
+                    Parameter("qos_overrides./besteffort/scan.publisher.depth", value=3),
+                ],
+            )
+            assert await node.transition("configure")
+            await until(lambda: bool(observer.get_publishers_info_by_topic("/besteffort/scan")), "the publisher")
+            [info] = observer.get_publishers_info_by_topic("/besteffort/scan")
+            assert info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+            assert node.get_parameter("qos_overrides./besteffort/scan.publisher.depth").value == 3
+            assert await node.transition("cleanup")
+            bad: LdLidarNode = host(
+                LdLidarNode,
+                "badqos",
+                parameter_overrides=[
+                    *lidar_parameters(emu.link),
+                    Parameter("qos_overrides./badqos/scan.publisher.reliability", value="sometimes"),
+                ],
+            )
+            assert not await bad.transition("configure")
+            assert bad.lidar is None and bad.lifecycle_state.label == "unconfigured"
+
+    run(executor, scenario())
+
+
+def test_publish_when_subscribed_builds_scans_only_for_a_listener(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    observer = host(Node, "observer")
+
+    async def scenario() -> None:
+        async with Emulator() as emu:
+            node: LdLidarNode = host(
+                LdLidarNode,
+                "lazy",
+                parameter_overrides=lidar_parameters(emu.link, general__publish_when_subscribed=True),
+            )
+            assert await node.transition("configure")
+            assert await node.transition("activate")
+            lidar = node.lidar
+            assert lidar is not None
+            mark = lidar.stats.packets
+            await until(lambda: lidar.stats.packets > mark + 200, "half a second of packets")
+            assert node.scans_published == 0
+            scans = Recorder(observer, LaserScan, "/lazy/scan", SCAN_QOS)
+            await until(lambda: len(scans) >= 3, "scans once someone listens")
+            assert await node.transition("deactivate")
+            assert await node.transition("cleanup")
+
+    run(executor, scenario())
+
+
 # -- trouble while active ----------------------------------------------------------------------
 @pytest.mark.parametrize("poll_msec", [10, 0], ids=["polled", "on-arrival"])
 def test_unplug_while_active_reports_an_error_then_resumes(
@@ -365,6 +493,10 @@ def test_unplug_while_active_reports_an_error_then_resumes(
     observer = host(Node, "observer")
     scans = Recorder(observer, LaserScan, "/plugged/scan", SCAN_QOS)
     diagnostics = Recorder(observer, DiagnosticArray, "/diagnostics", 10)
+    rosout = Recorder(observer, Log, "/rosout", ROSOUT_QOS)
+
+    def warnings() -> list[str]:
+        return [m.msg for m in rosout.messages() if m.name == "plugged" and m.level == Log.WARN]
 
     def statuses() -> list[DiagnosticStatus]:
         return [s for a in diagnostics.messages() for s in a.status if s.name == "plugged: LiDAR"]
@@ -401,12 +533,17 @@ def test_unplug_while_active_reports_an_error_then_resumes(
             seen = len(statuses())
             await until(
                 lambda: any(
-                    s.level == DiagnosticStatus.OK and dict((v.key, v.value) for v in s.values)["reconnects"] == "1"
+                    s.level == DiagnosticStatus.OK
+                    and dict((v.key, v.value) for v in s.values)["reconnects"] == "1"
+                    and dict((v.key, v.value) for v in s.values)["last error"] == "none"
                     for s in statuses()[seen:]
                 ),
-                "an OK diagnostic counting the reconnect",
+                "an OK diagnostic counting the reconnect, the error cleared",
                 timeout=5,
             )
+            # Never only on /diagnostics: the log says it too.
+            await until(lambda: any("reconnected after" in m for m in warnings()), "a WARN on reconnecting")
+            assert any("device lost (port" in m for m in warnings()), warnings()
             assert await node.transition("deactivate")
             assert await node.transition("cleanup")
 
@@ -565,7 +702,7 @@ def test_replay_of_a_real_capture_through_the_node(
         assert await node.transition("activate")
         lidar = node.lidar
         assert lidar is not None
-        await until(lambda: lidar.closed, "the end of the capture", timeout=10)
+        await until(lambda: lidar.closed, "the end of the capture", timeout=10)  # 2.3 s of device time
         assert lidar.stats.packets == 863 and lidar.stats.crc_errors == 0
         published = node.scans_published
         await until(lambda: len(scans) == published, "every published scan")
@@ -581,4 +718,7 @@ def test_replay_of_a_real_capture_through_the_node(
         assert msg.scan_time == pytest.approx(0.1, abs=0.01)  # 3588..3613 deg/s
         assert sum(math.isfinite(r) for r in msg.ranges) > 300
     stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in messages]
-    assert np.all(np.diff(stamps) > 0)
+    # Replayed at the device's pace: stamps step by scan_time (line rate made that 77 ms for 100 ms).
+    steps = np.diff(stamps)
+    assert np.all(steps > 0)
+    assert steps == pytest.approx([m.scan_time for m in messages[1:]], rel=0.03)

@@ -143,3 +143,48 @@ def test_reset_counts_dropped_bytes() -> None:
     parser.reset()
     assert parser.pending == 0
     assert parser.stats.skipped_bytes == 3 and parser.stats.resyncs == 1
+
+
+def spliced_health(packets: bytes, *, every: int) -> bytes:
+    """``54 E0 C8`` (a truncated health frame whose CRC would be the next ``54``) before every *every*-th packet."""
+    out = bytearray()
+    for i in range(0, len(packets), 47):
+        if (i // 47) % every == 0:
+            out += b"\x54\xe0\xc8"
+        out += packets[i : i + 47]
+    return bytes(out)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_false_health_frame_never_swallows_a_packet_however_the_bytes_arrive(seed: int) -> None:
+    """Issue 14: the decoder found 777 of the real capture's 863 packets with these bytes spliced in."""
+    clean = PacketGenerator("LD06", seed=seed).packets(200)
+    data = spliced_health(clean, every=3)
+    sizes = random_chunks(np.random.default_rng(seed), len(data))
+    sizes[0] = 3  # one chunk ends right after 54 E0 C8: the parser must wait, not decide
+    packets, parser = parse(data, sizes)
+    assert len(packets) == 200 and parser.stats.health_frames == 0
+    assert parser.stats.skipped_bytes == 3 * 67
+    # A real, complete health frame is still one.
+    real, parser = parse(clean[:47] + encode_health(4) + clean[47:94], [47, 3, 1, 47])
+    assert len(real) == 2 and parser.stats.health_frames == 1 and parser.stats.last_health_code == 4
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_rows_and_packets_are_the_same_stream(seed: int) -> None:
+    """feed_rows (what the node uses) takes the same packets and counts the same as feed."""
+    data, _ = corrupted_stream(seed)
+    data = spliced_health(data[:3000], every=5) + data[3000:]
+    sizes = random_chunks(np.random.default_rng(seed), len(data))
+    packets, by_packet = parse(data, sizes)
+    by_rows = StreamParser()
+    rows = []
+    pos = 0
+    for size in [*sizes, len(data)]:
+        chunk = by_rows.feed_rows(data[pos : pos + size])
+        assert chunk.shape[1:] == (47,)
+        rows += [bytes(r) for r in chunk]
+        pos += size
+    rows += [reencode(p) for p in by_rows.flush()]
+    assert rows == packets
+    assert by_rows.stats == by_packet.stats

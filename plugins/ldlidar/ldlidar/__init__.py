@@ -5,7 +5,8 @@ The pieces, bottom up: the wire format (:func:`decode_packet`,
 (:class:`StreamParser`) and a bulk decoder that agrees with it
 (:func:`decode_bytes`), revolution assembly (:class:`ScanAssembler`), byte
 sources (:class:`SerialSource`, :class:`ReplaySource`), a device facade that
-reopens after unplugs (:class:`Lidar`) and an emulator (:class:`Emulator`).
+reopens after unplugs (:class:`Lidar`), an emulator (:class:`Emulator`) and a
+capture player (:class:`Replayer`).
 
 The asyncio-based and NumPy-based names are imported on first use, so that
 ``python -m ldlidar decode`` starts without asyncio or pyserial and loads
@@ -41,7 +42,7 @@ from ._protocol import (
 
 if TYPE_CHECKING:
     from ._bulk import DecodedStream, decode_bytes, decode_file
-    from ._emulator import Emulator, PacketGenerator, Room
+    from ._emulator import Emulator, PacketGenerator, Replayer, Room
     from ._lidar import Lidar
     from ._render import encode_png, render_scan
     from ._scan import DeviceClock, Direction, Scan, ScanAssembler
@@ -71,6 +72,7 @@ __all__ = [
     "ParserStats",
     "ProtocolError",
     "ReplaySource",
+    "Replayer",
     "Room",
     "Scan",
     "ScanAssembler",
@@ -102,6 +104,7 @@ _LAZY = {
     "ScanAssembler": "_scan",
     "Emulator": "_emulator",
     "PacketGenerator": "_emulator",
+    "Replayer": "_emulator",
     "Room": "_emulator",
     "Lidar": "_lidar",
     "ReplaySource": "_sources",

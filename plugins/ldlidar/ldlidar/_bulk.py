@@ -36,6 +36,7 @@ from ._errors import DeviceError
 from ._parser import MAX_SPAN, ParserStats
 from ._protocol import (
     ANGLE_UNITS,
+    BOUNDARY,
     CRC_TABLE,
     HEADER,
     HEALTH_SIZE,
@@ -56,7 +57,7 @@ if TYPE_CHECKING:
     # Only for annotations: importing numpy.typing costs start-up time.
     from numpy.typing import NDArray
 
-__all__ = ["DecodedStream", "crc_rows", "decode_bytes", "decode_file"]
+__all__ = ["DecodedStream", "crc_ok", "crc_rows", "decode_bytes", "decode_file"]
 
 _ROW = PACKET_SIZE + 1
 """Scattered packets are gathered into 48-byte rows so that every u16 field is aligned."""
@@ -83,6 +84,22 @@ _TURN = TURN_SUBUNITS
 _T = TypeVar("_T")
 
 
+def _single_tables() -> NDArray[np.uint8]:
+    """Return the ``(48, 256)`` CRC contribution of each byte value at each position of a packet.
+
+    The CRC is linear over GF(2): the CRC of bytes 0..45 is the XOR of rows
+    0..45 looked up at each byte. Row 46 is the CRC byte itself, row 47 zero.
+    """
+    table = np.array(CRC_TABLE, dtype=np.uint8)
+    single = np.zeros((_ROW, 256), dtype=np.uint8)
+    cur = np.arange(256, dtype=np.uint8)
+    single[PACKET_SIZE - 1] = cur
+    for i in range(PACKET_SIZE - 2, -1, -1):
+        cur = table[cur]
+        single[i] = cur
+    return single
+
+
 def _pair_tables() -> NDArray[np.uint8]:
     """Return the ``(24, 65536)`` CRC contribution of each aligned byte pair of a packet.
 
@@ -93,13 +110,7 @@ def _pair_tables() -> NDArray[np.uint8]:
     pair (64 KB, contiguous) is used one at a time, column by column, so it
     stays in cache.
     """
-    table = np.array(CRC_TABLE, dtype=np.uint8)
-    single = np.zeros((_ROW, 256), dtype=np.uint8)
-    cur = np.arange(256, dtype=np.uint8)
-    single[PACKET_SIZE - 1] = cur
-    for i in range(PACKET_SIZE - 2, -1, -1):
-        cur = table[cur]
-        single[i] = cur
+    single = _single_tables()
     # Pair value w = lo | hi << 8 sits at [hi, lo] of a 256 x 256 outer XOR.
     pairs = single[1::2, :, None] ^ single[0::2, None, :]
     return pairs.reshape(_ROW // 2, 1 << 16)
@@ -184,6 +195,25 @@ def _valid(buf: NDArray[np.uint8], base: int, stride: int, count: int) -> NDArra
     end -= start
     ok &= end <= MAX_SPAN
     ok &= (end >= 0) | (end <= MAX_SPAN - ANGLE_UNITS)
+    return ok
+
+
+_BYTE_TABLE: NDArray[np.uint8] | None = None
+_BYTE_BASE = (np.arange(PACKET_SIZE - 1, dtype=np.intp) << 8)
+
+
+def crc_ok(rows: NDArray[np.uint8]) -> NDArray[np.bool_]:
+    """Return which of the ``(n, 47)`` rows carry a correct CRC.
+
+    For a handful of packets at a time (the streaming parser's fast path):
+    one gather from the per-byte tables (12 KB, which stay in cache between
+    revolutions, unlike the 1.5 MB pair tables), whatever the number of rows.
+    """
+    global _BYTE_TABLE
+    if _BYTE_TABLE is None:
+        _BYTE_TABLE = _single_tables()[: PACKET_SIZE - 1].ravel()
+    crc = np.bitwise_xor.reduce(_BYTE_TABLE.take(rows[:, : PACKET_SIZE - 1] + _BYTE_BASE), axis=1)
+    ok: NDArray[np.bool_] = crc == rows[:, PACKET_SIZE - 1]
     return ok
 
 
@@ -273,15 +303,30 @@ class DecodedStream:
         _degrees_into(np.array([low, high], dtype=np.int32), out)
         return float(out[0]), float(out[1])
 
-    def _crossings(self) -> tuple[NDArray[np.intp], NDArray[np.int64], NDArray[np.int64]]:
-        """Return the packets whose points cross 0, their first point past it, and their spans.
+    def _crossings(self, boundary: int = 0) -> tuple[NDArray[np.intp], NDArray[np.int64], NDArray[np.int64]]:
+        """Return the packets whose points cross *boundary*, their first point past it, and their spans.
 
         Accepted packets have both angles below a full turn (see MAX_SPAN),
-        so a packet crosses 0 exactly when its end angle is below its start.
+        so a packet crosses the boundary exactly when its end angle, measured
+        from the boundary, is below its start.
         """
-        inside = _where(lambda a, b: self.end_angle[a:b] < self.start_angle[a:b], len(self))
-        start = self.start_angle[inside].astype(np.int64)
-        span = self.end_angle[inside].astype(np.int64) - start + ANGLE_UNITS
+        if boundary:
+
+            def crosses(a: int, b: int) -> NDArray[np.bool_]:
+                # A packet spans at most MAX_SPAN (a quarter turn), so one
+                # that crosses the back cannot also cross the front.
+                ok: NDArray[np.bool_] = self.start_angle[a:b] < boundary
+                ok &= self.end_angle[a:b] >= boundary
+                return ok
+
+            inside = _where(crosses, len(self))
+            start = (self.start_angle[inside].astype(np.int64) - boundary) % ANGLE_UNITS
+            end = (self.end_angle[inside].astype(np.int64) - boundary) % ANGLE_UNITS
+        else:
+            inside = _where(lambda a, b: self.end_angle[a:b] < self.start_angle[a:b], len(self))
+            start = self.start_angle[inside].astype(np.int64)
+            end = self.end_angle[inside].astype(np.int64)
+        span = end - start + ANGLE_UNITS
         # First point k whose position start*11 + span*k reaches a full turn.
         first = -((start * _SUB - _TURN) // span)
         return inside, first, span
@@ -289,14 +334,17 @@ class DecodedStream:
     def wraps(self) -> NDArray[np.int64]:
         """Return the flat point indices where a new revolution begins.
 
-        A revolution begins where the angle drops by more than half a turn
-        from one point to the next, the rule :class:`ScanAssembler` uses.
+        A revolution begins at the back of the sensor (device 180 degrees,
+        :data:`~ldlidar._protocol.BOUNDARY`): where the angle past it drops by
+        more than half a turn from one point to the next, the rule
+        :class:`ScanAssembler` uses.
         """
-        inside, first, _ = self._crossings()
-        start, end = self.start_angle, self.end_angle
+        inside, first, _ = self._crossings(BOUNDARY)
 
         def drops(a: int, b: int) -> NDArray[np.bool_]:
-            return start[a + 1 : b + 1] < end[a:b].astype(np.int32) - _HALF_TURN
+            start = (self.start_angle[a + 1 : b + 1].astype(np.int32) - BOUNDARY) % ANGLE_UNITS
+            end = (self.end_angle[a:b].astype(np.int32) - BOUNDARY) % ANGLE_UNITS
+            return start < end - _HALF_TURN
 
         between = _where(drops, len(self) - 1) + 1
         flat = np.concatenate((inside * POINTS_PER_PACKET + first, between * POINTS_PER_PACKET))
@@ -311,7 +359,11 @@ class DecodedStream:
         """Return the device milliseconds from each packet to the next (one fewer than packets).
 
         The device clock wraps at :data:`TIMESTAMP_WRAP_MS`, so a step is the
-        difference of two stamps modulo that.
+        difference of two stamps modulo that. A step longer than one
+        revolution at the packet's speed is a jump of the device's clock (a
+        backward jump reads as nearly 30 s), not time that passed: it is
+        replaced by the time the rotation took from one start angle to the
+        next, as :class:`ScanAssembler` does without a host clock.
         """
         out = np.empty(max(len(self) - 1, 0), dtype=np.int32)
         for a in range(0, len(out), _CHUNK):
@@ -339,6 +391,15 @@ class DecodedStream:
             np.add(steps, TIMESTAMP_WRAP_MS, out=steps, where=steps < 0)
         else:
             np.remainder(steps, TIMESTAMP_WRAP_MS, out=steps)
+        # step > 360,000 / speed, without a division (both fit an int32);
+        # the whole check only where the largest step could be one.
+        speed = self.speed[a + 1 : b + 1]
+        if not len(steps) or int(steps.max()) * int(speed.max()) <= 360_000:
+            return steps
+        jumps = np.flatnonzero(steps * speed.astype(np.int32) > 360_000)
+        if len(jumps):
+            turned = (self.start_angle[a + 1 + jumps].astype(np.int64) - self.start_angle[a + jumps]) % ANGLE_UNITS
+            steps[jumps] = np.rint(turned * 10 / speed[jumps])
         return steps
 
     def device_times(self) -> NDArray[np.int64]:
@@ -637,14 +698,25 @@ class _Frames(NamedTuple):
     unseated: NDArray[np.int64]
 
 
-def _extras(found: Sequence[_Found]) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
-    """Return the blocks' health and info frames in stream order, and their sizes."""
+def _extras(found: Sequence[_Found], packets: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+    """Return the blocks' health and info frames in stream order, and their sizes.
+
+    A frame inside which a valid data packet starts is not one (the packet
+    wins, as in the streaming parser). *packets* holds every valid data
+    packet: one starting inside a frame found in a gap is either scanned too
+    or the first link of a chain, never inside another link.
+    """
     health = _merge(f.health for f in found)
     info = _merge(f.info for f in found)
     starts = np.concatenate((health, info))
     sizes = np.concatenate(
         (np.full(len(health), HEALTH_SIZE, np.uint8), np.full(len(info), INFO_SIZE, np.uint8))
     )
+    if len(starts):
+        after = np.searchsorted(packets, starts, side="right")
+        nxt = packets[np.minimum(after, len(packets) - 1)] if len(packets) else starts + 256
+        alone = (after >= len(packets)) | (nxt >= starts + sizes)
+        starts, sizes = starts[alone], sizes[alone]
     order = np.argsort(starts, kind="stable")
     return starts[order], sizes[order]
 
@@ -671,7 +743,7 @@ def _accept(found: Sequence[_Found]) -> _Frames:
     """
     packets = np.concatenate([f.packets for f in found]) if found else np.zeros(0, np.int64)
     bad = np.concatenate([f.bad for f in found]) if found else np.zeros(0, np.int64)
-    extras, sizes = _extras(found)
+    extras, sizes = _extras(found, packets)
     filled = [f for f in found if len(f.packets)]
     seams = np.array([b.packets[0] - a.packets[-1] for a, b in pairwise(filled)], dtype=np.int64)
     near, near_sizes = _around(packets, extras, sizes)

@@ -1,4 +1,4 @@
-"""``python -m ldlidar``: decode captures, draw scans, run an emulator.
+"""``python -m ldlidar``: decode captures, draw scans, run an emulator, replay a capture.
 
 Kept light on imports: ``decode`` loads NumPy and the bulk decoder only (no
 asyncio, no serial, never rclpy), because it is also the benchmark's unit of
@@ -150,6 +150,34 @@ def _emulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay(args: argparse.Namespace) -> int:
+    import asyncio
+    import contextlib
+
+    from ._emulator import Replayer
+    from ._errors import DeviceError
+
+    if not args.rate > 0:
+        return _fail("replay", f"--rate must be positive, not {args.rate:g}")
+
+    async def run() -> None:
+        async with Replayer(args.file, rate=args.rate, loop=args.loop, link_dir=args.link_dir) as player:
+            print(
+                f"replaying {args.file} at {args.rate:g}x its device's pace on {player.port} "
+                f"(link {player.link}); Ctrl-C stops",
+                flush=True,
+            )
+            await player.finished.wait()
+            print(f"end of {args.file}: {player.packets_sent} packets", flush=True)
+
+    try:
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(run())
+    except DeviceError as exc:
+        return _fail("replay", str(exc))
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=_PROG, description="LDRobot LD06 / LD19 / STL-27L tools")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -173,6 +201,15 @@ def _parser() -> argparse.ArgumentParser:
     emulate.add_argument("--model", default="LD06")
     emulate.add_argument("--link-dir", default=None, help="directory for the stable symlink")
     emulate.set_defaults(run=_emulate)
+
+    replay = sub.add_parser(
+        "replay", help="play a capture on a pseudo-terminal at its device's pace (from its timestamps)"
+    )
+    replay.add_argument("file")
+    replay.add_argument("--rate", type=float, default=1.0, help="2 plays twice as fast, 0.5 at half speed")
+    replay.add_argument("--loop", action="store_true", help="start over at the end")
+    replay.add_argument("--link-dir", default=None, help="directory for the stable symlink")
+    replay.set_defaults(run=_replay)
     return parser
 
 

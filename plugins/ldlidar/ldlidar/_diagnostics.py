@@ -51,8 +51,8 @@ class Diagnostics:
 
     :param lidar: the device, open; its counters are the baseline of the first period.
     :param node_name: the node's name, which names the status.
-    :param emulated: the device is the node's own emulator (said in the status,
-        since its scans are simulated).
+    :param emulated: the device is the node's own emulator: the level is
+        then WARN at best and the message says "simulated".
     """
 
     def __init__(self, lidar: Lidar, *, node_name: str, emulated: bool) -> None:
@@ -85,7 +85,10 @@ class Diagnostics:
         self._counts = now
         elapsed = max(now.when - last.when, 1e-6)
         level, message = _health(lidar, last, now, stopped=stopped, failed=failed)
-        if level == DiagnosticStatus.OK:
+        if level == DiagnosticStatus.OK and self._emulated:
+            # Never OK: a robot must not take simulated scans for its surroundings.
+            level, message = DiagnosticStatus.WARN, "simulated: no LiDAR found, scans come from the built-in emulator"
+        if level == DiagnosticStatus.OK or self._emulated:
             message += ", publishing" if node_state == "active" else ", not publishing (node inactive)"
         values = {
             "port": lidar.port,
@@ -104,6 +107,8 @@ class Diagnostics:
             "health frames": str(stats.health_frames),
             "last health code": "none" if stats.last_health_code is None else str(stats.last_health_code),
             "reconnects": str(lidar.reopens),
+            "stalls": str(lidar.stalls),
+            "device clock jumps": str(lidar.assembler.clock.jumps),
             "last error": lidar.last_error or "none",
         }
         status = DiagnosticStatus(

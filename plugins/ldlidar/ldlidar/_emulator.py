@@ -4,7 +4,8 @@
 would send (real packet format, real rates, a 30,000 ms wrapping clock).
 :class:`Emulator` writes it to a pseudo-terminal in real time, with faults
 on demand; a pty ignores the baud rate, so the emulator paces itself at the
-model's packet rate.
+model's packet rate. :class:`Replayer` writes a capture instead, at the pace
+of its device's timestamps.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import shutil
 import tempfile
 import tty
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Self
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,7 +37,7 @@ from ._protocol import (
     get_model,
 )
 
-__all__ = ["Emulator", "PacketGenerator", "Room"]
+__all__ = ["Emulator", "PacketGenerator", "Replayer", "Room"]
 
 _State = Literal["unopened", "running", "unplugged", "closed"]
 
@@ -198,6 +199,7 @@ class Emulator:
         self._port: str | None = None
         self._task: asyncio.Task[None] | None = None
         self._injected = bytearray()
+        self._paused = False
         self.state: _State = "unopened"
         self.packets_sent = 0
         self.bytes_dropped = 0
@@ -216,7 +218,7 @@ class Emulator:
             raise LidarError(f"emulator is {self.state}: no link")
         return os.path.join(self._dir, f"ldlidar-{self.model.name.lower()}")
 
-    async def __aenter__(self) -> Emulator:
+    async def __aenter__(self) -> Self:
         await self.start()
         return self
 
@@ -260,6 +262,14 @@ class Emulator:
     def inject_health(self, code: int = 0) -> None:
         """Send a health frame with error *code*."""
         self.inject(encode_health(code))
+
+    def pause(self) -> None:
+        """Stop delivering packets, as a stalled USB link: the device turns on, its packets are lost."""
+        self._paused = True
+
+    def resume(self) -> None:
+        """Deliver packets again (from where the device is now)."""
+        self._paused = False
 
     async def unplug(self) -> None:
         """Close the pty as a pulled USB adapter would; the link disappears."""
@@ -309,7 +319,7 @@ class Emulator:
             if due > 0:
                 data = bytes(self._injected) + self.generator.packets(due)
                 self._injected.clear()
-                if self._master is None:
+                if self._master is None or self._paused:
                     self.bytes_dropped += len(data)
                 else:
                     self.packets_sent += due
@@ -324,3 +334,73 @@ class Emulator:
         except (BlockingIOError, OSError):
             written = 0
         self.bytes_dropped += len(data) - written
+
+
+class Replayer(Emulator):
+    """A capture played on a pseudo-terminal at its device's own pace, for any driver to read.
+
+    :param path: the capture file.
+    :param rate: 2.0 plays twice as fast, 0.5 at half speed.
+    :param loop: play again from the start at the end (the device clock
+        then jumps back, as after a device reset); otherwise the pty stays
+        open and silent.
+    :param link_dir, tick: see :class:`Emulator`.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        rate: float = 1.0,
+        loop: bool = False,
+        model: Model | str = "LD06",
+        link_dir: str | None = None,
+        tick: float = 0.005,
+    ) -> None:
+        if not rate > 0:
+            raise ValueError(f"rate must be positive, got {rate}")
+        super().__init__(model=model, link_dir=link_dir, tick=tick)
+        self.path = os.fspath(path)
+        self.rate = rate
+        self.loop = loop
+        self.finished = asyncio.Event()
+
+    async def start(self) -> None:
+        """Read the capture, open the pty and start playing.
+
+        :raises DeviceError: the capture cannot be read.
+        """
+        from ._sources import replay_schedule
+
+        try:
+            with open(self.path, "rb") as f:
+                self._data = f.read()
+        except OSError as exc:
+            raise DeviceError(f"cannot read capture: {exc.strerror or exc}", device=self.path) from exc
+        self._ends, self._times, self._duration = replay_schedule(self._data)
+        await super().start()
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        begin = loop.time()
+        lap, sent, pos = 0, 0, 0
+        while True:
+            played = (loop.time() - begin) * self.rate - lap * self._duration
+            due = sent
+            while due < len(self._ends) and self._times[due] <= played:
+                due += 1
+            if due > sent:
+                data = bytes(self._injected) + self._data[pos : self._ends[due - 1]]
+                self._injected.clear()
+                count, pos, sent = due - sent, self._ends[due - 1], due
+                if self._master is None or self._paused:
+                    self.bytes_dropped += len(data)
+                else:
+                    self.packets_sent += count
+                    self._write(data)
+            if sent == len(self._ends):
+                if not self.loop:
+                    self.finished.set()
+                    return
+                lap, sent, pos = lap + 1, 0, 0
+            await asyncio.sleep(self._tick)

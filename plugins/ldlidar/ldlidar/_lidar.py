@@ -4,6 +4,11 @@ The community driver exits when the port cannot open and never reopens after
 a USB adapter is pulled. Here :meth:`Lidar.open` raises :class:`DeviceError`
 (so a configure transition can fail cleanly), and :meth:`Lidar.scans` keeps
 reopening the same path (a udev or emulator symlink) until it comes back.
+
+Faults are never quiet: a caller passes ``on_event`` and hears of the device
+being lost, reconnected (and after how long), stalling (and for how long)
+and its clock jumping; :meth:`Lidar.open` tells a silent port from one whose
+bytes never form a packet.
 """
 
 from __future__ import annotations
@@ -13,17 +18,22 @@ import time
 from collections.abc import AsyncIterator, Callable
 from typing import Literal
 
+import numpy as np
+from numpy.typing import NDArray
+
 from ._errors import DeviceError
 from ._parser import ParserStats, StreamParser
-from ._protocol import Model, Packet, get_model
+from ._protocol import PACKET_SIZE, Model, get_model
 from ._scan import Direction, Scan, ScanAssembler
 from ._sources import ReplaySource, SerialSource, open_source
 
-__all__ = ["Lidar"]
+__all__ = ["EventKind", "Lidar"]
 
-#: Seconds past the predicted arrival of a revolution's last packet to read
-#: it: the clock mapping is the quickest arrival seen, most come a bit later.
-_DUE_MARGIN = 0.001
+#: Bytes gathered before parsing at the latest, whatever is expected.
+_HOLD_MAX = 16384
+
+EventKind = Literal["lost", "reconnected", "stalled", "clock_jump"]
+"""What :class:`Lidar` reports through ``on_event``."""
 
 
 class Lidar:
@@ -44,12 +54,19 @@ class Lidar:
         attempt up to this many seconds (a backoff for a device that stays
         away); if ``None``, every attempt waits :attr:`reopen_interval`.
     :param clock: the host clock scans are stamped with (seconds).
-    :param bins, direction, range_min, range_max, crop: see :class:`ScanAssembler`.
+    :param stall: seconds without a packet, short of :attr:`timeout`, that
+        count as a stall (reported when data resumes).
+    :param on_event: called with an :data:`EventKind` and a one-line
+        message when the device is lost or reconnected, stalls, or its clock
+        jumps.
+    :param bins, direction, range_min, range_max, crop, noise_filter: see
+        :class:`ScanAssembler`.
     :ivar state: ``unopened``, ``open``, ``reconnecting`` (the port failed and
         is being reopened) or ``closed``.
     :ivar reopens: successful reopens since :meth:`open`.
-    :ivar last_error: why the device last failed or a reopen attempt last
-        failed; ``None`` until something did.
+    :ivar stalls: stalls (see *stall*) since :meth:`open`.
+    :ivar last_error: why the device failed or a reopen attempt failed,
+        while it is being reopened; ``None`` when it works.
     """
 
     def __init__(
@@ -63,12 +80,15 @@ class Lidar:
         range_min: float = 0.03,
         range_max: float = 15.0,
         crop: tuple[float, float] | None = None,
+        noise_filter: bool = False,
         poll_interval: float | None = None,
         timeout: float = 1.0,
         reopen: bool = True,
         reopen_interval: float = 0.5,
         reopen_max_interval: float | None = None,
         clock: Callable[[], float] = time.time,
+        stall: float = 0.25,
+        on_event: Callable[[EventKind, str], None] | None = None,
     ) -> None:
         self.port = port
         self.model = get_model(model) if isinstance(model, str) else model
@@ -79,16 +99,28 @@ class Lidar:
         self.reopen_interval = reopen_interval
         self.reopen_max_interval = reopen_max_interval
         self._clock = clock
+        self.stall = stall
+        self._on_event = on_event
         self.parser = StreamParser()
         self.assembler = ScanAssembler(
-            bins=bins, direction=direction, range_min=range_min, range_max=range_max, crop=crop
+            bins=bins,
+            direction=direction,
+            range_min=range_min,
+            range_max=range_max,
+            crop=crop,
+            noise_filter=noise_filter,
         )
         self._source: SerialSource | ReplaySource | None = None
-        self._pending: list[Packet] = []
-        self._pending_time = 0.0
+        # Packets parsed but not yet assembled, each batch with its read time.
+        self._pending: list[tuple[NDArray[np.uint8], float]] = []
         self.state: Literal["unopened", "open", "reconnecting", "closed"] = "unopened"
         self.reopens = 0
         self.last_error: str | None = None
+        self.stalls = 0
+        self._held = b""
+        self._held_time = 0.0
+        self._last_packet = 0.0
+        self._jumps = 0
 
     @property
     def closed(self) -> bool:
@@ -126,19 +158,31 @@ class Lidar:
         source = open_source(self.port, baudrate=self.baudrate, poll_interval=self.poll_interval)
         await source.open()
         self._source = source
+        if isinstance(source, ReplaySource) and source.rate is not None:
+            self.assembler.clock.rate = source.rate
+        received = 0
         try:
             async with asyncio.timeout(self.timeout):
                 while not self._pending:
                     chunk = await source.read()
                     if not chunk:
                         raise DeviceError("capture holds no valid packet", device=self.port)
-                    self._pending_time = self._clock()
-                    self._pending = self.parser.feed(chunk)
+                    received += len(chunk)
+                    rows = self.parser.feed_rows(chunk)
+                    if len(rows):
+                        self._pending.append((rows, self._clock()))
         except TimeoutError:
             await source.close()
+            if not received:
+                raise DeviceError(
+                    f"silent: not one byte within {self.timeout:g} s (is the LiDAR powered, "
+                    "and is this its port?)",
+                    device=self.port,
+                ) from None
             raise DeviceError(
-                f"no valid packet within {self.timeout:g} s at {self.baudrate} baud "
-                f"(wrong baud rate or model?)",
+                f"{received} bytes within {self.timeout:g} s but no valid packet "
+                f"({self.parser.stats.crc_errors} failed CRC): wrong baud rate "
+                f"(reading at {self.baudrate}) or not an LD-series LiDAR?",
                 device=self.port,
             ) from None
         except BaseException:
@@ -146,6 +190,7 @@ class Lidar:
             # leave the port open behind the caller's back.
             await source.close()
             raise
+        self._last_packet = time.monotonic()
 
     async def scans(self) -> AsyncIterator[Scan]:
         """Yield scans until :meth:`close`, reopening the port after failures.
@@ -154,11 +199,14 @@ class Lidar:
         """
         if self.state == "unopened":
             raise DeviceError("cannot read scans: lidar is not open", device=self.port)
+        assembler = self.assembler
         while self.state in ("open", "reconnecting"):
-            for packet in self._pending:
-                for scan in self.assembler.push(packet, host_time=self._pending_time):
+            while self._pending:
+                rows, read_at = self._pending.pop(0)
+                for scan in assembler.push_rows(rows, host_time=read_at):
                     yield scan
-            self._pending = []
+                if assembler.clock.jumps != self._jumps:
+                    self._clock_jumped()
             if self.state == "reconnecting":
                 await self._reconnect()
                 continue
@@ -166,11 +214,12 @@ class Lidar:
             assert source is not None
             try:
                 async with asyncio.timeout(self.timeout):
-                    chunk = await source.read(due=self._read_due())
+                    chunk = await source.read(due=self._read_due(), expect=self._expected_bytes())
             except (DeviceError, TimeoutError) as exc:
                 if self.closed:
                     return  # close() ended the read: not a failure to recover from
-                self.last_error = str(exc) if isinstance(exc, DeviceError) else f"no data for {self.timeout:g} s"
+                reason = exc.reason if isinstance(exc, DeviceError) else f"no data for {self.timeout:g} s"
+                self.last_error = str(exc) if isinstance(exc, DeviceError) else reason
                 if not self.reopen:
                     await self.close()
                     if isinstance(exc, DeviceError):
@@ -178,26 +227,76 @@ class Lidar:
                     raise DeviceError(f"no data for {self.timeout:g} s", device=self.port) from None
                 await source.close()
                 self.state = "reconnecting"
+                self._event("lost", f"{self.port}: device lost ({reason}); reopening")
                 continue
             if not chunk:
+                # The end of a capture: what is held is all there will be.
+                self._parse_held()
+                while self._pending:
+                    rows, read_at = self._pending.pop(0)
+                    for scan in assembler.push_rows(rows, host_time=read_at):
+                        yield scan
                 await self.close()
                 return
-            self._pending_time = self._clock()
-            self._pending = self.parser.feed(chunk)
+            now = time.monotonic()
+            if now - self._last_packet > self.stall:
+                self.stalls += 1
+                gap = now - self._last_packet
+                self._event("stalled", f"{self.port}: no data for {gap:.2f} s (stalled); streaming again")
+                self._parse_held()  # what came before the stall was read before it
+            self._last_packet = now
+            # Bytes short of completing the revolution wait for the rest:
+            # parsing once per revolution costs a fraction of once per burst.
+            self._held += chunk
+            self._held_time = self._clock()
+            if not self._expected_bytes() or len(self._held) >= _HOLD_MAX:
+                self._parse_held()
+
+    def _parse_held(self) -> None:
+        held, self._held = self._held, b""
+        if held:
+            rows = self.parser.feed_rows(held)
+            if len(rows):
+                self._pending.append((rows, self._held_time))
+
+    def _event(self, kind: EventKind, message: str) -> None:
+        if self._on_event is not None:
+            self._on_event(kind, message)
+
+    def _clock_jumped(self) -> None:
+        clock = self.assembler.clock
+        jumps, self._jumps = clock.jumps - self._jumps, clock.jumps
+        if clock.last_jump is not None:
+            before, after = clock.last_jump
+            times = "" if jumps == 1 else f" ({jumps} jumps)"
+            self._event(
+                "clock_jump",
+                f"{self.port}: the device clock jumped from {before} to {after} ms{times}; "
+                "stamps re-anchored on the rotation",
+            )
 
     def _read_due(self) -> float | None:
         """Event-loop time at which the current revolution's last packet can be read."""
         due = self.assembler.due
         if due is None or self.poll_interval is None:
             return None
-        return asyncio.get_running_loop().time() + (due - self._clock()) + _DUE_MARGIN
+        return asyncio.get_running_loop().time() + (due - self._clock())
+
+    def _expected_bytes(self) -> int:
+        """Bytes that complete the current revolution (less what is held), or 0."""
+        return max(self.assembler.due_packets * PACKET_SIZE - self.parser.pending - len(self._held), 0)
 
     async def _reconnect(self) -> None:
+        self._held = b""
+        self._pending.clear()
         self.parser.reset()
         self.assembler.reset()
         interval = self.reopen_interval
+        lost = time.monotonic()
+        attempts = 0
         while self.state == "reconnecting":
             await asyncio.sleep(interval)
+            attempts += 1
             try:
                 await self._connect()
             except DeviceError as exc:
@@ -207,6 +306,11 @@ class Lidar:
                 continue
             self.reopens += 1
             self.state = "open"
+            self.last_error = None
+            self._event(
+                "reconnected",
+                f"{self.port}: reconnected after {time.monotonic() - lost:.1f} s ({attempts} attempt(s))",
+            )
 
     async def close(self) -> None:
         """Close the port; safe to call twice."""

@@ -5,7 +5,6 @@ from __future__ import annotations
 import array
 import math
 
-from builtin_interfaces.msg import Time
 from sensor_msgs.msg import LaserScan
 
 from ._scan import Scan
@@ -13,11 +12,18 @@ from ._scan import Scan
 __all__ = ["to_laser_scan"]
 
 
-def to_laser_scan(scan: Scan, *, frame_id: str) -> LaserScan:
-    """Return *scan* as a ``sensor_msgs/LaserScan`` stamped with its first ray's time."""
-    msg = LaserScan()
+def to_laser_scan(scan: Scan, *, frame_id: str, into: LaserScan | None = None) -> LaserScan:
+    """Return *scan* as a ``sensor_msgs/LaserScan`` stamped with ray 0's time.
+
+    :param into: a message to fill instead of a new one: building a
+        ``LaserScan`` costs more than filling it, and a publisher serialises
+        the message before ``publish`` returns, so one can be reused.
+    """
+    msg = LaserScan() if into is None else into
     msg.header.frame_id = frame_id
-    msg.header.stamp = _to_time(scan.stamp)
+    sec, nanosec = _to_time(scan.stamp)
+    msg.header.stamp.sec = sec
+    msg.header.stamp.nanosec = nanosec
     msg.angle_min = scan.angle_min
     msg.angle_max = scan.angle_max
     msg.angle_increment = scan.angle_increment
@@ -31,11 +37,11 @@ def to_laser_scan(scan: Scan, *, frame_id: str) -> LaserScan:
     return msg
 
 
-def _to_time(seconds: float) -> Time:
+def _to_time(seconds: float) -> tuple[int, int]:
     # Rounding the fraction can reach a whole second, which a Time cannot hold
     # in its nanoseconds: carry it into the seconds.
     sec = math.floor(seconds)
     nanosec = round((seconds - sec) * 1e9)
     if nanosec >= 1_000_000_000:
         sec, nanosec = sec + 1, nanosec - 1_000_000_000
-    return Time(sec=sec, nanosec=nanosec)
+    return sec, nanosec

@@ -4,19 +4,28 @@ The port is read by one asyncio task on the executor's event loop, from
 ``configure`` to ``cleanup``, whatever the node's state: a deactivated node
 stops publishing but keeps reading, so the parser and the device clock stay
 in sync and activating again publishes the very next revolution.
+
+Nothing is silently ignored: parameters of the vendor driver are translated
+(with a notice naming ours) or refused, any other override the node does not
+know is reported at configure, and the device's troubles (lost, reconnected,
+stalled, its clock jumping) are logged as warnings, not only counted on
+``/diagnostics``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import difflib
 from collections.abc import Sequence
 from typing import Any, Final
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.lifecycle import LifecyclePublisher, LifecycleState, TransitionCallbackReturn
+from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.timer import Timer
 from sensor_msgs.msg import LaserScan
 
@@ -24,27 +33,44 @@ from container import ConfigError, DeviceError, LifecycleNode
 
 from ._diagnostics import DIAGNOSTICS_PERIOD, Diagnostics
 from ._emulator import Emulator
-from ._lidar import Lidar
+from ._lidar import EventKind, Lidar
 from ._messages import to_laser_scan
 from ._ports import AUTO_PORT_PATTERNS, find_serial_ports
 from ._protocol import Model
 from ._scan import Scan
-from ._settings import PARAMETERS, Settings, read_settings
+from ._settings import PARAMETERS, Settings, migrate, read_settings
 
-__all__ = ["SCAN_QOS", "LdLidarNode"]
+__all__ = ["SCAN_QOS", "SCAN_QOS_OVERRIDES", "LdLidarNode"]
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
 
-#: QoS of ``~/scan``. Reliable: rviz2's LaserScan display subscribes reliable
-#: by default and would never match a best-effort publisher, while a
-#: best-effort (SensorData) subscriber such as slam_toolbox's still matches.
+#: QoS of ``~/scan`` unless overridden. Reliable: rviz2's LaserScan display
+#: subscribes reliable by default and would never match a best-effort
+#: publisher, while a best-effort (SensorData) subscriber such as
+#: slam_toolbox's still matches.
 SCAN_QOS: Final = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=10,
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+
+#: QoS policies of ``~/scan`` that parameters override the ROS way:
+#: ``qos_overrides./ldlidar/scan.publisher.reliability: best_effort`` (read
+#: when the publisher is created, at configure).
+SCAN_QOS_OVERRIDES: Final = (
+    QoSPolicyKind.HISTORY,
+    QoSPolicyKind.DEPTH,
+    QoSPolicyKind.RELIABILITY,
+    QoSPolicyKind.DURABILITY,
+)
+
+#: rcutils' DEBUG severity (what ``general.debug_mode`` sets the node's logger to).
+_DEBUG: Final = 10
+
+#: Parameters every node has, set by whoever starts it.
+_ROS_PARAMETERS: Final = frozenset({"use_sim_time", "start_type_description_service"})
 
 #: The node's own emulator writes every so many seconds, as a USB adapter
 #: delivers bursts; finer ticks cost the container CPU for nothing.
@@ -71,6 +97,14 @@ class LdLidarNode(LifecycleNode):
     auto_port_patterns: Sequence[str] = AUTO_PORT_PATTERNS
 
     def __init__(self, node_name: str = default_node_name, **kwargs: Any) -> None:
+        # Other drivers' names become ours before rclpy sees the overrides:
+        # rclpy would keep them unread, and say nothing.
+        given: Sequence[Parameter] = kwargs.get("parameter_overrides") or ()
+        migration = migrate((p.name, p.value) for p in given)
+        kwargs["parameter_overrides"] = [Parameter(name, value=value) for name, value in migration.values.items()]
+        self._overridden = tuple(migration.values)
+        self._migration_notices = tuple(migration.notices)
+        self._refused = tuple(migration.refused)
         super().__init__(node_name, **kwargs)
         for name, default, description in PARAMETERS:
             # Dynamic typing: a YAML "15" for a float is fine, and any wrong
@@ -91,6 +125,7 @@ class LdLidarNode(LifecycleNode):
         self._diagnostics: Diagnostics | None = None
         self._scans = 0
         self._published = 0
+        self._message: LaserScan | None = None
 
     # -- what tests and tools may look at ------------------------------------------
     @property
@@ -122,14 +157,20 @@ class LdLidarNode(LifecycleNode):
     async def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Check the parameters, open the port, wait for data, start reading."""
         log = self.get_logger()
+        for notice in self._migration_notices:
+            log.warning(notice)
         try:
+            if self._refused:
+                raise self._refused[0]
             settings = read_settings(lambda name: self.get_parameter(name).value)
         except ConfigError as exc:
             log.error(f"Cannot configure: {exc}")
             return FAILURE
+        if settings.debug:
+            log.set_level(_DEBUG)
         try:
             await self._start(settings)
-        except DeviceError as exc:
+        except (DeviceError, ConfigError) as exc:
             log.error(f"Cannot configure: {exc}")
             await self._release()
             return FAILURE
@@ -138,11 +179,25 @@ class LdLidarNode(LifecycleNode):
             await self._release()
             raise
         assert self._lidar is not None
+        self._report_unknown_parameters()
         log.info(
             f"Configured: {settings.model.name} on {self._lidar.port} at {self._lidar.baudrate} "
             f"baud; publishing on {self._scan_publisher_topic()} once active"
         )
         return SUCCESS
+
+    def _report_unknown_parameters(self) -> None:
+        """Warn of every override this node does not know (a typo, another driver's name)."""
+        unknown = [
+            name for name in self._overridden if name not in _ROS_PARAMETERS and not self.has_parameter(name)
+        ]
+        if not unknown:
+            return
+        known = [name for name, _, _ in PARAMETERS]
+        for name in unknown:
+            close = difflib.get_close_matches(name, known, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            self.get_logger().warning(f"Unknown parameter {name!r} ignored: this node does not read it{hint}")
 
     async def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start publishing (the managed publisher follows the state)."""
@@ -202,11 +257,13 @@ class LdLidarNode(LifecycleNode):
             range_min=settings.range_min,
             range_max=settings.range_max,
             crop=settings.crop,
+            noise_filter=settings.noise_filter,
             poll_interval=settings.poll_interval,
             timeout=settings.timeout,
             reopen=True,
             reopen_interval=_REOPEN_INTERVAL,
             reopen_max_interval=_REOPEN_MAX_INTERVAL,
+            on_event=self._device_event,
         )
         await lidar.open()
         self._settings = settings
@@ -214,7 +271,7 @@ class LdLidarNode(LifecycleNode):
         self._scans = self._published = 0
         self._reader_error = None
         self._diagnostics = Diagnostics(lidar, node_name=self.get_name(), emulated=self._emulator is not None)
-        self._scan_publisher = self.create_lifecycle_publisher(LaserScan, "~/scan", SCAN_QOS)
+        self._scan_publisher = self._create_scan_publisher()
         self._diagnostics_publisher = self.create_publisher(
             DiagnosticArray, "/diagnostics", 10, managed=False
         )
@@ -224,6 +281,27 @@ class LdLidarNode(LifecycleNode):
         self._reader = asyncio.get_running_loop().create_task(
             self._read(lidar), name=f"ldlidar-reader:{self.get_fully_qualified_name()}"
         )
+
+    def _create_scan_publisher(self) -> LifecyclePublisher:
+        """``~/scan`` with :data:`SCAN_QOS`, its policies overridable by ``qos_overrides.*`` parameters.
+
+        :raises ConfigError: an override names an impossible policy value.
+        """
+        qos = QoSProfile(
+            history=SCAN_QOS.history,
+            depth=SCAN_QOS.depth,
+            reliability=SCAN_QOS.reliability,
+            durability=SCAN_QOS.durability,
+        )
+        options = QoSOverridingOptions(SCAN_QOS_OVERRIDES)
+        try:
+            return self.create_lifecycle_publisher(LaserScan, "~/scan", qos, qos_overriding_options=options)
+        except (InvalidQosOverridesError, RuntimeError, ValueError) as exc:
+            # rclpy names the policy and value: "Unexpected QoS override for policy `reliability`: `x`".
+            raise ConfigError(str(exc), source=f"qos_overrides.{self.resolve_topic_name('~/scan')}") from None
+
+    def _device_event(self, kind: EventKind, message: str) -> None:
+        self.get_logger().warning(message)
 
     async def _auto_port(self, model: Model) -> str:
         """The first attached device, or the port of a freshly started emulator.
@@ -298,8 +376,16 @@ class LdLidarNode(LifecycleNode):
         settings = self._settings
         if publisher is None or settings is None or not publisher.is_activated:
             return
-        publisher.publish(to_laser_scan(scan, frame_id=settings.frame_id))
+        if settings.publish_when_subscribed and not publisher.get_subscription_count():
+            return
+        self._message = to_laser_scan(scan, frame_id=settings.frame_id, into=self._message)
+        publisher.publish(self._message)
         self._published += 1
+        if settings.debug:
+            self.get_logger().debug(
+                f"scan {self._scans}: {len(scan.ranges)} rays from {scan.points} points, "
+                f"stamp {scan.stamp:.6f}, scan_time {scan.scan_time * 1000:.2f} ms"
+            )
 
     def _scan_publisher_topic(self) -> str:
         return self._scan_publisher.topic_name if self._scan_publisher is not None else "~/scan"

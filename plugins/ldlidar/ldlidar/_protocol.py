@@ -29,6 +29,7 @@ from typing import Final
 from ._errors import ProtocolError
 
 __all__ = [
+    "BOUNDARY",
     "CRC_TABLE",
     "HEADER",
     "HEALTH_SIZE",
@@ -64,6 +65,10 @@ ANGLE_UNITS: Final = 36000
 SUBUNITS: Final = 11
 """Interpolated point angles are exact in 1/11 of the wire's unit."""
 TURN_SUBUNITS: Final = ANGLE_UNITS * SUBUNITS
+BOUNDARY: Final = ANGLE_UNITS // 2
+"""Device angle (0.01 degree) where one revolution ends and the next begins:
+the back of the sensor, so that a scan's array runs in time order (see
+:mod:`ldlidar._scan`)."""
 
 _CRC_POLY: Final = 0x4D
 

@@ -1,15 +1,23 @@
-"""The node's parameters: their table, and their values checked as one configure sees them.
+"""The node's parameters: their table, their values checked as one configure sees them, and migration.
 
 The checks are the container's (:mod:`container.checks`), so a bad LiDAR
 parameter is reported in the same words as a bad container setting; only
 what is particular to a LiDAR (its models, its turning sense, range and crop
 limits) is checked here, raising the same :class:`~container.ConfigError`.
+
+A parameter file written for another driver must not be silently ignored:
+the vendor driver's names (ldlidar_stl_ros2, ldlidar_ros2) that mean one of
+ours are taken as aliases, with a deprecation notice naming ours
+(:func:`migrate`); the few that cannot mean anything here are refused with
+what to do instead (:data:`REFUSED`); the community driver's ``lidar.units``
+is refused unless metres.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, Final
 
 from container import ConfigError, checks
@@ -17,7 +25,7 @@ from container import ConfigError, checks
 from ._protocol import Model, get_model
 from ._scan import Direction
 
-__all__ = ["PARAMETERS", "Settings", "read_settings"]
+__all__ = ["ALIASES", "PARAMETERS", "REFUSED", "Migration", "Settings", "migrate", "read_settings"]
 
 #: Largest ``comm.poll_msec``: 30 ms of an STL-27L at 921600 baud is 2.8 kB,
 #: within the 4 KiB the kernel's line discipline buffers between two reads.
@@ -48,7 +56,96 @@ PARAMETERS: Final[tuple[tuple[str, Any, str], ...]] = (
     ("lidar.enable_angle_crop", False, "Blank out the sector angle_crop_min..angle_crop_max."),
     ("lidar.angle_crop_min", 90.0, "Start of the cropped sector, degrees clockwise from the front."),
     ("lidar.angle_crop_max", 270.0, "End of the cropped sector, degrees clockwise from the front."),
+    (
+        "lidar.noise_filter",
+        False,
+        "Drop isolated dim returns closer than 5 m, as the vendor's LD06/LD19 driver does.",
+    ),
+    ("lidar.units", "M", "Units of the ranges: only M (metres, as sensor_msgs/LaserScan defines them)."),
+    ("general.publish_when_subscribed", False, "Build and publish scans only while ~/scan has a subscriber."),
+    ("general.debug_mode", False, "Log at debug level, one line per revolution."),
 )
+
+_TOPIC_REMAP = (
+    "this node publishes ~/scan: remap it instead (a container file: remappings: "
+    "['~/scan:=/scan']; a command line: -r ~/scan:=/scan)"
+)
+
+#: Parameters of other drivers that cannot mean anything here, and what to do instead.
+REFUSED: Final[Mapping[str, str]] = MappingProxyType(
+    {
+        "topic_name": _TOPIC_REMAP,
+        "laser_scan_topic_name": _TOPIC_REMAP,
+        "point_cloud_2d_topic_name": "this node publishes no point cloud: project ~/scan (laser_geometry)",
+    }
+)
+
+
+def _counter_clockwise(value: Any) -> str:
+    # The vendor's laser_scan_dir: true publishes counter-clockwise (upright).
+    return "CCW" if checks.boolean(value, where="parameter 'laser_scan_dir'") else "CW"
+
+
+#: Parameters of the vendor's drivers (ldlidar_stl_ros2, ldlidar_ros2) that
+#: mean one of ours: vendor name -> (our name, conversion of the value).
+ALIASES: Final[Mapping[str, tuple[str, Callable[[Any], Any] | None]]] = MappingProxyType(
+    {
+        "port_name": ("comm.serial_port", None),
+        "port_baudrate": ("comm.baudrate", None),
+        "serial_baudrate": ("comm.baudrate", None),
+        "product_name": ("lidar.model", None),
+        "frame_id": ("lidar.frame_id", None),
+        "laser_scan_dir": ("lidar.rot_verse", _counter_clockwise),
+        "enable_angle_crop_func": ("lidar.enable_angle_crop", None),
+        "angle_crop_min": ("lidar.angle_crop_min", None),
+        "angle_crop_max": ("lidar.angle_crop_max", None),
+        "range_min": ("lidar.range_min", None),
+        "range_max": ("lidar.range_max", None),
+    }
+)
+
+
+@dataclass(slots=True)
+class Migration:
+    """What :func:`migrate` made of a node's parameter overrides.
+
+    :param values: the overrides to give the node, under our names.
+    :param notices: one line per alias taken (or ignored), for the log.
+    :param refused: the refusals, each naming its parameter; configure fails on them.
+    """
+
+    values: dict[str, Any] = field(default_factory=dict)
+    notices: list[str] = field(default_factory=list)
+    refused: list[ConfigError] = field(default_factory=list)
+
+
+def migrate(overrides: Iterable[tuple[str, Any]]) -> Migration:
+    """Translate other drivers' parameter names into ours.
+
+    Our own name wins over an alias given beside it.
+    """
+    given = list(overrides)
+    ours = {name for name, _ in given if name not in ALIASES}
+    out = Migration()
+    for name, value in given:
+        if name in REFUSED:
+            out.refused.append(ConfigError(f"not supported: {REFUSED[name]}", source=_where(name)))
+            continue
+        alias = ALIASES.get(name)
+        if alias is None:
+            out.values[name] = value
+            continue
+        target, convert = alias
+        if target in ours:
+            out.notices.append(f"Parameter {name!r} (vendor driver) ignored: {target!r} is given too")
+            continue
+        try:
+            out.values[target] = convert(value) if convert is not None else value
+        except ConfigError as exc:
+            out.refused.append(exc)
+            continue
+        out.notices.append(f"Parameter {name!r} (vendor driver) is deprecated: use {target!r}")
+    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,6 +163,9 @@ class Settings:
     range_min: float
     range_max: float
     crop: tuple[float, float] | None
+    noise_filter: bool = False
+    publish_when_subscribed: bool = False
+    debug: bool = False
 
 
 def read_settings(value: Callable[[str], Any]) -> Settings:
@@ -98,6 +198,13 @@ def read_settings(value: Callable[[str], Any]) -> Settings:
         raise ConfigError(
             f"must be above lidar.range_min ({range_min:g}), not {range_max:g}", source=_where("lidar.range_max")
         )
+    units = text("lidar.units").upper()
+    if units not in ("M", "METERS", "METRES"):
+        raise ConfigError(
+            f"only M (metres) is supported, not {units!r}: sensor_msgs/LaserScan ranges are metres "
+            "(REP 103), and consumers (slam_toolbox, nav2, rviz2) read them so",
+            source=_where("lidar.units"),
+        )
     crop: tuple[float, float] | None = None
     if checks.boolean(value("lidar.enable_angle_crop"), where=_where("lidar.enable_angle_crop")):
         # No order between the two: a sector with min > max wraps through the front.
@@ -118,6 +225,11 @@ def read_settings(value: Callable[[str], Any]) -> Settings:
         range_min=range_min,
         range_max=range_max,
         crop=crop,
+        noise_filter=checks.boolean(value("lidar.noise_filter"), where=_where("lidar.noise_filter")),
+        publish_when_subscribed=checks.boolean(
+            value("general.publish_when_subscribed"), where=_where("general.publish_when_subscribed")
+        ),
+        debug=checks.boolean(value("general.debug_mode"), where=_where("general.debug_mode")),
     )
 
 

@@ -1,4 +1,4 @@
-"""Where bytes come from: a serial port, or a capture replayed at line rate.
+"""Where bytes come from: a serial port, or a capture replayed at its device's pace.
 
 Both are async byte-chunk sources with the same small surface (:class:`Source`)
 and an explicit state: ``unopened`` → ``open`` → ``closed``; a closed source
@@ -15,17 +15,22 @@ import os
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol, Self
-from urllib.parse import unquote, urlsplit
+from urllib.parse import parse_qs, unquote, urlsplit
 
 from ._errors import DeviceError
 
 if TYPE_CHECKING:
     from types import TracebackType
 
-__all__ = ["RETRY_INTERVAL", "ReplaySource", "SerialSource", "Source", "open_source"]
+__all__ = ["RETRY_INTERVAL", "ReplaySource", "SerialSource", "Source", "open_source", "replay_schedule"]
 
-#: Seconds between a polled source's reads while something is due but late.
+#: Seconds between a polled source's reads while something is due but late,
+#: on a port without a file descriptor to wait on.
 RETRY_INTERVAL = 0.002
+
+#: Bytes a polled source lets gather between two reads at most: three
+#: quarters of the 4 KiB the kernel's line discipline buffers.
+_LINE_BUFFER = 3072
 
 State = Literal["unopened", "open", "closed"]
 
@@ -41,11 +46,13 @@ class Source(Protocol):
 
     async def open(self) -> None: ...
 
-    async def read(self, *, due: float | None = None) -> bytes:
+    async def read(self, *, due: float | None = None, expect: int = 0) -> bytes:
         """Return the next chunk; ``b""`` only at the end of a finite source.
 
         :param due: event-loop time at which the caller expects bytes worth
             reading at once (a polled source reads then); a hint.
+        :param expect: how many bytes make what is due complete; a polled
+            source gathers that many (as they arrive) before returning.
         """
         ...
 
@@ -73,7 +80,7 @@ class _Base(ABC):
     async def open(self) -> None: ...
 
     @abstractmethod
-    async def read(self, *, due: float | None = None) -> bytes: ...
+    async def read(self, *, due: float | None = None, expect: int = 0) -> bytes: ...
 
     @abstractmethod
     async def close(self) -> None: ...
@@ -92,25 +99,27 @@ class _Base(ABC):
 
 
 class SerialSource(_Base):
-    """A serial port, read as bytes arrive or polled at a fixed interval.
+    """A serial port, read as bytes arrive or polled.
 
     Waking the event loop for every burst a USB adapter (or the emulator)
     delivers costs more than parsing the bytes: an LD06 sends 375 packets a
-    second, often a packet or two at a time. Polling every *poll_interval*
-    seconds reads the same bytes in a few large chunks, for a fraction of
-    the CPU. A caller that knows when something important arrives (the
-    packet completing a revolution) passes it as ``read(due=...)``: the
-    source reads then too, and retries every :data:`RETRY_INTERVAL` until
-    bytes come, so a revolution is not held back for a whole interval.
-    Keep the interval well below the time the line discipline's 4 KiB
-    buffer takes to fill between two reads (about 45 ms at 921600 baud).
+    second, often a packet or two at a time. A polled source reads the same
+    bytes in a few large chunks instead. A caller that knows when something
+    important arrives (the packet completing a revolution) passes it as
+    ``read(due=..., expect=...)``: the source sleeps until then, and from
+    then on wakes as soon as bytes arrive, until *expect* bytes have come; so
+    a revolution is read within a burst of completing, in one chunk, and
+    parsed once. Whatever is due, it reads at least every :attr:`hold`
+    seconds, well before the kernel's 4 KiB line buffer could fill; with
+    nothing due it reads every *poll_interval*.
 
     :param port: a device path (``/dev/ttyUSB0``, a pty, a symlink) or a
         pyserial URL such as ``socket://host:port``.
     :param baudrate: the line speed; the STL-27L needs 921600.
     :param read_size: the largest chunk returned by :meth:`read`.
-    :param poll_interval: seconds between reads; ``None`` reads through
-        pyserial-asyncio as soon as bytes arrive (lowest latency).
+    :param poll_interval: seconds between reads while nothing is due;
+        ``None`` reads through pyserial-asyncio as soon as bytes arrive
+        (every burst wakes the loop).
     """
 
     def __init__(
@@ -126,12 +135,17 @@ class SerialSource(_Base):
             raise ValueError(f"poll_interval must be positive or None, got {poll_interval}")
         self.baudrate = baudrate
         self.poll_interval = poll_interval
+        #: The longest wait between two reads: three quarters of the line
+        #: buffer at full line rate (133 ms at 230400 baud, 33 ms at 921600).
+        self.hold = max(poll_interval or 0.0, _LINE_BUFFER * 10 / baudrate)
         self._read_size = read_size
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._serial: Any = None
-        self._next_read = 0.0
+        self._fd: int | None = None
         self._last_read = 0.0
+        self._last_gather = 0.0
+        self._more = False
 
     async def open(self) -> None:
         """Open the port at :attr:`baudrate`.
@@ -151,21 +165,25 @@ class SerialSource(_Base):
             else:
                 # timeout=0: a read returns at once with whatever is there.
                 self._serial = serial.serial_for_url(self._device, baudrate=self.baudrate, timeout=0)
+                try:
+                    self._fd = self._serial.fileno()
+                except (AttributeError, OSError, ValueError):
+                    self._fd = None  # a URL without a descriptor: retried instead of awaited
         except (serial.SerialException, OSError, ValueError) as exc:
             self._state = "closed"
             raise DeviceError(f"cannot open at {self.baudrate} baud: {exc}", device=self._device) from exc
-        self._next_read = self._last_read = asyncio.get_running_loop().time()
+        self._last_read = self._last_gather = asyncio.get_running_loop().time()
         self._state = "open"
 
-    async def read(self, *, due: float | None = None) -> bytes:
+    async def read(self, *, due: float | None = None, expect: int = 0) -> bytes:
         """Return the next chunk of bytes (waiting for them).
 
-        :param due: see :meth:`Source.read`; only a polled source uses it.
+        :param due, expect: see :meth:`Source.read`; only a polled source uses them.
         :raises DeviceError: the port vanished (unplugged adapter) or failed.
         """
         self._require("open", "read")
         if self.poll_interval is not None:
-            return await self._poll(self.poll_interval, due)
+            return await self._poll(self.poll_interval, due, expect)
         import serial
 
         assert self._reader is not None
@@ -179,38 +197,75 @@ class SerialSource(_Base):
             raise DeviceError("port closed (device unplugged?)", device=self._device)
         return data
 
-    async def _poll(self, interval: float, due: float | None) -> bytes:
+    async def _poll(self, interval: float, due: float | None, expect: int) -> bytes:
+        loop = asyncio.get_running_loop()
+        chunk = b""
+        while True:
+            now = loop.time()
+            if self._more:
+                self._more = False  # the last read filled the chunk: more is waiting
+            elif due is not None and due > now - self.hold:
+                if due > now:
+                    await asyncio.sleep(min(due, self._last_read + self.hold) - now)
+                else:
+                    # Due: the next bytes are the ones waited for.
+                    await self._readable(min(self.hold, max(self._last_read + self.hold - now, 0.0)))
+            else:
+                wait = self._last_read + interval - now
+                if wait > 0:
+                    await asyncio.sleep(wait)
+            try:
+                chunk += self._read_now()
+            except DeviceError:
+                await self.close()
+                raise
+            now = loop.time()
+            if not chunk:
+                continue
+            if len(chunk) >= expect or due is None or due > now or now >= self._last_gather + self.hold:
+                self._last_gather = now
+                return chunk
+
+    def _read_now(self) -> bytes:
         import serial
 
+        if self._serial is None:
+            raise DeviceError("cannot read: source is closed", device=self._device)
+        self._last_read = asyncio.get_running_loop().time()
+        try:
+            data: bytes = self._serial.read(self._read_size)
+        except (serial.SerialException, OSError) as exc:
+            # pyserial reports a vanished device as "readiness to read
+            # but no data", a pty whose other side closed as EIO.
+            raise DeviceError(f"port failed: {exc}", device=self._device) from exc
+        self._more = len(data) == self._read_size
+        return data
+
+    async def _readable(self, timeout: float) -> None:
+        """Wait until the port has bytes to read, at most *timeout* seconds."""
+        fd = self._fd
         loop = asyncio.get_running_loop()
-        while True:
-            target = self._next_read
-            if due is not None and due > loop.time() - interval:
-                # Not stale: read when due, or soon after if that has passed.
-                target = min(target, max(due, self._last_read + RETRY_INTERVAL))
-            wait = target - loop.time()
-            if wait > 0:
-                await asyncio.sleep(wait)
-            if self._serial is None:
-                raise DeviceError("cannot read: source is closed", device=self._device)
-            now = loop.time()
-            try:
-                data: bytes = self._serial.read(self._read_size)
-            except (serial.SerialException, OSError) as exc:
-                # pyserial reports a vanished device as "readiness to read
-                # but no data", a pty whose other side closed as EIO.
-                await self.close()
-                raise DeviceError(f"port failed: {exc}", device=self._device) from exc
-            # A full chunk means more is waiting: read it without pausing.
-            self._next_read = now if len(data) == self._read_size else now + interval
-            self._last_read = now
-            if data:
-                return data
+        if fd is None:
+            await asyncio.sleep(min(RETRY_INTERVAL, timeout))
+            return
+        ready = loop.create_future()
+
+        def wake() -> None:
+            if not ready.done():
+                ready.set_result(None)
+
+        loop.add_reader(fd, wake)
+        timer = loop.call_later(timeout, wake)
+        try:
+            await ready
+        finally:
+            timer.cancel()
+            loop.remove_reader(fd)
 
     async def close(self) -> None:
         """Close the port; safe to call in any state."""
         writer, self._writer, self._reader = self._writer, None, None
-        port, self._serial = self._serial, None
+        port, self._serial, self._fd = self._serial, None, None
         self._state = "closed"
         # The port is gone either way; a close error has nowhere useful to go.
         if port is not None:
@@ -223,11 +278,20 @@ class SerialSource(_Base):
 
 
 class ReplaySource(_Base):
-    """A capture file streamed at line rate, as a device would send it.
+    """A capture file streamed at the pace its device sent it.
+
+    Each data packet is released when the device's own clock says it was
+    measured (its timestamps, unwrapped, with jumps of that clock replaced by
+    the rotation's time as :meth:`DecodedStream.device_steps` does), scaled
+    by *rate*; bytes between packets go with the packet after them. Replaying
+    at the line rate instead would run a capture 1.31x fast (an LD06 fills
+    only 76% of its line) and make stamps and ``scan_time`` disagree.
 
     :param path: the capture file.
-    :param bytes_per_second: pacing; ``None`` streams as fast as read.
-    :param chunk_size: bytes per chunk.
+    :param rate: 2.0 replays twice as fast, 0.5 at half speed; ``None``
+        streams as fast as read.
+    :param tick: packets due within this many seconds of each other go in
+        one chunk, as a USB adapter delivers bursts.
     :param loop: start over at the end instead of ending.
     """
 
@@ -235,21 +299,27 @@ class ReplaySource(_Base):
         self,
         path: str | os.PathLike[str],
         *,
-        bytes_per_second: float | None = None,
-        chunk_size: int = 512,
+        rate: float | None = 1.0,
+        tick: float = 0.005,
         loop: bool = False,
     ) -> None:
         super().__init__(os.fspath(path))
-        self.bytes_per_second = bytes_per_second
-        self._chunk = chunk_size
+        if rate is not None and not rate > 0:
+            raise ValueError(f"rate must be positive or None, got {rate}")
+        self.rate = rate
+        self._tick = tick
         self._loop = loop
         self._data = b""
+        self._ends: list[int] = []
+        self._times: list[float] = []
+        self._duration = 0.0
         self._pos = 0
-        self._sent = 0
+        self._next = 0
+        self._lap = 0
         self._begin = 0.0
 
     async def open(self) -> None:
-        """Read the capture.
+        """Read the capture and work out when each packet is due.
 
         :raises DeviceError: the file is missing or unreadable.
         """
@@ -259,24 +329,42 @@ class ReplaySource(_Base):
         except OSError as exc:
             self._state = "closed"
             raise DeviceError(f"cannot read capture: {exc.strerror or exc}", device=self._device) from exc
+        self._ends, self._times, self._duration = replay_schedule(self._data)
         self._begin = asyncio.get_running_loop().time()
         self._state = "open"
 
-    async def read(self, *, due: float | None = None) -> bytes:
-        """Return the next chunk, waiting until the line would have delivered it."""
+    async def read(self, *, due: float | None = None, expect: int = 0) -> bytes:
+        """Return the next packets, waiting until the device would have sent them.
+
+        :param expect: wait until the device would have sent this many bytes
+            (one wake-up per revolution instead of one per burst).
+        """
         self._require("open", "read")
-        if self._pos >= len(self._data):
-            if not self._loop or not self._data:
+        data, ends = self._data, self._ends
+        if self._pos >= len(data):
+            if not self._loop or not data:
                 return b""
-            self._pos = 0
-        chunk = self._data[self._pos : self._pos + self._chunk]
-        self._pos += len(chunk)
-        self._sent += len(chunk)
-        if self.bytes_per_second:
-            loop = asyncio.get_running_loop()
-            delay = self._begin + self._sent / self.bytes_per_second - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
+            self._pos = self._next = 0
+            self._lap += 1
+        if self.rate is None:
+            chunk = data[self._pos :]
+            self._pos = len(data)
+            return chunk
+        loop = asyncio.get_running_loop()
+        offset = self._lap * self._duration
+        last = self._next
+        while last + 1 < len(ends) and ends[last] < self._pos + expect:
+            last += 1
+        target = self._begin + (self._times[last] + offset) / self.rate
+        wait = target - loop.time()
+        if wait > 0:
+            await asyncio.sleep(wait)
+        horizon = (loop.time() - self._begin + self._tick) * self.rate - offset
+        while last + 1 < len(ends) and self._times[last + 1] <= horizon:
+            last += 1
+        chunk = data[self._pos : ends[last]]
+        self._pos = ends[last]
+        self._next = last + 1
         return chunk
 
     async def close(self) -> None:
@@ -284,17 +372,49 @@ class ReplaySource(_Base):
         self._data = b""
 
 
+def replay_schedule(data: bytes) -> tuple[list[int], list[float], float]:
+    """Return where each packet of *data* ends, when it is due (s from the first) and the capture's length (s).
+
+    Bytes before the first packet go with it and bytes after the last with
+    it; a capture without packets is one chunk, due at once.
+    """
+    from ._bulk import decode_bytes
+    from ._protocol import PACKET_SIZE
+
+    decoded = decode_bytes(data)
+    if not len(decoded):
+        return [len(data)], [0.0], 0.0
+    ends = (decoded.offsets + PACKET_SIZE).tolist()
+    ends[-1] = len(data)
+    steps = decoded.device_steps()
+    times = [0.0, *(steps.cumsum() / 1000).tolist()]
+    period = float(sorted(steps.tolist())[len(steps) // 2]) / 1000 if len(steps) else 0.0
+    return ends, times, times[-1] + period
+
+
 def open_source(
     url: str, *, baudrate: int, read_size: int = 4096, poll_interval: float | None = None
 ) -> SerialSource | ReplaySource:
     """Return an unopened source for *url*.
 
-    ``file://path`` (or ``file:path``) replays a capture at the line rate of
-    *baudrate* (10 bits a byte); anything else is a serial port or pyserial
-    URL, read as :class:`SerialSource` with *poll_interval*.
+    ``file://path`` (or ``file:path``) replays a capture at the pace of the
+    device's own timestamps; ``?rate=2`` replays it twice as fast, ``?loop=1``
+    over and over. Anything else is a serial port or pyserial URL, read as
+    :class:`SerialSource` with *poll_interval*.
+
+    :raises DeviceError: a ``file:`` URL with a query it does not know.
     """
     parts = urlsplit(url)
     if parts.scheme == "file":
         path = unquote(parts.netloc + parts.path)
-        return ReplaySource(path, bytes_per_second=baudrate / 10, chunk_size=min(read_size, max(baudrate // 1000, 16)))
+        options = parse_qs(parts.query, keep_blank_values=True)
+        unknown = sorted(set(options) - {"rate", "loop"})
+        try:
+            if unknown:
+                raise ValueError(f"unknown option(s) {', '.join(unknown)}; known: rate, loop")
+            rate = float(options.get("rate", ["1"])[-1])
+            replay = ReplaySource(path, rate=rate, loop=options.get("loop", ["0"])[-1] in ("1", "true", "yes"))
+        except ValueError as exc:
+            raise DeviceError(f"bad replay URL: {exc}", device=url) from None
+        return replay
     return SerialSource(url, baudrate=baudrate, read_size=read_size, poll_interval=poll_interval)

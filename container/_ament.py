@@ -1,0 +1,224 @@
+"""The ament index entries that make plugin distributions ROS packages.
+
+launch_ros, ros2cli (``ros2 run``, ``ros2 pkg``, ``ros2 component types``) and
+ament_index_python find packages, executables and component types through
+the ament resource index of every prefix on ``AMENT_PREFIX_PATH``:
+
+* ``<prefix>/share/ament_index/resource_index/packages/<package>``: an empty
+  marker, which makes ``<package>`` a ROS package installed in ``<prefix>``;
+* ``<prefix>/lib/<package>/<executable>``: what ``ros2 run <package>
+  <executable>`` and launch_ros's ``Node(package=..., executable=...)`` start;
+* ``<prefix>/share/ament_index/resource_index/rclcpp_components/<package>``:
+  one ``<type>;<library>`` line per component type, which ``ros2 component
+  types`` lists (the part before ``;``). Here the library part names the
+  Python class (``module:qualname``); nothing loads it from there.
+
+:func:`write_index` writes these for every package of registered node types,
+and for this project's own package the container executables. What it wrote
+is recorded in a resource type of its own (:data:`RECORD_TYPE`), so that a
+later run removes the entries of a distribution that went away, and never
+touches a package some other installation registered.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ._registry import NodeType, ros_package_name
+
+__all__ = [
+    "EXECUTABLES",
+    "PROJECT_PACKAGE",
+    "RECORD_TYPE",
+    "IndexReport",
+    "resource_index",
+    "write_index",
+]
+
+#: This project's own ROS package: the container executables live in it.
+PROJECT_PACKAGE = ros_package_name("lifecycle-container")
+
+#: The executables of :data:`PROJECT_PACKAGE`, and the ``container`` command
+#: each one is. rclcpp_components' three container names are the same
+#: container here: every node already has its own lanes (isolation) on one
+#: executor, so a launch file needs to change only the package.
+EXECUTABLES: Mapping[str, str] = {
+    "component_container": "run",
+    "component_container_mt": "run",
+    "component_container_isolated": "run",
+    "lifecycle_manager": "manager",
+}
+
+#: Resource type recording what :func:`write_index` registered, one entry per package.
+RECORD_TYPE = "lifecycle_container_plugins"
+_PACKAGES = "packages"
+_COMPONENTS = "rclcpp_components"
+
+_SCRIPT = """#!{python}
+# Written by `container index` (lifecycle-container): `container {command}`, run
+# by ros2 run and launch_ros as {package}'s {executable}.
+import sys
+
+from container.__main__ import main
+
+sys.argv[1:1] = ["{command}"]
+sys.exit(main())
+"""
+
+
+def resource_index(prefix: Path) -> Path:
+    """The resource index directory of ``prefix``."""
+    return prefix / "share" / "ament_index" / "resource_index"
+
+
+@dataclass
+class IndexReport:
+    """What :func:`write_index` did.
+
+    :ivar registered: each package registered, with its component types.
+    :ivar executables: each package's executables.
+    :ivar removed: packages whose entries were removed (their distribution is gone).
+    :ivar skipped: packages left alone, with the reason.
+    :ivar changed: files written or removed; none when the index was up to date.
+    """
+
+    registered: dict[str, list[str]] = field(default_factory=dict)
+    executables: dict[str, list[str]] = field(default_factory=dict)
+    removed: list[str] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    changed: list[Path] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class _Record:
+    """One package's entry in :data:`RECORD_TYPE`: what was written for it."""
+
+    distribution: str
+    marker: bool
+    executables: tuple[str, ...]
+
+    def text(self) -> str:
+        return (
+            f"distribution {self.distribution}\n"
+            f"marker {'yes' if self.marker else 'no'}\n"
+            f"executables {' '.join(self.executables)}\n"
+        )
+
+    @classmethod
+    def parse(cls, text: str) -> _Record:
+        fields = dict(line.partition(" ")[::2] for line in text.splitlines() if line.strip())
+        return cls(
+            distribution=fields.get("distribution", ""),
+            marker=fields.get("marker") == "yes",
+            executables=tuple(fields.get("executables", "").split()),
+        )
+
+
+def write_index(
+    prefix: Path,
+    types: Iterable[NodeType],
+    *,
+    python: str = sys.executable,
+    distribution: str = "lifecycle-container",
+) -> IndexReport:
+    """Register every package of ``types`` in the ament index of ``prefix``.
+
+    Idempotent: files are written only when their content changes, each
+    atomically (a concurrent reader sees the old or the new one).
+
+    :param python: the interpreter the executables run with (this environment's).
+    :param distribution: the distribution of :data:`PROJECT_PACKAGE`, which
+        is registered with its executables even if it has no node types.
+    """
+    report = IndexReport()
+    index = resource_index(prefix)
+    wanted: dict[str, tuple[str, list[NodeType]]] = {PROJECT_PACKAGE: (distribution, [])}
+    for node_type in types:
+        wanted.setdefault(node_type.package, (node_type.distribution, []))[1].append(node_type)
+    records = _records(index)
+
+    for package in sorted(wanted):
+        dist, node_types = wanted[package]
+        record = records.get(package)
+        marker = index / _PACKAGES / package
+        if record is None and marker.exists():
+            # Some other installation's package (a ROS wheel of the same name).
+            report.skipped.append((package, f"a ROS package named {package!r} is already installed in {prefix}"))
+            continue
+        lines = sorted(f"{t.full_name};{t.node_class.__module__}:{t.node_class.__qualname__}" for t in node_types)
+        _write(report, marker, "")
+        components = index / _COMPONENTS / package
+        if lines:
+            _write(report, components, "".join(f"{line}\n" for line in lines))
+        else:
+            _remove(report, components)
+        executables = sorted(EXECUTABLES) if package == PROJECT_PACKAGE else []
+        for name in executables:
+            script = _SCRIPT.format(python=python, command=EXECUTABLES[name], package=package, executable=name)
+            _write(report, prefix / "lib" / package / name, script, executable=True)
+        if record is not None:
+            for name in set(record.executables) - set(executables):
+                _remove(report, prefix / "lib" / package / name)
+        _write(report, index / RECORD_TYPE / package, _Record(dist, True, tuple(executables)).text())
+        report.registered[package] = sorted(t.full_name for t in node_types)
+        report.executables[package] = executables
+
+    for package in sorted(set(records) - set(wanted)):
+        record = records[package]
+        for name in record.executables:
+            _remove(report, prefix / "lib" / package / name)
+        _remove_dir_if_empty(prefix / "lib" / package)
+        _remove(report, index / _COMPONENTS / package)
+        if record.marker:
+            _remove(report, index / _PACKAGES / package)
+        _remove(report, index / RECORD_TYPE / package)
+        report.removed.append(package)
+    return report
+
+
+def _records(index: Path) -> dict[str, _Record]:
+    directory = index / RECORD_TYPE
+    if not directory.is_dir():
+        return {}
+    return {
+        path.name: _Record.parse(path.read_text(encoding="utf-8"))
+        for path in directory.iterdir()
+        if path.is_file() and not path.name.startswith(".")
+    }
+
+
+def _write(report: IndexReport, path: Path, content: str, *, executable: bool = False) -> None:
+    mode = 0o755 if executable else 0o644
+    try:
+        if path.read_text(encoding="utf-8") == content and (path.stat().st_mode & 0o777) == mode:
+            return
+    except (FileNotFoundError, UnicodeDecodeError):
+        pass
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # Hidden while written: the index skips names starting with a dot.
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as file:
+            file.write(content)
+        os.chmod(temporary, mode)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    report.changed.append(path)
+
+
+def _remove(report: IndexReport, path: Path) -> None:
+    if path.is_file():
+        path.unlink()
+        report.changed.append(path)
+
+
+def _remove_dir_if_empty(path: Path) -> None:
+    if path.is_dir() and not any(path.iterdir()):
+        path.rmdir()

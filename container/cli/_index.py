@@ -1,0 +1,66 @@
+"""``container index [--prefix DIR]``: register the installed plugins in the ament index.
+
+Makes every installed plugin distribution a ROS package of this environment,
+as ROS tools see packages: ``ros2 pkg list`` lists them, ``ros2 component
+types`` lists their node types, and ``ros2 run lifecycle_container
+component_container`` (or launch_ros's ``ComposableNodeContainer`` with that
+package and executable) starts a container. ``.ci/setup`` runs it after every
+install; run it again after installing or removing a plugin with pip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .._compat import SubParsers
+
+__all__ = ["add_parser"]
+
+
+def add_parser(subparsers: SubParsers) -> None:
+    parser = subparsers.add_parser(
+        "index",
+        help="register the installed plugins in the ament index (ros2 pkg, ros2 run, launch_ros)",
+        description=(
+            "Register every installed plugin distribution as a ROS package in the ament index "
+            "of a prefix (this environment by default), with its node types and, for "
+            "lifecycle_container, the container executables."
+        ),
+    )
+    parser.add_argument(
+        "--prefix", type=Path, default=Path(sys.prefix),
+        help="the install prefix to register in (default: this environment, %(default)s)",
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="print only problems")
+    parser.set_defaults(handler=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from .._ament import write_index
+    from .._registry import PluginRegistry
+
+    registry = PluginRegistry()
+    for failure in registry.failures:
+        print(f"container index: plugin skipped: {failure}", file=sys.stderr)
+    prefix: Path = args.prefix.absolute()
+    try:
+        report = write_index(prefix, registry.types.values())
+    except OSError as exc:
+        print(f"container index: cannot write the index in {prefix}: {exc}", file=sys.stderr)
+        return 1
+    for package, reason in report.skipped:
+        print(f"container index: {package} not registered: {reason}", file=sys.stderr)
+    if args.quiet:
+        return 0
+    state = f"{len(report.changed)} file(s) changed" if report.changed else "up to date"
+    print(f"ament index of {prefix}: {state}")
+    for package, type_names in report.registered.items():
+        executables = report.executables.get(package) or []
+        print(f"  {package}: {len(type_names)} node type(s)" + (f"; {', '.join(executables)}" if executables else ""))
+    for package in report.removed:
+        print(f"  {package}: removed (no longer installed)")
+    return 0

@@ -1,0 +1,432 @@
+"""rclpy's executor contract, held against rclpy's SingleThreadedExecutor and AsyncioExecutor alike.
+
+Each test runs on both executors; what it asserts is rclpy's documented
+behaviour of ``Executor``, ``spin_once``, ``spin_until_future_complete``,
+``create_task``, guard conditions, timers, waitables, services, clients,
+callback groups and node removal. Where AsyncioExecutor differs on purpose
+(plain callbacks run on their callback group's thread, not the spinning
+one), the test says so and the README's executor table lists it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Generator, Iterator
+from typing import Any
+
+import pytest
+import rclpy
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.guard_condition import GuardCondition
+from rclpy.node import Node
+from rclpy.task import Future
+from rclpy.waitable import NumberOfEntities, Waitable
+from std_srvs.srv import Trigger
+
+from container import AsyncioExecutor
+
+#: Every bounded wait in these tests (seconds).
+TIMEOUT = 10.0
+
+KINDS = ["single", "asyncio"]
+
+
+@pytest.fixture(params=KINDS)
+def kind(request: pytest.FixtureRequest) -> str:
+    value: str = request.param
+    return value
+
+
+def make_executor(kind: str, context: Context) -> Executor:
+    if kind == "single":
+        return SingleThreadedExecutor(context=context)
+    return AsyncioExecutor(context=context)
+
+
+@pytest.fixture
+def executor_of(context: Context, kind: str) -> Iterator[Callable[[], Executor]]:
+    made: list[Executor] = []
+
+    def make() -> Executor:
+        executor = make_executor(kind, context)
+        made.append(executor)
+        return executor
+
+    yield make
+    for executor in made:
+        executor.shutdown(timeout_sec=2.0)
+
+
+@pytest.fixture
+def node(context: Context) -> Iterator[Node]:
+    made = Node("conformance", context=context)
+    yield made
+    made.destroy_node()
+
+
+def spin_for_result(executor: Executor, future: Future) -> Any:
+    executor.spin_until_future_complete(future, timeout_sec=TIMEOUT)
+    assert future.done(), "not done in time"
+    return future.result()
+
+
+# -- spin_once ------------------------------------------------------------------------
+
+
+def test_spin_once_runs_one_callback(executor_of: Callable[[], Executor], node: Node) -> None:
+    ran: list[str] = []
+    guards = [node.create_guard_condition(lambda name=name: ran.append(name)) for name in "ab"]
+    executor = executor_of()
+    executor.add_node(node)
+    for guard in guards:
+        guard.trigger()
+    executor.spin_once(timeout_sec=TIMEOUT)
+    assert len(ran) == 1
+    executor.spin_once(timeout_sec=TIMEOUT)
+    assert sorted(ran) == ["a", "b"]
+
+
+def test_spin_once_returns_after_its_timeout_when_nothing_is_ready(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    started = time.monotonic()
+    executor.spin_once(timeout_sec=0.2)
+    assert 0.15 <= time.monotonic() - started < 2.0
+
+
+# -- create_task ------------------------------------------------------------------------
+
+
+def test_create_task_runs_only_while_spinning(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    ran = threading.Event()
+
+    def task() -> int:
+        ran.set()
+        return 42
+
+    future = executor.create_task(task)
+    assert not ran.wait(0.2), "a task ran without anyone spinning"
+    assert not future.done()
+    assert spin_for_result(executor, future) == 42
+
+
+def test_create_task_of_a_coroutine_gives_its_result_and_its_error(
+    kind: str, executor_of: Callable[[], Executor], node: Node
+) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+
+    async def answer() -> int:
+        return 7
+
+    async def fail() -> None:
+        raise ValueError("told to")
+
+    assert spin_for_result(executor, executor.create_task(answer)) == 7
+    failing = executor.create_task(fail)
+    if kind == "single":
+        # rclpy re-raises a task's error out of spin: one failing task ends the spin.
+        with pytest.raises(ValueError, match="told to"):
+            executor.spin_until_future_complete(failing, timeout_sec=TIMEOUT)
+    else:
+        # Deliberate difference: the error is the future's (and logged); the spin goes on.
+        executor.spin_until_future_complete(failing, timeout_sec=TIMEOUT)
+    assert isinstance(failing.exception(), ValueError)
+
+
+class BareYield:
+    """An awaitable that yields a bare ``None`` a few times, as rclpy's futures do."""
+
+    def __init__(self, times: int) -> None:
+        self.times = times
+
+    def __await__(self) -> Generator[None, None, str]:
+        for _ in range(self.times):
+            yield None
+        return "through"
+
+
+def test_spin_once_with_zero_timeout_resumes_bare_yields(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+
+    async def waits() -> str:
+        return await BareYield(3)
+
+    future = executor.create_task(waits)
+    for _ in range(8):
+        executor.spin_once(timeout_sec=0)
+        if future.done():
+            break
+    assert future.done() and future.result() == "through"
+
+
+def test_a_coroutine_awaiting_an_rclpy_future_resumes_when_it_completes(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    gate = Future()
+    # Completed by a callback of the executor (rclpy's executors are not woken
+    # by a future completed elsewhere: they look again when something else wakes them).
+    opener = node.create_guard_condition(lambda: gate.set_result("opened"))
+
+    async def waits() -> Any:
+        return await gate
+
+    future = executor.create_task(waits)
+    executor.spin_once(timeout_sec=0)
+    assert not future.done()
+    threading.Timer(0.1, opener.trigger).start()
+    assert spin_for_result(executor, future) == "opened"
+
+
+def test_done_callbacks_run_on_the_spinning_thread(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    future = Future(executor=executor)
+    both = Future()
+    seen: list[int] = []
+
+    def record(_: Future) -> None:
+        seen.append(threading.get_ident())
+        if len(seen) == 2:
+            both.set_result(None)
+
+    future.add_done_callback(record)
+    future.add_done_callback(record)
+    threading.Thread(target=future.set_result, args=(1,)).start()
+    spin_for_result(executor, both)
+    assert seen == [threading.get_ident()] * 2
+
+
+# -- spin_until_future_complete ---------------------------------------------------------
+
+
+def test_spin_until_future_complete_returns_at_its_timeout(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    never = Future()
+    started = time.monotonic()
+    executor.spin_until_future_complete(never, timeout_sec=0.3)
+    assert not never.done()
+    assert 0.25 <= time.monotonic() - started < 3.0
+
+
+def test_spin_until_future_complete_runs_the_callbacks_that_complete_it(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    future = Future()
+    ticks: list[int] = []
+
+    def tick() -> None:
+        ticks.append(1)
+        if len(ticks) == 3:
+            future.set_result(len(ticks))
+
+    node.create_timer(0.02, tick)
+    assert spin_for_result(executor, future) == 3
+
+
+# -- guard conditions, timers ----------------------------------------------------------------
+
+
+def test_a_guard_condition_triggered_from_another_thread_runs_its_callback(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    future = Future()
+    guard = node.create_guard_condition(lambda: future.set_result("woken"))
+    threading.Timer(0.1, guard.trigger).start()
+    assert spin_for_result(executor, future) == "woken"
+
+
+def test_a_cancelled_timer_stops_and_a_reset_one_goes_on(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    fired: list[float] = []
+    enough = Future()
+
+    def tick() -> None:
+        fired.append(time.monotonic())
+        if len(fired) == 2:
+            timer.cancel()
+            enough.set_result(None)
+
+    timer = node.create_timer(0.02, tick)
+    spin_for_result(executor, enough)
+    executor.spin_until_future_complete(Future(), timeout_sec=0.2)
+    assert len(fired) == 2 and timer.is_canceled()
+    again = Future()
+    timer.reset()
+    node.create_guard_condition(lambda: None)  # entities changed: the executor looks again
+    fired.clear()
+
+    def tick_again() -> None:
+        if not again.done():
+            again.set_result(None)
+
+    node.create_timer(0.02, tick_again)
+    spin_for_result(executor, again)
+
+
+# -- waitables -------------------------------------------------------------------------------
+
+
+class GuardWaitable(Waitable):
+    """A custom waitable over a guard condition of its own, as rclpy's own tests write one."""
+
+    def __init__(self, node: Node) -> None:
+        super().__init__(MutuallyExclusiveCallbackGroup())  # type: ignore[no-untyped-call]
+        self.guard = GuardCondition(None, None, context=node.context)
+        self.index: int | None = None
+        self.ready = False
+        self.executed: list[Any] = []
+        self.done = Future()
+
+    def is_ready(self, wait_set: Any) -> bool:
+        self.ready = self.index is not None and bool(wait_set.is_ready("guard_condition", self.index))
+        return self.ready
+
+    def take_data(self) -> Any:
+        return "taken"
+
+    async def execute(self, taken_data: Any) -> None:
+        self.executed.append(taken_data)
+        if not self.done.done():
+            self.done.set_result(taken_data)
+
+    def get_num_entities(self) -> NumberOfEntities:
+        return NumberOfEntities(0, 1, 0, 0, 0, 0)
+
+    def add_to_wait_set(self, wait_set: Any) -> None:
+        self.index = wait_set.add_guard_condition(self.guard.handle)
+
+
+def test_a_custom_waitable_is_waited_on_taken_and_executed(executor_of: Callable[[], Executor], node: Node) -> None:
+    waitable = GuardWaitable(node)
+    node.add_waitable(waitable)
+    executor = executor_of()
+    executor.add_node(node)
+    threading.Timer(0.1, waitable.guard.trigger).start()
+    assert spin_for_result(executor, waitable.done) == "taken"
+    node.remove_waitable(waitable)
+    waitable.guard.destroy()
+
+
+# -- services and clients ----------------------------------------------------------------------
+
+
+def test_a_service_answers_a_client_of_the_same_executor(executor_of: Callable[[], Executor], node: Node) -> None:
+    def serve(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = True, "served"
+        return response
+
+    node.create_service(Trigger, "conformance_trigger", serve)
+    client = node.create_client(Trigger, "conformance_trigger")
+    executor = executor_of()
+    executor.add_node(node)
+    assert client.wait_for_service(timeout_sec=TIMEOUT)
+    answer = spin_for_result(executor, client.call_async(Trigger.Request()))
+    assert (answer.success, answer.message) == (True, "served")
+
+
+# -- callback groups -------------------------------------------------------------------------------
+
+
+def test_a_mutually_exclusive_group_never_runs_two_callbacks_at_once(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    group = MutuallyExclusiveCallbackGroup()
+    inside = [0]
+    overlap = [0]
+    calls = [0]
+    enough = Future()
+
+    def slow() -> None:
+        inside[0] += 1
+        overlap[0] = max(overlap[0], inside[0])
+        time.sleep(0.005)
+        inside[0] -= 1
+        calls[0] += 1
+        if calls[0] >= 20 and not enough.done():
+            enough.set_result(None)
+
+    node.create_timer(0.001, slow, callback_group=group)
+    node.create_timer(0.001, slow, callback_group=group)
+    executor = executor_of()
+    executor.add_node(node)
+    spin_for_result(executor, enough)
+    assert overlap[0] == 1
+
+
+# -- nodes -------------------------------------------------------------------------------------------
+
+
+def test_a_removed_node_runs_no_more_callbacks(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    fired: list[int] = []
+    first = Future()
+
+    def tick() -> None:
+        fired.append(1)
+        if not first.done():
+            first.set_result(None)
+
+    node.create_timer(0.01, tick)
+    spin_for_result(executor, first)
+    executor.remove_node(node)
+    assert node not in executor.get_nodes()
+    count = len(fired)
+    executor.spin_until_future_complete(Future(), timeout_sec=0.2)
+    assert len(fired) == count
+
+
+def test_add_node_twice_is_refused_quietly(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    assert executor.add_node(node) in (None, True)
+    assert executor.add_node(node) in (None, False)
+    assert executor.get_nodes() == [node]
+
+
+def test_rclpy_shutdown_while_spinning_ends_the_spin_quietly(
+    kind: str, context: Context, capfd: pytest.CaptureFixture[str]
+) -> None:
+    executor = make_executor(kind, context)
+    node = Node("shut_down_under_it", context=context)
+    node.create_timer(0.01, lambda: None)
+    executor.add_node(node)
+    outcome: list[BaseException | None] = []
+
+    def spin() -> None:
+        try:
+            executor.spin()
+        except ExternalShutdownException as exc:
+            outcome.append(exc)
+        else:
+            outcome.append(None)
+
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    time.sleep(0.2)  # let it spin: what is tested is a shutdown *while* spinning
+    rclpy.shutdown(context=context)
+    spinner.join(TIMEOUT)
+    assert not spinner.is_alive()
+    executor.shutdown(timeout_sec=2.0)
+    assert "Traceback" not in capfd.readouterr().err
+    # rclpy raises ExternalShutdownException out of spin(); AsyncioExecutor's
+    # spin() returns (code that catches the exception runs unchanged).
+    assert [type(e) for e in outcome] == [ExternalShutdownException if kind == "single" else type(None)]

@@ -1,0 +1,306 @@
+"""The container as ROS tools find and start it: the ament index, launch_ros's arguments and requests.
+
+ros2cli and launch_ros are not on PyPI; ament_index_python (what both look
+packages up with) is. These tests do what they do, step by step:
+
+* ``ros2 pkg list`` / ``ros2 run`` / launch_ros's ``ExecutableInPackage``:
+  the package's prefix from the index, then ``<prefix>/lib/<package>/<executable>``;
+* ``ros2 component types``: the ``rclcpp_components`` resource of each
+  package, the part of each line before ``;``;
+* launch_ros's ``ComposableNodeContainer``: the executable started with
+  ``--ros-args -r __node:=NAME -r __ns:=/NS --params-file FILE``, then one
+  LoadNode request per ``ComposableNode`` with what
+  ``get_composable_node_load_request`` puts in it.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from ament_index_python import (
+    get_package_prefix,
+    get_packages_with_prefixes,
+    get_resource,
+    get_resources,
+    has_resource,
+)
+from composition_interfaces.srv import LoadNode
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.srv import GetParameters
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from container import AsyncioExecutor
+from container._ament import EXECUTABLES, PROJECT_PACKAGE, write_index
+from container._registry import PluginRegistry
+from tests.component_support import IMPORT_ROOT, ContainerClient, install_test_plugin
+from tests.container_support import REPO
+from tests.process_support import LoggedProcess
+
+VENV_ACTIVATE = Path(sys.prefix) / "bin" / "activate"
+
+
+@pytest.fixture
+def ament_prefix_path(monkeypatch: pytest.MonkeyPatch) -> str:
+    """AMENT_PREFIX_PATH as the virtualenv's activation sets it, for this process and its children."""
+    result = subprocess.run(
+        ["bash", "-c", f'unset AMENT_PREFIX_PATH; . "{VENV_ACTIVATE}"; printf %s "$AMENT_PREFIX_PATH"'],
+        capture_output=True, text=True, timeout=30, check=True,
+    )
+    monkeypatch.setenv("AMENT_PREFIX_PATH", result.stdout)
+    return result.stdout
+
+
+def executable_in_package(package: str, executable: str) -> str:
+    """launch_ros's ExecutableInPackage: the prefix from the index, then lib/<package>, searched like which."""
+    libexec = os.path.join(get_package_prefix(package), "lib", package)
+    assert os.path.isdir(libexec), f"package {package!r} has no libexec directory {libexec}"
+    found = shutil.which(executable, path=libexec)
+    assert found is not None, f"executable {executable!r} not found in {libexec}"
+    return found
+
+
+def executables_of(package: str) -> set[str]:
+    """ros2pkg's get_executable_paths: every executable file under <prefix>/lib/<package>."""
+    base = os.path.join(get_package_prefix(package), "lib", package)
+    return {
+        name
+        for directory, _, files in os.walk(base)
+        for name in files
+        if os.access(os.path.join(directory, name), os.X_OK)
+    }
+
+
+def component_types() -> dict[str, list[str]]:
+    """ros2component's get_registered_component_types, as `ros2 component types` prints it."""
+    listing = {}
+    for package in get_resources("rclcpp_components"):
+        assert has_resource("rclcpp_components", package)
+        content, _ = get_resource("rclcpp_components", package)
+        listing[package] = [line.split(";")[0] for line in content.splitlines()]
+    return listing
+
+
+def test_activation_puts_the_venv_on_the_ament_prefix_path(ament_prefix_path: str) -> None:
+    assert ament_prefix_path.split(os.pathsep)[0] == sys.prefix
+    deactivated = subprocess.run(
+        ["bash", "-c", f'export AMENT_PREFIX_PATH=/opt/ros/jazzy; . "{VENV_ACTIVATE}"; '
+         'printf "%s\\n" "$AMENT_PREFIX_PATH"; deactivate; printf "%s\\n" "$AMENT_PREFIX_PATH"'],
+        capture_output=True, text=True, timeout=30, check=True,
+    )
+    assert deactivated.stdout == f"{sys.prefix}:/opt/ros/jazzy\n/opt/ros/jazzy\n"
+
+
+def test_the_container_command_sets_the_ament_prefix_path_for_what_it_starts() -> None:
+    env = {k: v for k, v in os.environ.items() if k != "AMENT_PREFIX_PATH"}
+    script = "import os; from container.cli import use_this_ament_prefix; use_this_ament_prefix(); " \
+        "print(os.environ['AMENT_PREFIX_PATH'])"
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env)
+    assert result.stdout.split(os.pathsep)[0].strip() == sys.prefix, result.stderr
+
+
+def test_packages_executables_and_types_resolve_as_ros_tools_resolve_them(ament_prefix_path: str) -> None:
+    registry = PluginRegistry()
+    packages = get_packages_with_prefixes()  # ros2 pkg list
+    for package in [PROJECT_PACKAGE, *registry.packages()]:
+        assert packages.get(package) == sys.prefix, f"{package} is not a package of {sys.prefix}"
+    # ros2 run lifecycle_container <TAB>, and what launch_ros starts.
+    assert executables_of(PROJECT_PACKAGE) == set(EXECUTABLES)
+    for executable in EXECUTABLES:
+        assert executable_in_package(PROJECT_PACKAGE, executable) == os.path.join(
+            sys.prefix, "lib", PROJECT_PACKAGE, executable
+        )
+    # ros2 component types lists what `container types` lists.
+    listed = component_types()
+    assert {package: sorted(types) for package, types in listed.items()} == registry.packages()
+    result = subprocess.run(
+        [sys.executable, "-m", "container", "types"], capture_output=True, text=True, timeout=60, cwd=REPO
+    )
+    printed = "".join(
+        package + "\n" + "".join(f"  {name}\n" for name in sorted(types)) for package, types in sorted(listed.items())
+    )
+    assert result.stdout == printed
+
+
+def test_index_adds_a_new_plugin_and_removes_it_when_it_is_gone(tmp_path: Path) -> None:
+    prefix = tmp_path / "prefix"
+    foreign = prefix / "share" / "ament_index" / "resource_index" / "packages" / "test_nodes_foreign"
+    foreign.parent.mkdir(parents=True)
+    foreign.touch()  # some other installation's package
+    site = install_test_plugin(tmp_path / "site", distribution="test-nodes")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(IMPORT_ROOT)]))
+
+    def index(env: dict[str, str]) -> str:
+        result = subprocess.run(
+            [sys.executable, "-m", "container", "index", "--prefix", str(prefix)],
+            capture_output=True, text=True, timeout=60, env=env, cwd=REPO,
+        )
+        assert result.returncode == 0, result.stderr
+        return result.stdout
+
+    assert "test_nodes: 2 node type(s)" in index(env)
+    env_prefix = dict(os.environ, AMENT_PREFIX_PATH=str(prefix))
+    check = (
+        "from ament_index_python import get_packages_with_prefixes as p, get_resource as r;"
+        "print(sorted(p())); print(r('rclcpp_components', 'test_nodes')[0] if 'test_nodes' in p() else '')"
+    )
+    listing = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, env=env_prefix, timeout=60)
+    assert "'test_nodes'" in listing.stdout and "'test_nodes_foreign'" in listing.stdout, listing.stderr
+    assert "test_nodes::Busy;tests.component_support:Busy\ntest_nodes::Exploding;" in listing.stdout
+    assert "up to date" in index(env)
+
+    gone = index(dict(os.environ))  # the plugin uninstalled
+    assert "test_nodes: removed (no longer installed)" in gone
+    index_dir = prefix / "share" / "ament_index" / "resource_index"
+    assert not (index_dir / "packages" / "test_nodes").exists()
+    assert not (index_dir / "rclcpp_components" / "test_nodes").exists()
+    assert foreign.exists()
+    assert (prefix / "lib" / PROJECT_PACKAGE / "component_container").exists()
+
+
+def test_an_existing_ros_package_of_the_same_name_is_left_alone(tmp_path: Path) -> None:
+    index_dir = tmp_path / "share" / "ament_index" / "resource_index"
+    (index_dir / "packages").mkdir(parents=True)
+    (index_dir / "packages" / "ldlidar").touch()
+    report = write_index(tmp_path, PluginRegistry().types.values())
+    assert [package for package, _ in report.skipped] == ["ldlidar"]
+    assert not (index_dir / "rclcpp_components" / "ldlidar").exists()
+    assert PROJECT_PACKAGE in report.registered
+
+
+# -- a launch file's ComposableNodeContainer, as launch_ros runs it ---------------------------------
+
+
+def launch_params_file(directory: Path, node_name: str, parameters: dict[str, Any]) -> Path:
+    """What launch_ros's Node writes for ``parameters=[{...}]`` of a fully named node."""
+    path = directory / f"launch_params_{node_name.strip('/').replace('/', '_')}"
+    path.write_text(yaml.dump({node_name: {"ros__parameters": parameters}}, default_flow_style=False))
+    return path
+
+
+def flattened(parameters: dict[str, Any], prefix: str = "") -> list[ParameterMsg]:
+    """launch_ros's to_parameters_list for a dict: nested keys joined with '.', one message each."""
+    messages = []
+    for key, value in parameters.items():
+        if isinstance(value, dict):
+            messages.extend(flattened(value, f"{prefix}{key}."))
+        else:
+            messages.append(Parameter(f"{prefix}{key}", value=value).to_parameter_msg())
+    return messages
+
+
+def composable_node_request(
+    *,
+    package: str,
+    plugin: str,
+    name: str,
+    namespace: str,
+    remappings: list[tuple[str, str]] = [],  # noqa: B006 (never mutated)
+    parameters: dict[str, Any] | None = None,
+    extra_arguments: dict[str, Any] | None = None,
+) -> LoadNode.Request:
+    """What get_composable_node_load_request sends for one ComposableNode (no ros_namespace pushed)."""
+    request = LoadNode.Request()
+    request.package_name = package
+    request.plugin_name = plugin
+    request.node_name = name
+    request.node_namespace = namespace if namespace.startswith("/") else f"/{namespace}"
+    request.remap_rules = [f"{source}:={target}" for source, target in remappings]
+    request.parameters = flattened(parameters or {})
+    request.extra_arguments = flattened(extra_arguments or {})
+    return request
+
+
+@pytest.fixture
+def launched(
+    ament_prefix_path: str, tmp_path: Path
+) -> Iterator[LoggedProcess]:
+    """ComposableNodeContainer(package='lifecycle_container', executable='component_container',
+    name='my_container', namespace='launch_ns', parameters=[{'use_sim_time': True}])."""
+    executable = executable_in_package(PROJECT_PACKAGE, "component_container")
+    params = launch_params_file(tmp_path, "/launch_ns/my_container", {"use_sim_time": True})
+    process = LoggedProcess([
+        executable,
+        "--ros-args", "-r", "__node:=my_container", "-r", "__ns:=/launch_ns", "--params-file", str(params),
+    ])
+    try:
+        process.wait_for_line("Container '/launch_ns/my_container' ready with 0 node(s)")
+        yield process
+    finally:
+        process.close()
+
+
+def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
+    launched: LoggedProcess, client_node: Node, executor: AsyncioExecutor, tmp_path: Path
+) -> None:
+    client = ContainerClient(client_node, executor, "/launch_ns/my_container")
+    get = client_node.create_client(GetParameters, "/launch_ns/my_container/get_parameters")
+    assert get.wait_for_service(timeout_sec=20.0)
+    values = client.call(get, GetParameters.Request(names=["use_sim_time"])).values
+    assert values[0].bool_value is True, "the --params-file entry for the container's full name was not applied"
+
+    talker = client.load(composable_node_request(
+        package="lifecycle_container", plugin="lifecycle_container::Talker", name="talker", namespace="demo",
+        remappings=[("chatter", "/launch_chatter")],
+        parameters={"rate": 20.0, "message": "From launch", "unused": {"nested": 1}},
+        extra_arguments={"use_intra_process_comms": True, "autostart": True},
+    ))
+    assert (talker.success, talker.error_message, talker.full_node_name) == (True, "", "/demo/talker")
+    # A ComposableLifecycleNode(autostart=True) of launch_ros 0.26.7+: loaded, then
+    # LifecycleTransition calls change_state (configure, activate).
+    listener = client.load(composable_node_request(
+        package="lifecycle_container", plugin="lifecycle_container::Listener", name="listener", namespace="/demo",
+        remappings=[("chatter", "/launch_chatter")],
+    ))
+    assert (listener.success, listener.full_node_name) == (True, "/demo/listener"), listener.error_message
+    change = client_node.create_client(ChangeState, "/demo/listener/change_state")
+    assert change.wait_for_service(timeout_sec=20.0)
+    for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+        request = ChangeState.Request()
+        request.transition.id = transition
+        assert client.call(change, request).success
+    launched.wait_for_line("I heard: [From launch:")
+    assert client.list() == [(1, "/demo/talker"), (2, "/demo/listener")]
+    state = client_node.create_client(GetState, "/demo/talker/get_state")
+    assert state.wait_for_service(timeout_sec=20.0)
+    assert client.call(state, GetState.Request()).current_state.label == "active"
+    assert launched.stop() == 0
+    assert "threads left behind" not in launched.output(last=1000)
+
+
+def test_nav2_style_lifecycle_manager_brings_up_the_launched_nodes(
+    launched: LoggedProcess, client_node: Node, executor: AsyncioExecutor, tmp_path: Path
+) -> None:
+    """Node(package='lifecycle_container', executable='lifecycle_manager', name='lifecycle_manager_test',
+    parameters=[{'autostart': True, 'node_names': ['/demo/talker']}]), as a Nav2 launch file starts it."""
+    client = ContainerClient(client_node, executor, "/launch_ns/my_container")
+    loaded = client.load(composable_node_request(
+        package="lifecycle_container", plugin="lifecycle_container::Talker", name="talker", namespace="/demo",
+    ))
+    assert loaded.success, loaded.error_message
+    executable = executable_in_package(PROJECT_PACKAGE, "lifecycle_manager")
+    params = launch_params_file(
+        tmp_path, "/lifecycle_manager_test", {"autostart": True, "node_names": ["/demo/talker"], "bond_timeout": 0.0}
+    )
+    manager = LoggedProcess(
+        [executable, "--ros-args", "-r", "__node:=lifecycle_manager_test", "--params-file", str(params)]
+    )
+    try:
+        line = manager.wait_for_line("Managed nodes are active", timeout=30)
+        assert "[lifecycle_manager_test]" in line
+        state = client_node.create_client(GetState, "/demo/talker/get_state")
+        assert state.wait_for_service(timeout_sec=20.0)
+        assert client.call(state, GetState.Request()).current_state.label == "active"
+        assert manager.stop() == 0
+    finally:
+        manager.close()

@@ -2,13 +2,19 @@
 
 Run: ``.venv/bin/python tests/benchmarks/bench_executor.py [--rounds 3] [--seconds 2]``
 
-Two measurements, each executor in a fresh process, the executors taking
+Three measurements, each executor in a fresh process, the executors taking
 turns round after round so that drift on a shared machine hits all alike:
 
 * **ping-pong**: node A publishes ``ping``, node B's callback publishes
   ``pong``, A's callback publishes the next ping; round trips per second.
 * **gap**: node A runs a plain callback that blocks 1 s every 0.5 s while node
   B runs a 20 Hz timer; the largest gap between B's timer callbacks.
+* **load**: ten nodes, each a 100 Hz timer publishing and a subscription;
+  percent of one core the process uses.
+
+Besides rclpy's three executors, ``floor`` is a bare loop on rclpy's wait set
+with no executor at all (see :class:`BareLoop`): what any executor built on
+rclpy's Python API can at best approach.
 
 Printed as medians and as ratios to rclpy's SingleThreadedExecutor and EventsExecutor.
 """
@@ -34,14 +40,66 @@ KINDS = {
     "single": "rclpy SingleThreadedExecutor",
     "multi": "rclpy MultiThreadedExecutor",
     "events": "rclpy experimental EventsExecutor",
+    "floor": "no executor: one bare rcl wait loop",
 }
 
 #: rclpy's EventsExecutor never fires timers on these machines (measured):
 #: the measurements that need a timer print n/a for it.
 TIMERLESS = {"events"}
 
+#: The floor has no callback groups, no isolation: ping-pong and load only.
+FLOORLESS = {"gap"}
+
+
+class BareLoop:
+    """The least any executor on rclpy's wait set can do: what sets the ceiling.
+
+    One thread, one wait set built once (re-adding the handles before each
+    wait, as rcl requires), take and call; no callback groups, no isolation,
+    no error handling. Not an executor to use: a measuring stick.
+    """
+
+    def __init__(self) -> None:
+        self._nodes: list[Any] = []
+        self._stop = False
+
+    def add_node(self, node: Any) -> None:
+        self._nodes.append(node)
+
+    def shutdown(self, timeout_sec: float | None = None) -> None:
+        self._stop = True
+
+    def spin(self) -> None:
+        from rclpy.utilities import get_default_context
+
+        from container._compat import WaitSet
+
+        subs = [sub for node in self._nodes for sub in node.subscriptions]
+        timers = [timer for node in self._nodes for timer in node.timers]
+        by_sub = {sub.handle.pointer: sub for sub in subs}
+        by_timer = {timer.handle.pointer: timer for timer in timers}
+        wait_set = WaitSet(len(subs), 0, len(timers), 0, 0, 0, get_default_context().handle)
+        while not self._stop:
+            wait_set.clear_entities()
+            for sub in subs:
+                wait_set.add_subscription(sub.handle)
+            for timer in timers:
+                wait_set.add_timer(timer.handle)
+            wait_set.wait(100_000_000)
+            for pointer in wait_set.get_ready_entities("timer"):
+                timer = by_timer[pointer]
+                timer.handle.call_timer()
+                timer.callback()
+            for pointer in wait_set.get_ready_entities("subscription"):
+                sub = by_sub[pointer]
+                taken = sub.handle.take_message(sub.msg_type, False)
+                if taken is not None:
+                    sub.callback(taken[0])
+
 
 def _executor(kind: str) -> Any:
+    if kind == "floor":
+        return BareLoop()
     if kind.startswith("asyncio"):
         from container import AsyncioExecutor
 
@@ -69,11 +127,21 @@ def _spin_until(
         kick()
     done.wait(limit)
     done.set()
-    executor.shutdown(0.5)
-    spinner.join(5.0)
+    # The EventsExecutor's shutdown() from another thread can hang while it
+    # spins (seen here): the measurement is taken, the child exits anyway.
+    threading.Thread(target=executor.shutdown, args=(0.5,), daemon=True).start()
+    spinner.join(2.0)
 
 
 def ping_pong(kind: str, seconds: float) -> float:
+    """Round trips per second of one message bounced between two nodes.
+
+    Counted by a helper thread over a window of ``seconds`` (the callbacks do
+    nothing but count and publish the message they got): one chain, started
+    by a single ping published before the spin once both topics are matched
+    (publishing from another thread while the EventsExecutor spins can
+    deadlock it, seen here; a lost first ping is sent again after 2 s).
+    """
     import rclpy
     from rclpy.node import Node
     from std_msgs.msg import Int64
@@ -82,32 +150,21 @@ def ping_pong(kind: str, seconds: float) -> float:
     a, b = Node("bench_a"), Node("bench_b")
     ping = a.create_publisher(Int64, "ping", 10)
     pong = b.create_publisher(Int64, "pong", 10)
-    count = 0
-    started = threading.Event()
-    done = threading.Event()
-    t0 = 0.0
+    count = [0]
 
     def echo(msg: Int64) -> None:
         pong.publish(msg)
 
     def got(msg: Int64) -> None:
-        nonlocal count, t0
-        if msg.data != count:
-            return  # a second chain the kicker started: only one counts
-        if not started.is_set():
-            started.set()
-            t0 = time.perf_counter()
-        elif time.perf_counter() - t0 >= seconds:
-            done.set()
-            return
-        count += 1
-        ping.publish(Int64(data=count))
+        count[0] += 1
+        ping.publish(msg)
 
     async def echo_async(msg: Int64) -> None:
-        echo(msg)
+        pong.publish(msg)
 
     async def got_async(msg: Int64) -> None:
-        got(msg)
+        count[0] += 1
+        ping.publish(msg)
 
     is_async = kind == "asyncio-async"
     b.create_subscription(Int64, "ping", echo_async if is_async else echo, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
@@ -115,21 +172,27 @@ def ping_pong(kind: str, seconds: float) -> float:
     executor = _executor(kind)
     executor.add_node(a)
     executor.add_node(b)
-    # The first ping goes out before the spin, once both topics are matched:
-    # publishing from another thread while the EventsExecutor spins can
-    # deadlock it (seen here), so the kick repeats only if that ping was lost.
     deadline = time.monotonic() + 30.0
     while (ping.get_subscription_count() < 1 or pong.get_subscription_count() < 1) and time.monotonic() < deadline:
         time.sleep(0.01)
     ping.publish(Int64(data=0))
+    done = threading.Event()
+    rate: list[float] = []
 
-    def kick() -> None:
-        while not started.wait(2.0) and time.monotonic() < deadline:
-            ping.publish(Int64(data=0))
+    def measure() -> None:
+        kicked = time.monotonic()
+        while count[0] < 100 and time.monotonic() < deadline:
+            if time.monotonic() - kicked > 2.0:
+                ping.publish(Int64(data=0))
+                kicked = time.monotonic()
+            time.sleep(0.01)
+        first, t0 = count[0], time.perf_counter()
+        time.sleep(seconds)
+        rate.append((count[0] - first) / (time.perf_counter() - t0))
+        done.set()
 
-    _spin_until(executor, done, seconds + 30.0, kick=kick)
-    elapsed = time.perf_counter() - t0
-    return (count - 1) / elapsed if started.is_set() else 0.0
+    _spin_until(executor, done, seconds + 40.0, kick=measure)
+    return rate[0] if rate else float("nan")
 
 
 def timer_gap(kind: str, seconds: float) -> float:
@@ -265,7 +328,7 @@ def main() -> None:
     for round_index in range(args.rounds):
         for measure in [args.only] if args.only else MEASURES:
             for kind in kinds:
-                if measure != "pingpong" and kind in TIMERLESS:
+                if (measure != "pingpong" and kind in TIMERLESS) or (measure in FLOORLESS and kind == "floor"):
                     continue
                 seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)
                 value, note = _run_child(measure, kind, seconds)

@@ -708,22 +708,28 @@ class Dispatcher:
             return False
 
     def limit(self, permits: int | None) -> None:
-        """Let ``permits`` more callbacks start (``None``: any number), those held first."""
-        released: list[Callable[[], None]] = []
-        with self._gate_lock:
-            self._permits = permits
-            while self._held and (self._permits is None or self._permits > 0):
+        """Let ``permits`` more callbacks start (``None``: any number), those held first.
+
+        Held work starts in the order it was taken; until the last of it has
+        started, work taken meanwhile (other threads deliver too) is held
+        behind it, so a subscription's messages never overtake each other.
+        """
+        left = permits
+        while True:
+            with self._gate_lock:
+                if not self._held or left == 0:
+                    self._permits = left
+                    return
+                self._permits = 0
                 entity, start = self._held.popleft()
                 key = id(entity)
-                left = self._held_per_entity[key] - 1
-                if left:
-                    self._held_per_entity[key] = left
+                kept = self._held_per_entity[key] - 1
+                if kept:
+                    self._held_per_entity[key] = kept
                 else:
                     del self._held_per_entity[key]
-                released.append(start)
-                if self._permits is not None:
-                    self._permits -= 1
-        for start in released:
+                if left is not None:
+                    left -= 1
             start()
 
     def run(self, entry: _Entry, call: Callable[[], Any]) -> None:

@@ -30,7 +30,26 @@ from .lifecycle import LifecycleNode
 __all__ = ["Counter", "Listener", "Talker", "register_node_types"]
 
 
-class Talker(LifecycleNode):
+class _Releasing(LifecycleNode):
+    """A demo node whose configure creates what cleanup, shutdown and error processing release."""
+
+    def _release(self) -> None:
+        raise NotImplementedError
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+
+class Talker(_Releasing):
     """Publish ``Hello World: N`` on ``chatter`` at ``rate`` Hz while active."""
 
     default_node_name = "talker"
@@ -50,18 +69,6 @@ class Talker(LifecycleNode):
             return TransitionCallbackReturn.FAILURE
         self._publisher = self.create_publisher(String, "chatter", 10)
         self._timer = self.create_timer(1.0 / rate, self._publish)
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
         return TransitionCallbackReturn.SUCCESS
 
     def _release(self) -> None:
@@ -96,7 +103,7 @@ class Listener(LifecycleNode):
             self.get_logger().info(f"I heard: [{message.data}]")
 
 
-class Counter(LifecycleNode):
+class Counter(_Releasing):
     """Count to a goal's ``target`` on the ``count_to`` action, one step per ``step`` seconds.
 
     The seed tutorial's server as a lifecycle node: the action server exists
@@ -129,18 +136,6 @@ class Counter(LifecycleNode):
             goal_callback=self._on_goal,
             cancel_callback=lambda _: CancelResponse.ACCEPT,
         )
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
         return TransitionCallbackReturn.SUCCESS
 
     def destroy_node(self) -> None:

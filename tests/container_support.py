@@ -1,4 +1,4 @@
-"""A ``container run`` child process for tests, read line by line.
+"""Child processes for tests, their output read line by line: any command, or ``container run``.
 
 Lives outside ``conftest.py`` so test modules can import it by a name that no
 other directory's ``conftest`` shadows.
@@ -6,31 +6,40 @@ other directory's ``conftest`` shadows.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
-class ContainerProcess:
-    """A ``container run`` child process whose output is read line by line."""
+class LoggedProcess:
+    """``command`` as a child process; stdout and stderr read line by line into :attr:`lines`."""
 
-    def __init__(self, config: Path, *, args: tuple[str, ...] = ()) -> None:
-        self.config = config
+    def __init__(
+        self, command: Sequence[str], *, env: Mapping[str, str] | None = None, name: str = ""
+    ) -> None:
+        self.name = name or os.path.basename(command[0])
         self.lines: list[str] = []
         self._changed = threading.Condition()
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "container", "run", str(config), *args],
+            list(command),
             cwd=REPO,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
             bufsize=1,
+            env=None if env is None else dict(env),
+            # Its own process group, so that a wrapper (ip netns exec) and
+            # what it runs get a signal together.
+            start_new_session=True,
         )
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
@@ -44,8 +53,11 @@ class ContainerProcess:
         with self._changed:
             self._changed.notify_all()
 
+    def output(self, last: int = 60) -> str:
+        return "\n".join(f"{self.name}| {line}" for line in self.lines[-last:])
+
     def wait_for_line(self, needle: str, *, timeout: float = 20.0, start: int = 0) -> str:
-        """Block until a line containing ``needle`` appears; fail on timeout or exit."""
+        """Block until a line containing ``needle`` appears (from line ``start`` on); fail on timeout or exit."""
         deadline = time.monotonic() + timeout
         with self._changed:
             while True:
@@ -54,28 +66,35 @@ class ContainerProcess:
                         return line
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or (self.process.poll() is not None and not self._reader.is_alive()):
-                    output = "\n".join(self.lines[-40:])
-                    raise AssertionError(f"no line with {needle!r} within {timeout} s:\n{output}")
+                    raise AssertionError(f"no line with {needle!r} within {timeout} s:\n{self.output()}")
                 self._changed.wait(remaining)
 
     def stop(self, *, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
-        """Signal the process and wait for it; SIGKILL as a last resort."""
+        """Signal the process group and wait; SIGKILL as a last resort (then fail)."""
         if self.process.poll() is None:
-            self.process.send_signal(sig)
+            os.killpg(self.process.pid, sig)
         try:
             code = self.process.wait(timeout)
         except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-            raise AssertionError(f"container ignored signal {sig} for {timeout} s") from None
+            self.close()
+            raise AssertionError(f"{self.name} ignored signal {sig} for {timeout} s:\n{self.output()}") from None
         self.close()
         return code
 
     def close(self) -> None:
-        """Kill the process if it still runs, and release its pipe."""
+        """Kill the process group if it still runs, and release the pipe."""
         if self.process.poll() is None:
-            self.process.kill()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.process.pid, signal.SIGKILL)
         self.process.wait()
         self._reader.join(5.0)
         if self.process.stdout is not None:
             self.process.stdout.close()
+
+
+class ContainerProcess(LoggedProcess):
+    """A ``container run`` child process on the container file ``config``."""
+
+    def __init__(self, config: Path, *, args: tuple[str, ...] = ()) -> None:
+        self.config = config
+        super().__init__([sys.executable, "-m", "container", "run", str(config), *args], name="container")

@@ -1,22 +1,16 @@
-"""Any command as a child process whose output is read line by line, and ament index look-ups.
+"""For the tests that start the container the way ROS tools do.
 
-For the tests that start the container the way ROS tools do (an executable
-found through the ament index, launch_ros's argument list, a network
-namespace) rather than as ``python -m container run FILE``.
+An executable found through the ament index, launch_ros's argument list, a
+network namespace, rather than ``python -m container run FILE``: any command
+as a :class:`LoggedProcess` (shared with ``container_support``), and the times
+its log lines carry.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
 import re
-import signal
-import subprocess
-import threading
-import time
-from collections.abc import Mapping, Sequence
 
-from tests.container_support import REPO
+from tests.container_support import LoggedProcess
 
 __all__ = ["LoggedProcess", "log_time"]
 
@@ -30,75 +24,3 @@ def log_time(line: str) -> float:
     if match is None:
         raise AssertionError(f"not an rcutils log line with a time stamp: {line!r}")
     return float(match.group(1))
-
-
-class LoggedProcess:
-    """``command`` as a child process; stdout and stderr read line by line into :attr:`lines`."""
-
-    def __init__(
-        self, command: Sequence[str], *, env: Mapping[str, str] | None = None, name: str = ""
-    ) -> None:
-        self.name = name or os.path.basename(command[0])
-        self.lines: list[str] = []
-        self._changed = threading.Condition()
-        self.process = subprocess.Popen(
-            list(command),
-            cwd=REPO,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            bufsize=1,
-            env=None if env is None else dict(env),
-            # Its own process group, so that a wrapper (ip netns exec) and
-            # what it runs get a signal together.
-            start_new_session=True,
-        )
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.process.stdout is not None
-        for line in self.process.stdout:
-            with self._changed:
-                self.lines.append(line.rstrip("\n"))
-                self._changed.notify_all()
-        with self._changed:
-            self._changed.notify_all()
-
-    def output(self, last: int = 60) -> str:
-        return "\n".join(f"{self.name}| {line}" for line in self.lines[-last:])
-
-    def wait_for_line(self, needle: str, *, timeout: float = 20.0, start: int = 0) -> str:
-        """Block until a line containing ``needle`` appears (from line ``start`` on); fail on timeout or exit."""
-        deadline = time.monotonic() + timeout
-        with self._changed:
-            while True:
-                for line in self.lines[start:]:
-                    if needle in line:
-                        return line
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.process.poll() is not None and not self._reader.is_alive()):
-                    raise AssertionError(f"no line with {needle!r} within {timeout} s:\n{self.output()}")
-                self._changed.wait(remaining)
-
-    def stop(self, *, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
-        """Signal the process group and wait; SIGKILL as a last resort (then fail)."""
-        if self.process.poll() is None:
-            os.killpg(self.process.pid, sig)
-        try:
-            code = self.process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.close()
-            raise AssertionError(f"{self.name} ignored signal {sig} for {timeout} s:\n{self.output()}") from None
-        self.close()
-        return code
-
-    def close(self) -> None:
-        """Kill the process group if it still runs, and release the pipe."""
-        if self.process.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.wait()
-        self._reader.join(5.0)
-        if self.process.stdout is not None:
-            self.process.stdout.close()

@@ -156,6 +156,9 @@ class Counter(_Releasing):
         if not self._active():
             self.get_logger().warning(f"goal to count to {goal.target} rejected: not active")
             return GoalResponse.REJECT
+        if goal.target < 0:
+            self.get_logger().warning(f"goal to count to {goal.target} rejected: the target must be 0 or more")
+            return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
     async def _execute(self, goal_handle: ServerGoalHandle) -> Any:

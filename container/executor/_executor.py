@@ -113,13 +113,15 @@ class AsyncioExecutor(Executor):
         stall_after: float | None = 1.0,
         num_threads: int | None = None,
     ) -> None:
-        if num_threads is not None:
-            if num_threads < 1:
-                raise ExecutorError(f"num_threads must be at least 1, not {num_threads}")
-            reentrant_limit = num_threads
-        if reentrant_limit < 1:
-            raise ExecutorError(f"reentrant_limit must be at least 1, not {reentrant_limit}")
         super().__init__(context=context)
+        # Refused after rclpy's part is built: its __del__ needs it, and
+        # releases it again (a refusal before left an AttributeError there).
+        for keyword, value in (("num_threads", num_threads), ("reentrant_limit", reentrant_limit)):
+            if value is not None and value < 1:
+                Executor.shutdown(self, timeout_sec=0)
+                raise ExecutorError(f"{keyword} must be at least 1, not {value}")
+        if num_threads is not None:
+            reentrant_limit = num_threads
         self._reentrant_limit = reentrant_limit
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout

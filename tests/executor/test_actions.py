@@ -227,13 +227,14 @@ def test_counter_lifecycle_node_takes_goals_only_while_active(
         await asyncio.wait_for(_server_ready(client), TIMEOUT)
         inactive = await client.send_goal_async(CountTo.Goal(target=2))
         assert await counter.transition("activate")
+        negative = await client.send_goal_async(CountTo.Goal(target=-1))
         active = await client.send_goal_async(CountTo.Goal(target=3), feedback_callback=feedback)
         outcome = await active.get_result_async()
         client.destroy()
-        return inactive.accepted, active.accepted, outcome
+        return inactive.accepted or negative.accepted, active.accepted, outcome
 
-    rejected_while_inactive, accepted, outcome = run(executor, scenario())
-    assert not rejected_while_inactive and accepted
+    wrongly_accepted, accepted, outcome = run(executor, scenario())
+    assert not wrongly_accepted and accepted
     assert (outcome.status, outcome.result.final_count) == (GoalStatus.STATUS_SUCCEEDED, 3)
     assert list(feedback) == [0, 1, 2]
 
@@ -274,3 +275,11 @@ def test_counter_in_a_container_driven_from_another_process(
     )
     assert cancelled.returncode == 0, cancelled.stdout + cancelled.stderr
     assert "result: canceled" in cancelled.stdout
+
+
+def test_counter_refuses_a_negative_step_at_configure(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    counter: Counter = host(Counter, "counter", parameter_overrides=[Parameter("step", value=-1.0)])
+    assert not run(executor, counter.transition("configure"))
+    assert counter.lifecycle_state.label == "unconfigured"

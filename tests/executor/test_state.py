@@ -91,3 +91,12 @@ def test_spinning_twice_at_once_is_refused(context: Context) -> None:
     finally:
         executor.shutdown()
         node.destroy_node()
+
+
+@pytest.mark.parametrize("keyword", ["num_threads", "reentrant_limit"])
+def test_a_concurrency_below_one_is_refused(context: Context, keyword: str) -> None:
+    with pytest.raises(ExecutorError, match=f"{keyword} must be at least 1, not 0"):
+        if keyword == "num_threads":
+            AsyncioExecutor(context=context, num_threads=0)
+        else:
+            AsyncioExecutor(context=context, reentrant_limit=0)

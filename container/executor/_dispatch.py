@@ -54,6 +54,7 @@ from .._compat import (
     subscription_wants_info,
     waitable_futures,
 )
+from ._fastpath import SUBSCRIPTION, Notifier, Taker
 from ._lanes import Lane, Post, Retired, Token, Work
 
 if TYPE_CHECKING:
@@ -88,6 +89,8 @@ class _Entry:
     depth: int
     done: Callable[[Work, BaseException | None], None]
     token: Token
+    #: Takes the subscription's messages in C (``None``: rclpy's take, e.g. raw).
+    taker: Taker | None = None
 
 
 @dataclass(slots=True)
@@ -137,6 +140,10 @@ def _is_hot_waitable(waitable: object) -> bool:
 #: Longest time without QoS events in the wait set (ns); see :meth:`_WaitSet._events_due_in`.
 _EVENT_SKIP_MAX_NS = 50_000_000
 
+#: Longest time the hot wait set goes without an ``rcl_wait`` while messages
+#: keep arriving (ns): timers and guard conditions are looked at least this often.
+_POLL_MAX_NS = 1_000_000
+
 _HOT = ("subscription", "timer", "client", "guard_condition")
 _COLD = ("service",)
 
@@ -162,6 +169,16 @@ class _WaitSet:
         self._closed = False
         #: When the next wait must include the QoS events (monotonic ns).
         self._events_next = 0
+        #: New-message callbacks instead of waiting on subscriptions (hot only).
+        self._notifier: Notifier | None = None
+        self._notifier_guard: GuardCondition | None = None
+        if "subscription" in kinds:
+            self._notifier_guard = GuardCondition(
+                callback=None, callback_group=None, context=dispatcher.context
+            )
+            self._notifier = Notifier(guard=self._notifier_guard.handle.pointer)
+        #: When this wait set last entered ``rcl_wait`` (monotonic ns).
+        self._polled = 0
 
     def invalidate(self) -> None:
         self._dirty = True
@@ -175,13 +192,19 @@ class _WaitSet:
         for kind in _HOT + _COLD:
             table.by_pointer[kind] = {}
             table.handles[kind] = []
+        notifier = self._notifier
         for node in dispatcher.nodes():
             for kind in self._kinds:
                 for entity in _entities_of(node, kind):
                     if _hold(held, entity.handle):
                         entry = dispatcher.entry(entity, node, kind)
                         table.by_pointer[kind][entity.handle.pointer] = entry
-                        table.handles[kind].append(entity.handle)
+                        if notifier is None or kind != "subscription":
+                            table.handles[kind].append(entity.handle)
+                        elif not entity.raw:
+                            entry.taker = Taker(
+                                subscription=entity.handle.pointer, message_type=entity.msg_type
+                            )
             for waitable in list(node.waitables):
                 if not self._takes_waitable(waitable) or not _hold(held, waitable):
                     continue
@@ -193,7 +216,10 @@ class _WaitSet:
                     table.waitables.append(entry)
                     extra += waitable.get_num_entities()
         guards = table.handles["guard_condition"]
-        for gc, flag in self._own_guards():
+        own = list(self._own_guards())
+        if self._notifier_guard is not None:
+            own.append((self._notifier_guard, 0))
+        for gc, flag in own:
             if _hold(held, gc.handle):
                 table.own_guards[gc.handle.pointer] = flag
                 guards.append(gc.handle)
@@ -209,6 +235,14 @@ class _WaitSet:
             context.handle,
         )
         old, self._table = self._table, table
+        if notifier is not None:
+            subscriptions = table.by_pointer["subscription"]
+            # Entities gone stop calling back before their handles are let go.
+            for pointer in old.by_pointer.get("subscription", {}):
+                if pointer not in subscriptions:
+                    notifier.unwatch(pointer)
+            for pointer in subscriptions:
+                notifier.watch(pointer, SUBSCRIPTION)
         old.held.close()
 
     def wait_and_dispatch(self, timeout_ns: int) -> int:
@@ -235,6 +269,15 @@ class _WaitSet:
                 return WOKEN
 
     def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
+        notifier = self._notifier
+        if notifier is not None and notifier.pending():
+            now = time.monotonic_ns()
+            if now - self._polled < _POLL_MAX_NS:
+                # Messages are ready and timers were looked at just now:
+                # take them without a wait (no attach, no detach, no syscall).
+                self._take_ready(table, notifier)
+                return 0
+            timeout_ns = 0
         wait_set = table.wait_set
         handles = table.handles
         wait_set.clear_entities()
@@ -263,7 +306,21 @@ class _WaitSet:
             timeout_ns = due_in
         for entry in table.waitables:
             entry.entity.add_to_wait_set(wait_set)
-        wait_set.wait(timeout_ns)
+        if notifier is not None and notifier.arm():
+            timeout_ns = 0
+        if timeout_ns == 0 and self._notifier_guard is not None:
+            # A wait with a zero timeout costs ~90 us here (Fast DDS sleeps on
+            # its condition variable until the timeout, plus the kernel's timer
+            # slack); with a guard condition already triggered it returns at
+            # once (~5 us) and still reports everything else that is ready.
+            self._notifier_guard.trigger()
+            timeout_ns = _EVENT_SKIP_MAX_NS
+        self._polled = time.monotonic_ns()
+        try:
+            wait_set.wait(timeout_ns)
+        finally:
+            if notifier is not None:
+                notifier.disarm()
         if self._closed:
             return WOKEN
         dispatcher = self._dispatcher
@@ -284,11 +341,12 @@ class _WaitSet:
             for pointer in wait_set.get_ready_entities("timer"):
                 if (timer := timers.get(pointer)) is not None:
                     dispatcher.take_timer(timer)
-        messages = wait_set.get_ready_entities("subscription") if handles["subscription"] else ()
-        if messages:
+        if notifier is not None:
+            self._take_ready(table, notifier)
+        elif handles["subscription"]:
             take = dispatcher.take_message
             subscriptions = by_pointer["subscription"]
-            for pointer in messages:
+            for pointer in wait_set.get_ready_entities("subscription"):
                 if (subscription := subscriptions.get(pointer)) is not None:
                     take(subscription)
         if handles["client"]:
@@ -313,6 +371,14 @@ class _WaitSet:
             if entry.entity.is_ready(wait_set):
                 dispatcher.take_waitable(entry)
         return flags
+
+    def _take_ready(self, table: _Table, notifier: Notifier) -> None:
+        """Take every message of the subscriptions that reported new data."""
+        subscriptions = table.by_pointer["subscription"]
+        take = self._dispatcher.take_all
+        for pointer, count in notifier.ready():
+            if (subscription := subscriptions.get(pointer)) is not None:
+                take(subscription, count)
 
     def _events_due_in(self) -> int:
         """Nanoseconds until a wait must include the QoS events again (0: this one).
@@ -346,8 +412,16 @@ class _WaitSet:
         self._closed = True
         if self._lock.acquire(timeout=max(timeout, 0.1)):
             try:
+                notifier = self._notifier
+                if notifier is not None:
+                    for pointer in self._table.by_pointer.get("subscription", {}):
+                        notifier.unwatch(pointer)
+                    notifier.close()
                 self._table.held.close()
                 self._table = _Table()
+                if self._notifier_guard is not None:
+                    self._notifier_guard.destroy()
+                    self._notifier_guard = None
             finally:
                 self._lock.release()
 
@@ -623,6 +697,33 @@ class Dispatcher:
             self.submit(entry, sub.callback, tuple(taken))
         else:
             self.submit(entry, sub.callback, (taken[0],))
+
+    def take_all(self, entry: _Entry, count: int) -> None:
+        """Take the ``count`` messages its new-data callbacks reported (fewer if DDS dropped some)."""
+        sub = entry.entity
+        callback = sub.callback
+        submit = self.submit
+        taker = entry.taker
+        with_info = subscription_wants_info(sub)
+        if taker is None:
+            msg_type, raw = sub.msg_type, sub.raw
+            for _ in range(count):
+                taken = sub.handle.take_message(msg_type, raw)
+                if taken is None:
+                    return
+                submit(entry, callback, tuple(taken) if with_info else (taken[0],))
+        elif with_info:
+            for _ in range(count):
+                pair = taker.take_with_info()
+                if pair is None:
+                    return
+                submit(entry, callback, pair)
+        else:
+            for _ in range(count):
+                message = taker.take()
+                if message is None:
+                    return
+                submit(entry, callback, (message,))
 
     def take_response(self, entry: _Entry) -> None:
         """Take every response waiting: a burst beyond the reader's depth would lose answers."""

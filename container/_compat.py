@@ -53,6 +53,7 @@ __all__ = [
     "leave_task",
     "loop_is_idle",
     "managed_entities",
+    "mark_event_ready",
     "query_services",
     "running_loop",
     "runs_plain_callback",
@@ -73,6 +74,7 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.impl.implementation_singleton", "rclpy_implementation", "rclpy 1.0-10.x: the C extension"),
     ("rclpy.event_handler.EventHandler", "_EventHandler__event", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.event_handler.EventHandler", "_event_index", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.event_handler.EventHandler", "_ready_to_take_data", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.subscription.Subscription", "_callback_type", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.task.Future", "_set_executor", "rclpy 1.0-10.x"),
     ("rclpy.waitable.Waitable", "_futures", "rclpy 1.0-10.x (instance attribute)"),
@@ -161,6 +163,15 @@ def event_handle(handler: object) -> Any | None:
 def set_event_index(handler: object, index: int) -> None:
     """Tell an ``EventHandler`` where its handle sits in a wait set we filled."""
     handler._event_index = index  # type: ignore[attr-defined]
+
+
+def mark_event_ready(handler: object) -> None:
+    """Tell an ``EventHandler`` its event fired, as ``is_ready`` would after a wait.
+
+    The executor learns it from rmw's event callback instead of a wait set;
+    ``take_data`` takes the event only once told.
+    """
+    handler._ready_to_take_data = True  # type: ignore[attr-defined]
 
 
 def subscription_wants_info(subscription: Subscription) -> bool:

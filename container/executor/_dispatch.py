@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
-from rclpy.event_handler import EventHandler, QoSSubscriptionEventType
+from rclpy.event_handler import EventHandler
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
@@ -50,11 +50,12 @@ from .._compat import (
     adopt_future,
     event_handle,
     fire_timer,
+    mark_event_ready,
     set_event_index,
     subscription_wants_info,
     waitable_futures,
 )
-from ._fastpath import SUBSCRIPTION, Notifier, Taker
+from ._fastpath import EVENT, SUBSCRIPTION, Notifier, Taker
 from ._lanes import Lane, Post, Retired, Token, Work
 
 if TYPE_CHECKING:
@@ -91,6 +92,8 @@ class _Entry:
     token: Token
     #: Takes the subscription's messages in C (``None``: rclpy's take, e.g. raw).
     taker: Taker | None = None
+    #: A subscription whose callback takes ``(message, message_info)``.
+    wants_info: bool = False
 
 
 @dataclass(slots=True)
@@ -126,15 +129,13 @@ def format_error(entity: object, error: BaseException) -> str:
 
 
 def _is_hot_waitable(waitable: object) -> bool:
-    """Whether a waitable must sit in the hot wait set.
+    """Whether a waitable belongs to the hot wait set: QoS event handlers.
 
-    A subscription's QoS events share Fast DDS's listener with its data, so a
-    wait set holding only the event wakes on every message; kept with the
-    subscriptions, that wake-up is one the hot wait set has anyway.
+    Their events reach the hot wait set's notifier through rmw's event
+    callbacks (or, where rmw has none for an event type, the hot wait set
+    waits on them every ``_EVENT_SKIP_MAX_NS``); nothing of theirs costs a wait.
     """
-    return isinstance(waitable, EventHandler) and isinstance(
-        waitable.event_type, QoSSubscriptionEventType
-    )
+    return isinstance(waitable, EventHandler)
 
 
 #: Longest time without QoS events in the wait set (ns); see :meth:`_WaitSet._events_due_in`.
@@ -179,6 +180,10 @@ class _WaitSet:
             self._notifier = Notifier(guard=self._notifier_guard.handle.pointer)
         #: When this wait set last entered ``rcl_wait`` (monotonic ns).
         self._polled = 0
+        #: Handle addresses the notifier calls back for (their handles held).
+        self._watched: set[int] = set()
+        #: How many times this wait set entered ``rcl_wait`` (tests, diagnostics).
+        self.waits = 0
 
     def invalidate(self) -> None:
         self._dirty = True
@@ -192,6 +197,7 @@ class _WaitSet:
         for kind in _HOT + _COLD:
             table.by_pointer[kind] = {}
             table.handles[kind] = []
+        table.by_pointer["event"] = {}
         notifier = self._notifier
         for node in dispatcher.nodes():
             for kind in self._kinds:
@@ -201,17 +207,22 @@ class _WaitSet:
                         table.by_pointer[kind][entity.handle.pointer] = entry
                         if notifier is None or kind != "subscription":
                             table.handles[kind].append(entity.handle)
-                        elif not entity.raw:
-                            entry.taker = Taker(
-                                subscription=entity.handle.pointer, message_type=entity.msg_type
-                            )
+                        else:
+                            self._watch(entity.handle.pointer, SUBSCRIPTION)
+                            if not entity.raw:
+                                entry.taker = Taker(
+                                    subscription=entity.handle.pointer, message_type=entity.msg_type
+                                )
             for waitable in list(node.waitables):
                 if not self._takes_waitable(waitable) or not _hold(held, waitable):
                     continue
                 entry = dispatcher.entry(waitable, node, "waitable")
                 event = event_handle(waitable)
                 if event is not None:
-                    table.events.append((event, entry))
+                    if notifier is not None and self._watch(event.pointer, EVENT):
+                        table.by_pointer["event"][event.pointer] = entry
+                    else:
+                        table.events.append((event, entry))
                 else:
                     table.waitables.append(entry)
                     extra += waitable.get_num_entities()
@@ -236,14 +247,22 @@ class _WaitSet:
         )
         old, self._table = self._table, table
         if notifier is not None:
-            subscriptions = table.by_pointer["subscription"]
             # Entities gone stop calling back before their handles are let go.
-            for pointer in old.by_pointer.get("subscription", {}):
-                if pointer not in subscriptions:
-                    notifier.unwatch(pointer)
-            for pointer in subscriptions:
-                notifier.watch(pointer, SUBSCRIPTION)
+            live = table.by_pointer["subscription"].keys() | table.by_pointer["event"].keys()
+            for pointer in self._watched - live:
+                notifier.unwatch(pointer)
+            self._watched &= live
         old.held.close()
+
+    def _watch(self, pointer: int, kind: int) -> bool:
+        """Have rmw report new data of the entity at ``pointer``; ``False`` where it cannot."""
+        assert self._notifier is not None
+        try:
+            self._notifier.watch(pointer, kind)
+        except NotImplementedError:
+            return False
+        self._watched.add(pointer)
+        return True
 
     def wait_and_dispatch(self, timeout_ns: int) -> int:
         """Block in rcl until something is ready (or timeout) and dispatch it.
@@ -316,6 +335,7 @@ class _WaitSet:
             self._notifier_guard.trigger()
             timeout_ns = _EVENT_SKIP_MAX_NS
         self._polled = time.monotonic_ns()
+        self.waits += 1
         try:
             wait_set.wait(timeout_ns)
         finally:
@@ -375,10 +395,14 @@ class _WaitSet:
     def _take_ready(self, table: _Table, notifier: Notifier) -> None:
         """Take every message of the subscriptions that reported new data."""
         subscriptions = table.by_pointer["subscription"]
-        take = self._dispatcher.take_all
+        dispatcher = self._dispatcher
+        take = dispatcher.take_all
         for pointer, count in notifier.ready():
             if (subscription := subscriptions.get(pointer)) is not None:
                 take(subscription, count)
+            elif (event := table.by_pointer["event"].get(pointer)) is not None:
+                mark_event_ready(event.entity)
+                dispatcher.take_waitable(event)
 
     def _events_due_in(self) -> int:
         """Nanoseconds until a wait must include the QoS events again (0: this one).
@@ -414,8 +438,9 @@ class _WaitSet:
             try:
                 notifier = self._notifier
                 if notifier is not None:
-                    for pointer in self._table.by_pointer.get("subscription", {}):
+                    for pointer in self._watched:
                         notifier.unwatch(pointer)
+                    self._watched.clear()
                     notifier.close()
                 self._table.held.close()
                 self._table = _Table()
@@ -594,6 +619,7 @@ class Dispatcher:
         else:
             is_async, depth = inspect.iscoroutinefunction(entity.callback), _COALESCED
         return _Entry(
+            wants_info=kind == "subscription" and subscription_wants_info(entity),
             entity=entity,
             node=node,
             lane=self.lane_for(entity.callback_group, node),
@@ -693,7 +719,7 @@ class Dispatcher:
         taken = sub.handle.take_message(sub.msg_type, sub.raw)
         if taken is None:
             return
-        if subscription_wants_info(sub):
+        if entry.wants_info:
             self.submit(entry, sub.callback, tuple(taken))
         else:
             self.submit(entry, sub.callback, (taken[0],))
@@ -704,7 +730,7 @@ class Dispatcher:
         callback = sub.callback
         submit = self.submit
         taker = entry.taker
-        with_info = subscription_wants_info(sub)
+        with_info = entry.wants_info
         if taker is None:
             msg_type, raw = sub.msg_type, sub.raw
             for _ in range(count):
@@ -776,8 +802,7 @@ class Dispatcher:
     # -- lanes ----------------------------------------------------------------
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set)."""
-        call: Callable[[], Any] = functools.partial(callback, *args) if args else callback
-        work = Work(entry.entity, call, entry.is_async, entry.depth, entry.done, entry.token)
+        work = Work(entry.entity, callback, entry.is_async, entry.depth, entry.done, entry.token, args)
         if self._permits is None or self.admit(entry.entity, entry.depth, functools.partial(entry.lane.submit, work)):
             entry.lane.submit(work)
 

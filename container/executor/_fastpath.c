@@ -33,12 +33,16 @@
 
 #include <rcl/client.h>
 #include <rcl/error_handling.h>
+#include <rcl/event.h>
 #include <rcl/guard_condition.h>
 #include <rcl/service.h>
 #include <rcl/subscription.h>
 #include <rmw/types.h>
 
-enum { KIND_SUBSCRIPTION = 0, KIND_CLIENT = 1, KIND_SERVICE = 2 };
+enum { KIND_SUBSCRIPTION = 0, KIND_CLIENT = 1, KIND_SERVICE = 2, KIND_EVENT = 3 };
+
+/* The event count that means "take until nothing is left". */
+#define DRAIN ((size_t)1 << 30)
 
 typedef struct Slot {
   struct NotifierObject * owner;
@@ -78,7 +82,7 @@ static void on_event(const void * user_data, size_t number_of_events)
   }
   self = slot->owner;
   pthread_mutex_lock(&self->lock);
-  slot->count += number_of_events;
+  slot->count = slot->count + number_of_events < DRAIN ? slot->count + number_of_events : DRAIN;
   if (!slot->queued) {
     if (self->nready == self->capacity) {
       size_t capacity = self->capacity ? self->capacity * 2 : 16;
@@ -119,8 +123,10 @@ static rcl_ret_t set_callback(int kind, uintptr_t key, rcl_event_callback_t call
       return rcl_subscription_set_on_new_message_callback((const rcl_subscription_t *)key, callback, data);
     case KIND_CLIENT:
       return rcl_client_set_on_new_response_callback((const rcl_client_t *)key, callback, data);
-    default:
+    case KIND_SERVICE:
       return rcl_service_set_on_new_request_callback((const rcl_service_t *)key, callback, data);
+    default:
+      return rcl_event_set_callback((const rcl_event_t *)key, callback, data);
   }
 }
 
@@ -194,7 +200,7 @@ static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
   if (!PyArg_ParseTuple(args, "Ki", &key, &kind)) {
     return NULL;
   }
-  if (key == 0 || kind < KIND_SUBSCRIPTION || kind > KIND_SERVICE) {
+  if (key == 0 || kind < KIND_SUBSCRIPTION || kind > KIND_EVENT) {
     PyErr_SetString(PyExc_ValueError, "watch() needs a handle address and a known kind");
     return NULL;
   }
@@ -219,9 +225,15 @@ static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
     self->slots = slot->next;
     free(slot);
     rcl_reset_error();
-    PyErr_Format(PyExc_RuntimeError, "rmw refused a new-data callback (rcl error %d)", (int)ret);
+    PyErr_Format(
+      ret == RCL_RET_UNSUPPORTED ? PyExc_NotImplementedError : PyExc_RuntimeError,
+      "rmw refused a new-data callback (rcl error %d)", (int)ret);
     return NULL;
   }
+  /* rmw reports only data it has not reported before: what it reported to
+   * an earlier watch of this entity and nobody took would never be named
+   * again. A fresh watch therefore asks for everything waiting once. */
+  on_event(slot, DRAIN);
   Py_RETURN_TRUE;
 }
 
@@ -542,7 +554,9 @@ PyMODINIT_FUNC PyInit__fastpath(void)
       PyModule_AddObject(m, "Taker", (PyObject *)&TakerType) < 0 ||
       PyModule_AddIntConstant(m, "SUBSCRIPTION", KIND_SUBSCRIPTION) < 0 ||
       PyModule_AddIntConstant(m, "CLIENT", KIND_CLIENT) < 0 ||
-      PyModule_AddIntConstant(m, "SERVICE", KIND_SERVICE) < 0) {
+      PyModule_AddIntConstant(m, "SERVICE", KIND_SERVICE) < 0 ||
+      PyModule_AddIntConstant(m, "EVENT", KIND_EVENT) < 0 ||
+      PyModule_AddIntConstant(m, "DRAIN", (long)DRAIN) < 0) {
     Py_DECREF(&NotifierType);
     Py_DECREF(&TakerType);
     Py_DECREF(m);

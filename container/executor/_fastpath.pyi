@@ -3,6 +3,9 @@
 SUBSCRIPTION: int
 CLIENT: int
 SERVICE: int
+EVENT: int
+#: The count ``ready()`` gives for "take until nothing is left" (a fresh watch).
+DRAIN: int
 
 class Notifier:
     def __init__(self, *, guard: int) -> None: ...

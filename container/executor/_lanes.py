@@ -57,7 +57,7 @@ class Work:
     """One callback invocation waiting for, or running in, a lane.
 
     :param entity: the rclpy entity whose callback this is (identity only).
-    :param call: runs the callback; returns a coroutine when ``is_async``.
+    :param call: runs the callback (with ``args``); returns a coroutine when ``is_async``.
     :param depth: how many pending invocations of ``entity`` to keep.
     :param done: told the outcome, in the thread or task that ran ``call``.
     """
@@ -69,6 +69,8 @@ class Work:
     done: Callable[[Work, BaseException | None], None] = field(repr=False)
     #: Whose work this is; once retired, the work never starts.
     token: Token | None = None
+    #: What ``call`` is called with (a taken message), saving a partial per callback.
+    args: tuple[Any, ...] = ()
 
 
 @dataclass(eq=False, slots=True)
@@ -273,7 +275,7 @@ class Lane:
                     error = Retired()
                 else:
                     try:
-                        work.call()
+                        work.call(*work.args)
                     except BaseException as exc:  # reported, never fatal: sys.exit() included
                         error = exc
                 work.done(work, error)
@@ -355,7 +357,7 @@ class Lane:
     ) -> tuple[bool, BaseException | None, _Resume | None]:
         enter_task(self._loop, task)
         try:
-            coro = work.call()
+            coro = work.call(*work.args)
             try:
                 yielded = coro.send(None)
             except StopIteration:
@@ -388,7 +390,7 @@ class Lane:
                 if _retired(work) and isinstance(item, Work):
                     error = Retired()
                 elif isinstance(item, Work):
-                    yield from drive(work.call(), self._progress)
+                    yield from drive(work.call(*work.args), self._progress)
                 else:
                     yield from drive(item.coro, self._progress, yielded=item.yielded, thrown=thrown, started=True)
             except asyncio.CancelledError:

@@ -1,0 +1,277 @@
+"""The compiled hot path (``container/executor/_fastpath.c``), on real rcl entities.
+
+The notifier turns rmw's new-data callbacks into a ready list and one guard
+trigger; the taker takes in C what rclpy's ``take_message`` takes. Both are
+checked against rclpy itself, then through the executor: a ping-pong between
+two nodes of one process must not need an ``rcl_wait`` per message, QoS
+events must arrive without sitting in a wait set, and entities destroyed and
+re-created while the executor spins must keep being served.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from rclpy.context import Context
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.guard_condition import GuardCondition
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+from std_msgs.msg import Int64
+
+from container import AsyncioExecutor
+from container._compat import WaitSet
+from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, Taker
+
+TIMEOUT = 10.0
+
+
+def _until(condition: Callable[[], bool], timeout: float = TIMEOUT) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+@pytest.fixture
+def node(context: Context) -> Iterator[Node]:
+    made = Node("fastpath", context=context)
+    yield made
+    made.destroy_node()
+
+
+@pytest.fixture
+def guard(context: Context) -> Iterator[GuardCondition]:
+    made = GuardCondition(callback=None, callback_group=None, context=context)
+    yield made
+    made.destroy()
+
+
+def _matched(publisher: Any) -> None:
+    assert _until(lambda: publisher.get_subscription_count() >= 1), "publisher never matched"
+
+
+def test_notifier_reports_a_message_published_in_process_at_once(node: Node, guard: GuardCondition) -> None:
+    pub = node.create_publisher(Int64, "fp_ready", 10)
+    sub = node.create_subscription(Int64, "fp_ready", lambda msg: None, 10)
+    notifier = Notifier(guard=guard.handle.pointer)
+    with sub.handle:
+        assert notifier.watch(sub.handle.pointer, SUBSCRIPTION) is True
+        assert notifier.watch(sub.handle.pointer, SUBSCRIPTION) is False  # already watched
+        _matched(pub)
+        # A fresh watch asks for whatever is waiting, once.
+        assert notifier.ready() == [(sub.handle.pointer, DRAIN)]
+        assert notifier.ready() == []
+        pub.publish(Int64(data=1))
+        # Fast DDS delivers to a reader of the same process inside publish():
+        # the report is there when publish returns, no wait involved.
+        assert notifier.pending()
+        pub.publish(Int64(data=2))
+        assert notifier.ready() == [(sub.handle.pointer, 2)]
+        assert notifier.ready() == []
+        assert notifier.unwatch(sub.handle.pointer) is True
+        assert notifier.unwatch(sub.handle.pointer) is False
+        pub.publish(Int64(data=3))
+        assert not notifier.pending()
+        assert notifier.watched == 0
+        # rmw reports only data it has not reported before (the third
+        # message); watching again asks for all three waiting.
+        assert notifier.watch(sub.handle.pointer, SUBSCRIPTION)
+        assert notifier.ready() == [(sub.handle.pointer, DRAIN)]
+        assert [sub.handle.take_message(Int64, False) is not None for _ in range(4)] == [True] * 3 + [False]
+        notifier.unwatch(sub.handle.pointer)
+
+
+def test_notifier_refuses_what_it_cannot_watch(guard: GuardCondition) -> None:
+    notifier = Notifier(guard=guard.handle.pointer)
+    with pytest.raises(ValueError, match="kind"):
+        notifier.watch(guard.handle.pointer, 42)
+    with pytest.raises(ValueError, match="address"):
+        notifier.watch(0, SUBSCRIPTION)
+    with pytest.raises(ValueError, match="guard"):
+        Notifier(guard=0)
+
+
+def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: Node, guard: GuardCondition) -> None:
+    """A report triggers the guard only while the waiter sleeps (armed), once."""
+    pub = node.create_publisher(Int64, "fp_arm", 10)
+    sub = node.create_subscription(Int64, "fp_arm", lambda msg: None, 10)
+    notifier = Notifier(guard=guard.handle.pointer)
+    wait_set = WaitSet(0, 1, 0, 0, 0, 0, context.handle)
+    with sub.handle:
+        notifier.watch(sub.handle.pointer, SUBSCRIPTION)
+        _matched(pub)
+        notifier.ready()  # the fresh watch's drain request
+        pub.publish(Int64(data=1))  # not armed: recorded, no trigger
+        assert notifier.triggers == 0
+        assert notifier.arm() is True  # something is ready: do not block
+        notifier.ready()
+        assert notifier.arm() is False  # nothing ready: armed
+
+        def later() -> None:
+            time.sleep(0.2)
+            pub.publish(Int64(data=2))
+            pub.publish(Int64(data=3))
+
+        threading.Thread(target=later, daemon=True).start()
+        wait_set.clear_entities()
+        wait_set.add_guard_condition(guard.handle)
+        started = time.monotonic()
+        wait_set.wait(int(TIMEOUT * 1e9))
+        assert time.monotonic() - started < TIMEOUT / 2, "the armed guard never fired"
+        assert wait_set.get_ready_entities("guard_condition") == [guard.handle.pointer]
+        notifier.disarm()
+        assert _until(lambda: dict(notifier.ready()).get(sub.handle.pointer, 0) >= 1)
+        assert notifier.triggers == 1
+        notifier.unwatch(sub.handle.pointer)
+
+
+def test_taker_takes_what_rclpy_takes(node: Node) -> None:
+    pub = node.create_publisher(Image, "fp_take", 10)
+    sub = node.create_subscription(Image, "fp_take", lambda msg: None, 10)
+    _matched(pub)
+    taker = Taker(subscription=sub.handle.pointer, message_type=Image)
+    assert taker.take() is None
+    images = [
+        Image(height=1, width=2, encoding="rgb8", step=6, data=bytes(range(6))),
+        # Larger, then smaller again: the C message kept across takes resizes.
+        Image(height=4, width=4, encoding="mono8", step=4, data=bytes(range(100, 116))),
+        Image(height=1, width=1, encoding="mono8", step=1, data=b"\x07"),
+    ]
+    for index, image in enumerate(images):
+        image.header.frame_id = f"camera_{index}"
+        pub.publish(image)
+    with sub.handle:
+        first = sub.handle.take_message(Image, False)  # rclpy's own take, for comparison
+        second = taker.take_with_info()
+        third = taker.take()
+        assert taker.take() is None
+    assert first is not None and second is not None
+    assert first[0] == images[0]
+    message, info = second
+    assert message == images[1]
+    assert third == images[2]
+    assert set(info) == set(first[1])
+    assert info["publication_sequence_number"] == first[1]["publication_sequence_number"] + 1
+    assert info["source_timestamp"] >= first[1]["source_timestamp"] > 0
+
+
+def test_ping_pong_in_one_process_needs_no_wait_per_message(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """Each publish reports to the other node's subscription inside the publish:
+    the executor takes it without entering ``rcl_wait`` again."""
+    a, b = host(Node, "fp_ping"), host(Node, "fp_pong")
+    ping = a.create_publisher(Int64, "fp_ping", 10)
+    pong = b.create_publisher(Int64, "fp_pong", 10)
+    rounds = 2000
+    done = threading.Event()
+
+    async def echo(msg: Int64) -> None:
+        pong.publish(msg)
+
+    async def got(msg: Int64) -> None:
+        if msg.data >= rounds:
+            done.set()
+        else:
+            ping.publish(Int64(data=msg.data + 1))
+
+    b.create_subscription(Int64, "fp_ping", echo, 10)
+    a.create_subscription(Int64, "fp_pong", got, 10)
+    _matched(ping)
+    _matched(pong)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        hot = executor._dispatcher._hot
+        before = hot.waits
+        ping.publish(Int64(data=1))
+        assert done.wait(TIMEOUT)
+        waits = hot.waits - before
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+    # 4,000 messages: one wait each on a wait set, here only the poll that
+    # looks at timers and guards at least every millisecond.
+    assert waits < rounds // 4, waits
+
+
+def test_qos_events_arrive_without_a_wait_set(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    a, b = host(Node, "fp_event_pub"), host(Node, "fp_event_sub")
+    seen: dict[str, float] = {}
+    both = threading.Event()
+
+    def saw(side: str) -> Callable[[object], None]:
+        def record(event: object) -> None:
+            seen[side] = time.monotonic()
+            if len(seen) == 2:
+                both.set()
+
+        return record
+
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        b.create_subscription(
+            Int64,
+            "fp_qos",
+            lambda msg: None,
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=saw("subscription")),
+        )
+        a.create_publisher(
+            Int64,
+            "fp_qos",
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT),
+            event_callbacks=PublisherEventCallbacks(incompatible_qos=saw("publisher")),
+        )
+        assert both.wait(TIMEOUT), seen
+        hot = executor._dispatcher._hot
+        assert _until(lambda: not hot._dirty)
+        assert hot._table.events == [], "QoS events should come through rmw callbacks, not the wait set"
+        assert hot._notifier is not None and hot._notifier.watched >= 4
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+    assert EVENT != SUBSCRIPTION
+
+
+def test_subscriptions_destroyed_and_created_while_spinning_keep_being_served(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """A destroyed subscription stops calling back before its handle is freed, so a
+    new one at the same address is watched afresh (none goes unserved)."""
+    talker, listener = host(Node, "fp_churn_pub"), host(Node, "fp_churn_sub")
+    pub = talker.create_publisher(Int64, "fp_churn", 10)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        for round_index in range(40):
+            got = threading.Event()
+
+            def on(msg: Int64, got: threading.Event = got, want: int = round_index) -> None:
+                if msg.data == want:
+                    got.set()
+
+            sub = listener.create_subscription(Int64, "fp_churn", on, 10)
+            assert _until(lambda: pub.get_subscription_count() == 1)
+            deadline = time.monotonic() + TIMEOUT
+            while not got.is_set() and time.monotonic() < deadline:
+                pub.publish(Int64(data=round_index))
+                got.wait(0.05)
+            assert got.is_set(), f"round {round_index}: the new subscription was never served"
+            listener.destroy_subscription(sub)
+            assert _until(lambda: pub.get_subscription_count() == 0)
+        notifier = executor._dispatcher._hot._notifier
+        assert notifier is not None
+        assert _until(lambda: executor._dispatcher._hot.waits > 0 and notifier.watched < 10)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)

@@ -160,6 +160,42 @@ def test_in_process_and_dds_subscribers_each_get_every_message_once(
     assert not any(got is message for got, message in zip(over_dds.messages, sent, strict=True))
 
 
+def test_a_chain_of_in_process_deliveries_started_from_another_thread_keeps_going(
+    executor: AsyncioExecutor, nodes: Callable[..., Node], spin: Callable[[], None]
+) -> None:
+    """A delivery made on the loop thread from inside a task (not from a
+    dispatch) starts at the loop's next turn without any wake-up: the loop
+    must not block in rcl while it waits."""
+    a, b = nodes("intra_chain_a"), nodes("intra_chain_b")
+    to_b = a.create_publisher(Int64, "intra_chain_to_b", 10)
+    to_a = b.create_publisher(Int64, "intra_chain_to_a", 10)
+    rounds = 500
+    done = threading.Event()
+
+    async def on_b(msg: Int64) -> None:
+        to_a.publish(msg)
+
+    async def on_a(msg: Int64) -> None:
+        if msg.data >= rounds:
+            done.set()
+        else:
+            to_b.publish(Int64(data=msg.data + 1))
+
+    subscribe(b, Int64, "intra_chain_to_b", on_b, 10)
+    subscribe(a, Int64, "intra_chain_to_a", on_a, 10)
+    matched(to_b, 1)
+    matched(to_a, 1)
+    spin()
+    # Once the loop sleeps in rcl, publish from this thread: the first
+    # callback then runs in a task, and the rest follow from there.
+    deadline = time.monotonic() + TIMEOUT
+    while executor._dispatcher.busy_since is not None:
+        assert time.monotonic() < deadline, "the loop never went to wait"
+        time.sleep(0.01)
+    to_b.publish(Int64(data=1))
+    assert done.wait(TIMEOUT), "the chain stopped"
+
+
 def test_node_without_the_option_gets_messages_over_dds_only(
     nodes: Callable[..., Node], spin: Callable[[], None]
 ) -> None:

@@ -50,6 +50,7 @@ from .._compat import (
     adopt_future,
     event_handle,
     fire_timer,
+    loop_is_idle,
     mark_event_ready,
     set_event_index,
     subscription_wants_info,
@@ -392,6 +393,22 @@ class _WaitSet:
                 dispatcher.take_waitable(entry)
         return flags
 
+    def ready_without_wait(self) -> bool:
+        """Whether messages wait to be taken and the next ``rcl_wait`` is not due yet."""
+        notifier = self._notifier
+        return notifier is not None and notifier.pending() and self.poll_is_recent()
+
+    def poll_is_recent(self) -> bool:
+        """Whether timers and guard conditions were looked at less than ``_POLL_MAX_NS`` ago."""
+        return time.monotonic_ns() - self._polled < _POLL_MAX_NS and not self._dirty
+
+    def entry_of(self, subscription: Any) -> _Entry | None:
+        """The current entry of ``subscription`` (``None``: not collected, or collecting)."""
+        if self._dirty:
+            return None
+        entry = self._table.by_pointer.get("subscription", {}).get(subscription.handle.pointer)
+        return entry if entry is not None and entry.entity is subscription else None
+
     def _take_ready(self, table: _Table, notifier: Notifier) -> None:
         """Take every message of the subscriptions that reported new data."""
         subscriptions = table.by_pointer["subscription"]
@@ -630,7 +647,39 @@ class Dispatcher:
         )
 
     def wait_and_dispatch(self, timeout_ns: int) -> int:
-        """Wait on the hot wait set and dispatch; see :class:`_WaitSet`."""
+        """Wait on the hot wait set and dispatch; see :class:`_WaitSet`.
+
+        On the loop thread, messages that the callbacks just run published to
+        this process's other subscriptions are taken and run in the same call,
+        for as long as no wait is due and asyncio has nothing else to run:
+        a chain of callbacks never leaves this loop for asyncio's.
+        """
+        if self._eager and self._dispatching_burst() and self._hot.poll_is_recent():
+            # Work handed over on this thread since (intra-process deliveries
+            # from an asyncio task): run it; no wait is due yet.
+            self._run_eager()
+            flags = 0
+        else:
+            if self._eager and self._on_loop_thread():
+                timeout_ns = 0  # a poll, then that work runs
+            flags = self._wait_and_dispatch_once(timeout_ns)
+        if not flags and self._dispatching_burst():
+            hot, loop = self._hot, self._loop
+            while loop_is_idle(loop):
+                if hot.ready_without_wait():
+                    flags = self._wait_and_dispatch_once(0)
+                    if flags:
+                        break
+                elif self._eager and hot.poll_is_recent():
+                    self._run_eager()
+                else:
+                    break
+        return flags
+
+    def _dispatching_burst(self) -> bool:
+        return self._on_loop_thread() and not self.relieving
+
+    def _wait_and_dispatch_once(self, timeout_ns: int) -> int:
         if self._hot._dirty:
             self._retire_lanes()
         eager = self._on_loop_thread()
@@ -646,14 +695,24 @@ class Dispatcher:
             if eager:
                 self.busy_since = time.monotonic()
         if eager:
-            queue = self._eager
-            while queue:
-                lane, work = queue.popleft()
-                lane.run_eager(work)
+            self._run_eager()
         return flags
 
+    def _run_eager(self) -> None:
+        queue = self._eager
+        while queue:
+            lane, work = queue.popleft()
+            lane.run_eager(work)
+
     def _defer_eager(self, lane: Lane, work: Work) -> bool:
-        if not self._dispatching:
+        """Keep async ``work`` (submitted on the loop thread) to start eagerly.
+
+        During a dispatch it starts once the wait set's lock is released;
+        submitted elsewhere on the loop thread (an intra-process delivery from
+        a task) it starts at the loop's next select, which does not block
+        while such work waits (see :meth:`wait_and_dispatch`).
+        """
+        if self.relieving:
             return False
         self._eager.append((lane, work))
         return True
@@ -926,9 +985,22 @@ class Dispatcher:
 
     def deliver(
         self, subscription: Any, node: Node, callback: Callable[..., Any], args: tuple[Any, ...]
-    ) -> None:
-        """Hand ``callback(*args)`` to ``subscription``'s lane like a taken message (any thread)."""
-        self.submit(self.entry(subscription, node, "subscription"), callback, args)
+    ) -> bool:
+        """Hand ``callback(*args)`` to ``subscription``'s lane like a taken message (any thread).
+
+        :return: whether it was handed over on the loop thread, where the
+            loop will see it without being woken.
+        """
+        entry = self._hot.entry_of(subscription)
+        if entry is None or entry.node is not node:
+            entry = self.entry(subscription, node, "subscription")
+        self.submit(entry, callback, args)
+        return self._on_loop_thread() and not self.relieving
+
+    def knows(self, subscription: Any, node: Node) -> bool:
+        """Whether the executor serves ``subscription`` of ``node`` (as of its last collection)."""
+        entry = self._hot.entry_of(subscription)
+        return entry is not None and entry.node is node
 
 
 def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable[[], Any]:

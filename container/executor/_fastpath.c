@@ -232,8 +232,12 @@ static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
   }
   /* rmw reports only data it has not reported before: what it reported to
    * an earlier watch of this entity and nobody took would never be named
-   * again. A fresh watch therefore asks for everything waiting once. */
-  on_event(slot, DRAIN);
+   * again. A fresh watch therefore asks for everything waiting once. Not
+   * for a QoS event: taking one that did not fire returns a status anyway
+   * (a bogus "incompatible QoS" warning), and rmw reports a pending one. */
+  if (kind != KIND_EVENT) {
+    on_event(slot, DRAIN);
+  }
   Py_RETURN_TRUE;
 }
 

@@ -26,9 +26,10 @@ __all__ = ["LoopWatchdog", "Stall"]
 
 _log = logging.getLogger("container.executor")
 
-#: How often the watchdog looks, and the longest it waits in rcl at once
-#: while relieving the loop.
+#: The longest the watchdog waits in rcl at once while relieving the loop.
 _TICK_S = 0.05
+#: The shortest it sleeps between looks.
+_MIN_SLEEP_S = 0.005
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,7 +103,12 @@ class LoopWatchdog:
                 if woken:
                     self._rewake()
                     woken = 0
-                self._stop.wait(_TICK_S)
+                # Sleep until the loop could first count as stuck: while it
+                # waits in rcl, one relieve_after from now; while it works,
+                # until its current turn reaches relieve_after. An idle
+                # container costs this thread a wake-up every relieve_after.
+                left = self.relieve_after if since is None else since + self.relieve_after - now
+                self._stop.wait(max(left, _MIN_SLEEP_S))
                 continue
             if now - since >= self.stall_after:
                 if self._stall is None:

@@ -57,6 +57,7 @@ from .._compat import (
     waitable_futures,
 )
 from ._fastpath import EVENT, SUBSCRIPTION, Notifier, Taker
+from ._fastpath import WaitSet as FastWaitSet
 from ._lanes import Lane, Post, Retired, Token, Work
 
 if TYPE_CHECKING:
@@ -110,6 +111,9 @@ class _Table:
     waitables: list[_Entry] = field(default_factory=list)
     held: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
     wait_set: Any = None
+    #: The compiled wait set, where every entity is known by address (no
+    #: generic waitable, no QoS event left to the wait set).
+    fast: FastWaitSet | None = None
 
 
 def describe(entity: object) -> str:
@@ -237,6 +241,17 @@ class _WaitSet:
                 guards.append(gc.handle)
         context = dispatcher.context
         held.enter_context(context.handle)  # type: ignore[arg-type]
+        if not table.waitables and not table.events:
+            handles = table.handles
+            context_handle: Any = context.handle  # rclpy's typing omits its address
+            table.fast = FastWaitSet(
+                context_handle.pointer,
+                subscriptions=[handle.pointer for handle in handles["subscription"]],
+                guard_conditions=[handle.pointer for handle in guards],
+                timers=[handle.pointer for handle in handles["timer"]],
+                clients=[handle.pointer for handle in handles["client"]],
+                services=[handle.pointer for handle in handles["service"]],
+            )
         table.wait_set = WaitSet(
             len(table.handles["subscription"]) + extra.num_subscriptions,
             len(guards) + extra.num_guard_conditions,
@@ -298,6 +313,8 @@ class _WaitSet:
                 self._take_ready(table, notifier)
                 return 0
             timeout_ns = 0
+        if table.fast is not None:
+            return self._wait_fast(table, table.fast, notifier, timeout_ns)
         wait_set = table.wait_set
         handles = table.handles
         wait_set.clear_entities()
@@ -326,17 +343,7 @@ class _WaitSet:
             timeout_ns = due_in
         for entry in table.waitables:
             entry.entity.add_to_wait_set(wait_set)
-        if notifier is not None and notifier.arm():
-            timeout_ns = 0
-        if timeout_ns == 0 and self._notifier_guard is not None:
-            # A wait with a zero timeout costs ~90 us here (Fast DDS sleeps on
-            # its condition variable until the timeout, plus the kernel's timer
-            # slack); with a guard condition already triggered it returns at
-            # once (~5 us) and still reports everything else that is ready.
-            self._notifier_guard.trigger()
-            timeout_ns = _EVENT_SKIP_MAX_NS
-        self._polled = time.monotonic_ns()
-        self.waits += 1
+        timeout_ns = self._before_wait(notifier, timeout_ns)
         try:
             wait_set.wait(timeout_ns)
         finally:
@@ -391,6 +398,66 @@ class _WaitSet:
         for entry in table.waitables:
             if entry.entity.is_ready(wait_set):
                 dispatcher.take_waitable(entry)
+        return flags
+
+    def _before_wait(self, notifier: Notifier | None, timeout_ns: int) -> int:
+        """Arm the notifier and count the wait; the timeout to wait with."""
+        if notifier is not None and notifier.arm():
+            timeout_ns = 0
+        if timeout_ns == 0 and self._notifier_guard is not None:
+            # A wait with a zero timeout costs ~90 us here (Fast DDS sleeps on
+            # its condition variable until the timeout, plus the kernel's timer
+            # slack); with a guard condition already triggered it returns at
+            # once (~5 us) and still reports everything else that is ready.
+            self._notifier_guard.trigger()
+            timeout_ns = _EVENT_SKIP_MAX_NS
+        self._polled = time.monotonic_ns()
+        self.waits += 1
+        return timeout_ns
+
+    def _wait_fast(self, table: _Table, fast: FastWaitSet, notifier: Notifier | None, timeout_ns: int) -> int:
+        """:meth:`_wait_and_dispatch` on the compiled wait set: one call fills, waits and reads it."""
+        timeout_ns = self._before_wait(notifier, timeout_ns)
+        try:
+            ready = fast.wait(timeout_ns)
+        finally:
+            if notifier is not None:
+                notifier.disarm()
+        if self._closed:
+            return WOKEN
+        flags = 0
+        if ready:
+            subscriptions, guards, timers, clients, services, _ = ready
+            dispatcher = self._dispatcher
+            by_pointer = table.by_pointer
+            for pointer in guards:
+                own = table.own_guards.get(pointer)
+                if own is not None:
+                    flags |= own
+                elif (guard := by_pointer["guard_condition"].get(pointer)) is not None:
+                    dispatcher.submit(guard, guard.entity.callback, ())
+            if timers:
+                entries = by_pointer["timer"]
+                for pointer in timers:
+                    if (timer := entries.get(pointer)) is not None:
+                        dispatcher.take_timer(timer)
+            if subscriptions:
+                entries = by_pointer["subscription"]
+                for pointer in subscriptions:
+                    if (subscription := entries.get(pointer)) is not None:
+                        dispatcher.take_message(subscription)
+            if clients:
+                entries = by_pointer["client"]
+                for pointer in clients:
+                    if (client := entries.get(pointer)) is not None:
+                        dispatcher.take_response(client)
+            if services:
+                entries = by_pointer["service"]
+                for pointer in services:
+                    if (service := entries.get(pointer)) is not None:
+                        dispatcher.take_request(service)
+        if notifier is not None:
+            self._take_ready(table, notifier)
         return flags
 
     def ready_without_wait(self) -> bool:

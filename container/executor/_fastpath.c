@@ -18,6 +18,10 @@
  * ``watch`` until ``unwatch``: after ``unwatch`` returns no callback runs
  * for it any more (rmw serialises setting and calling the callback).
  *
+ * WaitSet: an rcl wait set over entities given once (by handle address),
+ * filled, waited on and read in one call: rclpy's wait set takes a call per
+ * entity to fill and one per kind to read, on every wait.
+ *
  * Taker: rcl_take of one subscription into a C message kept across takes,
  * converted with the message type's own rosidl capsules; what rclpy's
  * take_message does, without rebuilding the message, the pybind11 call
@@ -37,6 +41,8 @@
 #include <rcl/guard_condition.h>
 #include <rcl/service.h>
 #include <rcl/subscription.h>
+#include <rcl/timer.h>
+#include <rcl/wait.h>
 #include <rmw/types.h>
 
 enum { KIND_SUBSCRIPTION = 0, KIND_CLIENT = 1, KIND_SERVICE = 2, KIND_EVENT = 3 };
@@ -394,6 +400,213 @@ static PyTypeObject NotifierType = {
 };
 
 /* ------------------------------------------------------------------------ */
+enum { WS_SUBSCRIPTIONS, WS_GUARDS, WS_TIMERS, WS_CLIENTS, WS_SERVICES, WS_EVENTS, WS_KINDS };
+
+typedef struct {
+  PyObject_HEAD
+  rcl_wait_set_t wait_set;
+  int initialised;
+  void ** entities[WS_KINDS];
+  size_t counts[WS_KINDS];
+} WaitSetObject;
+
+static int addresses(PyObject * sequence, void *** out, size_t * count)
+{
+  PyObject * fast = PySequence_Fast(sequence, "entities must be a sequence of handle addresses");
+  Py_ssize_t i, n;
+  if (fast == NULL) {
+    return -1;
+  }
+  n = PySequence_Fast_GET_SIZE(fast);
+  *out = calloc(n > 0 ? (size_t)n : 1, sizeof(void *));
+  if (*out == NULL) {
+    Py_DECREF(fast);
+    PyErr_NoMemory();
+    return -1;
+  }
+  for (i = 0; i < n; ++i) {
+    unsigned long long address = PyLong_AsUnsignedLongLong(PySequence_Fast_GET_ITEM(fast, i));
+    if (PyErr_Occurred()) {
+      Py_DECREF(fast);
+      return -1;
+    }
+    if (address == 0) {
+      Py_DECREF(fast);
+      PyErr_SetString(PyExc_ValueError, "a handle address is 0");
+      return -1;
+    }
+    (*out)[i] = (void *)(uintptr_t)address;
+  }
+  *count = (size_t)n;
+  Py_DECREF(fast);
+  return 0;
+}
+
+static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs)
+{
+  static char * keywords[] = {
+    "context", "subscriptions", "guard_conditions", "timers", "clients", "services", "events", NULL};
+  unsigned long long context;
+  PyObject * given[WS_KINDS] = {NULL, NULL, NULL, NULL, NULL, NULL};
+  PyObject * empty;
+  rcl_ret_t ret;
+  int kind;
+  if (self->initialised) {
+    PyErr_SetString(PyExc_RuntimeError, "WaitSet is initialised once");
+    return -1;
+  }
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwargs, "K|$OOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
+      &given[WS_TIMERS], &given[WS_CLIENTS], &given[WS_SERVICES], &given[WS_EVENTS]))
+  {
+    return -1;
+  }
+  if (context == 0) {
+    PyErr_SetString(PyExc_ValueError, "context must be an rcl context's address");
+    return -1;
+  }
+  empty = PyTuple_New(0);
+  if (empty == NULL) {
+    return -1;
+  }
+  for (kind = 0; kind < WS_KINDS; ++kind) {
+    if (addresses(given[kind] != NULL ? given[kind] : empty, &self->entities[kind], &self->counts[kind]) < 0) {
+      Py_DECREF(empty);
+      return -1;
+    }
+  }
+  Py_DECREF(empty);
+  self->wait_set = rcl_get_zero_initialized_wait_set();
+  ret = rcl_wait_set_init(
+    &self->wait_set, self->counts[WS_SUBSCRIPTIONS], self->counts[WS_GUARDS], self->counts[WS_TIMERS],
+    self->counts[WS_CLIENTS], self->counts[WS_SERVICES], self->counts[WS_EVENTS],
+    (rcl_context_t *)(uintptr_t)context, rcl_get_default_allocator());
+  if (ret != RCL_RET_OK) {
+    PyErr_Format(PyExc_RuntimeError, "rcl_wait_set_init failed: %s", rcl_get_error_string().str);
+    rcl_reset_error();
+    return -1;
+  }
+  self->initialised = 1;
+  return 0;
+}
+
+static void WaitSet_dealloc(WaitSetObject * self)
+{
+  int kind;
+  if (self->initialised && rcl_wait_set_fini(&self->wait_set) != RCL_RET_OK) {
+    rcl_reset_error();
+  }
+  for (kind = 0; kind < WS_KINDS; ++kind) {
+    free(self->entities[kind]);
+  }
+  Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static rcl_ret_t fill(WaitSetObject * self)
+{
+  rcl_wait_set_t * ws = &self->wait_set;
+  rcl_ret_t ret = rcl_wait_set_clear(ws);
+  size_t i;
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_SUBSCRIPTIONS]; ++i) {
+    ret = rcl_wait_set_add_subscription(ws, self->entities[WS_SUBSCRIPTIONS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_GUARDS]; ++i) {
+    ret = rcl_wait_set_add_guard_condition(ws, self->entities[WS_GUARDS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_TIMERS]; ++i) {
+    ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_CLIENTS]; ++i) {
+    ret = rcl_wait_set_add_client(ws, self->entities[WS_CLIENTS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_SERVICES]; ++i) {
+    ret = rcl_wait_set_add_service(ws, self->entities[WS_SERVICES][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_EVENTS]; ++i) {
+    ret = rcl_wait_set_add_event(ws, self->entities[WS_EVENTS][i], NULL);
+  }
+  return ret;
+}
+
+/* The ready entities of one kind, as a list of addresses. */
+static PyObject * ready_of(const void * const * slots, size_t count)
+{
+  PyObject * list = PyList_New(0);
+  size_t i;
+  if (list == NULL) {
+    return NULL;
+  }
+  for (i = 0; i < count; ++i) {
+    if (slots[i] != NULL) {
+      PyObject * address = PyLong_FromUnsignedLongLong((unsigned long long)(uintptr_t)slots[i]);
+      if (address == NULL || PyList_Append(list, address) < 0) {
+        Py_XDECREF(address);
+        Py_DECREF(list);
+        return NULL;
+      }
+      Py_DECREF(address);
+    }
+  }
+  return list;
+}
+
+static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * arg)
+{
+  long long timeout = PyLong_AsLongLong(arg);
+  rcl_wait_set_t * ws = &self->wait_set;
+  rcl_ret_t ret;
+  if (timeout == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  if (!self->initialised) {
+    PyErr_SetString(PyExc_RuntimeError, "WaitSet not initialised");
+    return NULL;
+  }
+  ret = fill(self);
+  if (ret == RCL_RET_OK) {
+    Py_BEGIN_ALLOW_THREADS
+    ret = rcl_wait(ws, (int64_t)timeout);
+    Py_END_ALLOW_THREADS
+  }
+  if (ret == RCL_RET_TIMEOUT) {
+    /* Nothing ready: rcl cleared every slot. */
+    return Py_BuildValue("()");
+  }
+  if (ret != RCL_RET_OK) {
+    PyErr_Format(PyExc_RuntimeError, "rcl_wait failed: %s", rcl_get_error_string().str);
+    rcl_reset_error();
+    return NULL;
+  }
+  return Py_BuildValue(
+    "(NNNNNN)",
+    ready_of((const void * const *)ws->subscriptions, ws->size_of_subscriptions),
+    ready_of((const void * const *)ws->guard_conditions, ws->size_of_guard_conditions),
+    ready_of((const void * const *)ws->timers, ws->size_of_timers),
+    ready_of((const void * const *)ws->clients, ws->size_of_clients),
+    ready_of((const void * const *)ws->services, ws->size_of_services),
+    ready_of((const void * const *)ws->events, ws->size_of_events));
+}
+
+static PyMethodDef WaitSet_methods[] = {
+  {"wait", (PyCFunction)WaitSet_wait, METH_O,
+   "wait(timeout_ns) -> () on timeout, else the ready addresses: (subscriptions, guard_conditions, "
+   "timers, clients, services, events)"},
+  {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject WaitSetType = {
+  PyVarObject_HEAD_INIT(NULL, 0)
+  .tp_name = "container.executor._fastpath.WaitSet",
+  .tp_doc = "An rcl wait set over fixed entities: fill, wait and read in one call.",
+  .tp_basicsize = sizeof(WaitSetObject),
+  .tp_flags = Py_TPFLAGS_DEFAULT,
+  .tp_new = PyType_GenericNew,
+  .tp_init = (initproc)WaitSet_init,
+  .tp_dealloc = (destructor)WaitSet_dealloc,
+  .tp_methods = WaitSet_methods,
+};
+
+/* ------------------------------------------------------------------------ */
 typedef void * (*create_message_t)(void);
 typedef void (*destroy_message_t)(void *);
 typedef PyObject * (*convert_to_py_t)(void *);
@@ -545,7 +758,7 @@ static struct PyModuleDef module = {
 PyMODINIT_FUNC PyInit__fastpath(void)
 {
   PyObject * m;
-  if (PyType_Ready(&NotifierType) < 0 || PyType_Ready(&TakerType) < 0) {
+  if (PyType_Ready(&NotifierType) < 0 || PyType_Ready(&TakerType) < 0 || PyType_Ready(&WaitSetType) < 0) {
     return NULL;
   }
   m = PyModule_Create(&module);
@@ -554,8 +767,10 @@ PyMODINIT_FUNC PyInit__fastpath(void)
   }
   Py_INCREF(&NotifierType);
   Py_INCREF(&TakerType);
+  Py_INCREF(&WaitSetType);
   if (PyModule_AddObject(m, "Notifier", (PyObject *)&NotifierType) < 0 ||
       PyModule_AddObject(m, "Taker", (PyObject *)&TakerType) < 0 ||
+      PyModule_AddObject(m, "WaitSet", (PyObject *)&WaitSetType) < 0 ||
       PyModule_AddIntConstant(m, "SUBSCRIPTION", KIND_SUBSCRIPTION) < 0 ||
       PyModule_AddIntConstant(m, "CLIENT", KIND_CLIENT) < 0 ||
       PyModule_AddIntConstant(m, "SERVICE", KIND_SERVICE) < 0 ||
@@ -563,6 +778,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
       PyModule_AddIntConstant(m, "DRAIN", (long)DRAIN) < 0) {
     Py_DECREF(&NotifierType);
     Py_DECREF(&TakerType);
+    Py_DECREF(&WaitSetType);
     Py_DECREF(m);
     return NULL;
   }

@@ -1,5 +1,7 @@
 """Type stub of the ``_fastpath`` extension (``_fastpath.c``)."""
 
+from collections.abc import Sequence
+
 SUBSCRIPTION: int
 CLIENT: int
 SERVICE: int
@@ -25,3 +27,22 @@ class Taker:
     def __init__(self, *, subscription: int, message_type: type) -> None: ...
     def take(self) -> object | None: ...
     def take_with_info(self) -> tuple[object, dict[str, int | None]] | None: ...
+
+#: What :meth:`WaitSet.wait` gives: the ready handle addresses of each kind
+#: (subscriptions, guard conditions, timers, clients, services, events), or
+#: an empty tuple when it timed out.
+Ready = tuple[list[int], ...]
+
+class WaitSet:
+    def __init__(
+        self,
+        context: int,
+        *,
+        subscriptions: Sequence[int] = (),
+        guard_conditions: Sequence[int] = (),
+        timers: Sequence[int] = (),
+        clients: Sequence[int] = (),
+        services: Sequence[int] = (),
+        events: Sequence[int] = (),
+    ) -> None: ...
+    def wait(self, timeout_ns: int, /) -> Ready: ...

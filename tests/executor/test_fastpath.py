@@ -27,6 +27,7 @@ from std_msgs.msg import Int64
 from container import AsyncioExecutor
 from container._compat import WaitSet
 from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, Taker
+from container.executor._fastpath import WaitSet as FastWaitSet
 
 TIMEOUT = 10.0
 
@@ -275,3 +276,32 @@ def test_subscriptions_destroyed_and_created_while_spinning_keep_being_served(
     finally:
         executor.shutdown(timeout_sec=5.0)
         spinner.join(5.0)
+
+
+def test_compiled_wait_set_reports_what_rclpys_reports(context: Context, node: Node, guard: GuardCondition) -> None:
+    timer = node.create_timer(0.05, lambda: None)
+    quiet = GuardCondition(callback=None, callback_group=None, context=context)
+    try:
+        with timer.handle, guard.handle, quiet.handle:
+            fast = FastWaitSet(
+                context.handle.pointer,  # type: ignore[union-attr]
+                guard_conditions=[guard.handle.pointer, quiet.handle.pointer],
+                timers=[timer.handle.pointer],
+            )
+            # Nothing ready: the timeout is the timer's period at most.
+            started = time.monotonic()
+            assert fast.wait(1_000_000) == ()
+            guard.trigger()
+            subscriptions, guards, timers, clients, services, events = fast.wait(int(TIMEOUT * 1e9))
+            assert guards == [guard.handle.pointer]
+            assert subscriptions == timers == clients == services == events == []
+            # rcl wakes for the timer by itself, and says which one.
+            ready = fast.wait(int(TIMEOUT * 1e9))
+            assert ready and ready[2] == [timer.handle.pointer]
+            assert time.monotonic() - started < TIMEOUT / 2
+    finally:
+        quiet.destroy()
+    with pytest.raises(ValueError, match="address"):
+        FastWaitSet(0)
+    with pytest.raises(ValueError, match="address"):
+        FastWaitSet(context.handle.pointer, timers=[0])  # type: ignore[union-attr]

@@ -303,6 +303,19 @@ class _WaitSet:
                 _log.exception("dispatching ROS work failed")
                 return WOKEN
 
+    def take_ready_now(self) -> None:
+        """Take what the notifier reported, without a wait (the caller saw none is due)."""
+        with self._lock:
+            notifier = self._notifier
+            if self._closed or self._dirty or notifier is None:
+                return
+            try:
+                self._take_ready(self._table, notifier)
+            except Exception:
+                self._dirty = True
+                if self._dispatcher.context.ok():
+                    _log.exception("dispatching ROS work failed")
+
     def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
         notifier = self._notifier
         if notifier is not None and notifier.pending():
@@ -588,9 +601,8 @@ class Dispatcher:
             own_guards=lambda: [(self._cold_wake, WOKEN)],
         )
         self._cold_thread: threading.Thread | None = None
-        # Async work found by the current hot wait on the loop thread, started
-        # eagerly once the wait set's lock is released (see ``Lane.run_eager``).
-        self._dispatching = False
+        # Async work submitted on the loop thread, started eagerly once the
+        # wait set's lock is released (see ``Lane.run_eager``).
         self._eager: collections.deque[tuple[Lane, Work]] = collections.deque()
         self._active = threading.Event()
         self._closed = False
@@ -734,13 +746,10 @@ class Dispatcher:
             hot, loop = self._hot, self._loop
             while loop_is_idle(loop):
                 if hot.ready_without_wait():
-                    flags = self._wait_and_dispatch_once(0)
-                    if flags:
-                        break
-                elif self._eager and hot.poll_is_recent():
-                    self._run_eager()
-                else:
+                    hot.take_ready_now()
+                elif not (self._eager and hot.poll_is_recent()):
                     break
+                self._run_eager()
         return flags
 
     def _dispatching_burst(self) -> bool:
@@ -750,7 +759,6 @@ class Dispatcher:
         if self._hot._dirty:
             self._retire_lanes()
         eager = self._on_loop_thread()
-        self._dispatching = eager
         if eager:
             self.busy_since = None
             if self.relieving:
@@ -758,7 +766,6 @@ class Dispatcher:
         try:
             flags = self._hot.wait_and_dispatch(timeout_ns)
         finally:
-            self._dispatching = False
             if eager:
                 self.busy_since = time.monotonic()
         if eager:

@@ -171,7 +171,14 @@ class Lane:
                 return
             self._running += 1
             self._active.add(work)
-        self._start(work)
+        # _start, inlined: this runs for every message.
+        if not work.is_async:
+            self._hand_to_thread(work)
+        elif self._on_loop_thread():
+            if self._defer is None or not self._defer(self, work):
+                self._hand_to_runner(work)
+        else:
+            self._post(self._hand_to_runner, work)
 
     def busy(self) -> bool:
         with self._lock:
@@ -334,7 +341,8 @@ class Lane:
                 self._idle_runners.pop()  # cancelled while idle; its task ends
                 continue
             error: BaseException | None
-            if _retired(item):
+            token = item.token
+            if token is not None and token.retired:
                 done, error, resume = True, Retired(), None
             else:
                 runner.current = item  # what the loop runs, should it get stuck here

@@ -210,14 +210,11 @@ class _WaitSet:
                     if _hold(held, entity.handle):
                         entry = dispatcher.entry(entity, node, kind)
                         table.by_pointer[kind][entity.handle.pointer] = entry
-                        if notifier is None or kind != "subscription":
+                        if kind != "subscription" or not self._watch(entity.handle.pointer, SUBSCRIPTION):
+                            # Not event-driven (an rmw without new-data callbacks): waited on.
                             table.handles[kind].append(entity.handle)
-                        else:
-                            self._watch(entity.handle.pointer, SUBSCRIPTION)
-                            if not entity.raw:
-                                entry.taker = Taker(
-                                    subscription=entity.handle.pointer, message_type=entity.msg_type
-                                )
+                        elif not entity.raw:
+                            entry.taker = _taker(entity)
             for waitable in list(node.waitables):
                 if not self._takes_waitable(waitable) or not _hold(held, waitable):
                     continue
@@ -271,11 +268,16 @@ class _WaitSet:
         old.held.close()
 
     def _watch(self, pointer: int, kind: int) -> bool:
-        """Have rmw report new data of the entity at ``pointer``; ``False`` where it cannot."""
-        assert self._notifier is not None
+        """Have rmw report new data of the entity at ``pointer``; ``False`` where it cannot
+        (no notifier, or an rmw without that callback: the entity is then waited on)."""
+        if self._notifier is None:
+            return False
         try:
             self._notifier.watch(pointer, kind)
         except NotImplementedError:
+            return False
+        except RuntimeError as exc:
+            _log.warning("rmw refused a new-data callback (%s); waiting on the entity instead", exc)
             return False
         self._watched.add(pointer)
         return True
@@ -384,7 +386,7 @@ class _WaitSet:
                     dispatcher.take_timer(timer)
         if notifier is not None:
             self._take_ready(table, notifier)
-        elif handles["subscription"]:
+        if handles["subscription"]:
             take = dispatcher.take_message
             subscriptions = by_pointer["subscription"]
             for pointer in wait_set.get_ready_entities("subscription"):
@@ -1075,6 +1077,14 @@ class Dispatcher:
         """Whether the executor serves ``subscription`` of ``node`` (as of its last collection)."""
         entry = self._hot.entry_of(subscription)
         return entry is not None and entry.node is node
+
+
+def _taker(subscription: Any) -> Taker | None:
+    """A compiled take for ``subscription``; ``None`` (rclpy's take) for a type it cannot handle."""
+    try:
+        return Taker(subscription=subscription.handle.pointer, message_type=subscription.msg_type)
+    except (AttributeError, TypeError, ValueError, MemoryError):
+        return None
 
 
 def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable[[], Any]:

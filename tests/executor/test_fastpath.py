@@ -305,3 +305,55 @@ def test_compiled_wait_set_reports_what_rclpys_reports(context: Context, node: N
         FastWaitSet(0)
     with pytest.raises(ValueError, match="address"):
         FastWaitSet(context.handle.pointer, timers=[0])  # type: ignore[union-attr]
+
+
+class _NoSubscriptionCallbacks:
+    """A notifier as an rmw without new-data callbacks for subscriptions would make it."""
+
+    def __init__(self, *, guard: int) -> None:
+        self._inner = Notifier(guard=guard)
+
+    def watch(self, pointer: int, kind: int) -> bool:
+        if kind == SUBSCRIPTION:
+            raise NotImplementedError("no new-data callbacks here")
+        return self._inner.watch(pointer, kind)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
+    monkeypatch: pytest.MonkeyPatch, context: Context
+) -> None:
+    from container.executor import _dispatch
+
+    monkeypatch.setattr(_dispatch, "Notifier", _NoSubscriptionCallbacks)
+    executor = AsyncioExecutor(context=context)
+    talker, listener = Node("fp_nocb_pub", context=context), Node("fp_nocb_sub", context=context)
+    got: list[int] = []
+    enough = threading.Event()
+
+    async def on(msg: Int64) -> None:
+        got.append(msg.data)
+        if len(got) >= 20:
+            enough.set()
+
+    pub = talker.create_publisher(Int64, "fp_nocb", 50)
+    listener.create_subscription(Int64, "fp_nocb", on, 50)  # type: ignore[arg-type]  # rclpy types only plain callbacks
+    for node in (talker, listener):
+        executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        _matched(pub)
+        for index in range(20):
+            pub.publish(Int64(data=index))
+        assert enough.wait(TIMEOUT), got
+        assert got == list(range(20))
+        hot = executor._dispatcher._hot
+        assert len(hot._table.handles["subscription"]) >= 1  # in the wait set instead
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        talker.destroy_node()
+        listener.destroy_node()

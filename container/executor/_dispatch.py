@@ -754,6 +754,17 @@ class Dispatcher:
                 self._run_eager()
         return flags
 
+    def ros_turn_due(self) -> bool:
+        """Whether the loop thread should look at rcl before running more asyncio work.
+
+        Yes when work waits here (messages reported, work handed over on
+        the loop thread), when the watchdog waits in the loop's place (the
+        loop takes over again), or when timers and guard conditions were
+        last looked at ``_POLL_MAX_NS`` or more ago.
+        """
+        hot = self._hot
+        return self.relieving or bool(self._eager) or not hot.poll_is_recent() or hot.ready_without_wait()
+
     def _dispatching_burst(self) -> bool:
         return self._on_loop_thread() and not self.relieving
 

@@ -484,7 +484,11 @@ class AsyncioExecutor(Executor):
             if running_loop() is not None:
                 raise ExecutorError("spin*() cannot run inside a running event loop; await spin_async()")
             with self._spinning_on(self._loop, permits=permits):
-                self._selector.attach(self._wait, idle=functools.partial(loop_is_idle, self._loop))
+                self._selector.attach(
+                    self._wait,
+                    idle=functools.partial(loop_is_idle, self._loop),
+                    ros_turn_due=self._ros_turn_due,
+                )
                 started = True
                 watchdog = self._start_watchdog()
                 try:
@@ -589,6 +593,10 @@ class AsyncioExecutor(Executor):
         """Run ``callback(*args)`` on the owned loop's thread soon (any thread)."""
         self._inbox.append((callback, args))
         self._guard_trigger()
+
+    def _ros_turn_due(self) -> bool:
+        # Hand-overs from other threads (the inbox) run after a wait.
+        return bool(self._inbox) or self._dispatcher.ros_turn_due()
 
     def _wait(self, timeout_ns: int) -> int:
         flags = self._dispatcher.wait_and_dispatch(timeout_ns)

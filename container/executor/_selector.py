@@ -38,6 +38,7 @@ class RclSelector(selectors.BaseSelector):
         self._fds_ready = False
         self._wait: WaitAndDispatch | None = None
         self._idle: Callable[[], bool] | None = None
+        self._ros_turn_due: Callable[[], bool] | None = None
         self._armed = False
         self._rearm = threading.Event()
         self._stop_r, self._stop_w = os.pipe()
@@ -46,16 +47,28 @@ class RclSelector(selectors.BaseSelector):
         )
         self._watcher.start()
 
-    def attach(self, wait: WaitAndDispatch | None, *, idle: Callable[[], bool] | None = None) -> None:
+    def attach(
+        self,
+        wait: WaitAndDispatch | None,
+        *,
+        idle: Callable[[], bool] | None = None,
+        ros_turn_due: Callable[[], bool] | None = None,
+    ) -> None:
         """Route blocking selects through ``wait`` (``None``: plain epoll).
 
         :param idle: tells whether asyncio still has nothing to run after a
             wait; while it has not, a select waits in rcl again instead of
             returning: under steady ROS traffic whose callbacks finish in
             their first step, the loop's own iteration is skipped.
+        :param ros_turn_due: tells whether a select that must not block
+            (asyncio has work, or a file descriptor is ready) should still
+            give ROS a turn: an rcl wait costs tens of microseconds, and a
+            busy asyncio loop iterates far more often than timers and guard
+            conditions need looking at (new messages are reported anyway).
         """
         self._wait = wait
         self._idle = idle
+        self._ros_turn_due = ros_turn_due
 
     # -- selectors.BaseSelector -----------------------------------------------
     def register(
@@ -83,7 +96,9 @@ class RclSelector(selectors.BaseSelector):
         ready = [] if self._armed else self._inner.select(0)
         if ready or (timeout is not None and timeout <= 0):
             # Still give ROS a turn so a busy fd cannot starve it.
-            wait(0)
+            due = self._ros_turn_due
+            if due is None or due():
+                wait(0)
             return ready or self._fds_if_woken()
         if not self._armed:
             self._armed = True

@@ -49,6 +49,21 @@ nodes:
 """
 MANAGED = "[/robot/talker,/robot/listener]"
 
+#: Run on host B: wait until the container's talker services are discovered.
+_DISCOVERY_PROBE = """
+import time, rclpy
+rclpy.init()
+node = rclpy.create_node("discovery_probe")
+deadline = time.monotonic() + 30.0
+while time.monotonic() < deadline:
+    if any(name == "/robot/talker/get_state" for name, _ in node.get_service_names_and_types()):
+        print("found", flush=True)
+        break
+    time.sleep(0.05)
+else:
+    print("not found within 30 s", flush=True)
+"""
+
 
 def _ip(*args: str) -> None:
     result = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=30)
@@ -138,6 +153,17 @@ def test_manager_on_another_host_reaches_its_safe_state_when_the_link_is_cut_and
     try:
         container = start(a, ["run", str(config)], env_a, "host A")
         container.wait_for_line("Container '/robot/robot_container' ready with 2 node(s)", timeout=30)
+        # The manager starts once host B sees the container: what is measured
+        # here is the link cut, not DDS's first discovery. (A manager started
+        # the instant the container is ready sometimes never discovered it
+        # over static peers, while one started a second later always did:
+        # Fast DDS participant discovery, seen with the code of every
+        # session, noted in the README.)
+        probe = subprocess.run(
+            ["ip", "netns", "exec", b.namespace, sys.executable, "-c", _DISCOVERY_PROBE],
+            env=env_b, capture_output=True, text=True, timeout=60, check=False,
+        )
+        assert "found" in probe.stdout, f"host B never discovered host A: {probe.stdout}{probe.stderr}"
         manager = start(
             b,
             [

@@ -171,14 +171,7 @@ class Lane:
                 return
             self._running += 1
             self._active.add(work)
-        # _start, inlined: this runs for every message.
-        if not work.is_async:
-            self._hand_to_thread(work)
-        elif self._on_loop_thread():
-            if self._defer is None or not self._defer(self, work):
-                self._hand_to_runner(work)
-        else:
-            self._post(self._hand_to_runner, work)
+        self._start(work)
 
     def busy(self) -> bool:
         with self._lock:

@@ -249,15 +249,16 @@ class _WaitSet:
                 clients=[handle.pointer for handle in handles["client"]],
                 services=[handle.pointer for handle in handles["service"]],
             )
-        table.wait_set = WaitSet(
-            len(table.handles["subscription"]) + extra.num_subscriptions,
-            len(guards) + extra.num_guard_conditions,
-            len(table.handles["timer"]) + extra.num_timers,
-            len(table.handles["client"]) + extra.num_clients,
-            len(table.handles["service"]) + extra.num_services,
-            len(table.events) + extra.num_events,
-            context.handle,
-        )
+        else:
+            table.wait_set = WaitSet(
+                len(table.handles["subscription"]) + extra.num_subscriptions,
+                len(guards) + extra.num_guard_conditions,
+                len(table.handles["timer"]) + extra.num_timers,
+                len(table.handles["client"]) + extra.num_clients,
+                len(table.handles["service"]) + extra.num_services,
+                len(table.events) + extra.num_events,
+                context.handle,
+            )
         old, self._table = self._table, table
         if notifier is not None:
             # Entities gone stop calling back before their handles are let go.
@@ -321,8 +322,7 @@ class _WaitSet:
     def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
         notifier = self._notifier
         if notifier is not None and notifier.pending():
-            now = time.monotonic_ns()
-            if now - self._polled < _POLL_MAX_NS:
+            if self.poll_is_recent():
                 # Messages are ready and timers were looked at just now:
                 # take them without a wait (no attach, no detach, no syscall).
                 self._take_ready(table, notifier)
@@ -367,41 +367,19 @@ class _WaitSet:
         if self._closed:
             return WOKEN
         dispatcher = self._dispatcher
-        flags = 0
-        by_pointer = table.by_pointer
-        # Ready pointers that are not in the table belong to waitables (an
-        # action server's services, a custom waitable's guard condition):
-        # the waitable itself finds and takes them below.
-        guards_ready = wait_set.get_ready_entities("guard_condition")
-        for pointer in guards_ready:
-            own = table.own_guards.get(pointer)
-            if own is not None:
-                flags |= own
-            elif (guard := by_pointer["guard_condition"].get(pointer)) is not None:
-                dispatcher.submit(guard, guard.entity.callback, ())
-        if handles["timer"]:
-            timers = by_pointer["timer"]
-            for pointer in wait_set.get_ready_entities("timer"):
-                if (timer := timers.get(pointer)) is not None:
-                    dispatcher.take_timer(timer)
-        if notifier is not None:
-            self._take_ready(table, notifier)
-        if handles["subscription"]:
-            take = dispatcher.take_message
-            subscriptions = by_pointer["subscription"]
-            for pointer in wait_set.get_ready_entities("subscription"):
-                if (subscription := subscriptions.get(pointer)) is not None:
-                    take(subscription)
-        if handles["client"]:
-            clients = by_pointer["client"]
-            for pointer in wait_set.get_ready_entities("client"):
-                if (client := clients.get(pointer)) is not None:
-                    dispatcher.take_response(client)
-        if handles["service"]:
-            services = by_pointer["service"]
-            for pointer in wait_set.get_ready_entities("service"):
-                if (service := services.get(pointer)) is not None:
-                    dispatcher.take_request(service)
+
+        def ready(kind: str) -> list[int]:
+            return wait_set.get_ready_entities(kind) if handles[kind] else []
+
+        flags = self._dispatch_ready(
+            table,
+            notifier,
+            guards=wait_set.get_ready_entities("guard_condition"),
+            timers=ready("timer"),
+            subscriptions=ready("subscription"),
+            clients=ready("client"),
+            services=ready("service"),
+        )
         if events:
             is_ready = wait_set.is_ready
             for index, (_, entry) in zip(indices, events, strict=True):
@@ -440,39 +418,65 @@ class _WaitSet:
                 notifier.disarm()
         if self._closed:
             return WOKEN
+        if not ready:  # timed out
+            return self._dispatch_ready(table, notifier)
+        subscriptions, guards, timers, clients, services, _ = ready
+        return self._dispatch_ready(
+            table,
+            notifier,
+            guards=guards,
+            timers=timers,
+            subscriptions=subscriptions,
+            clients=clients,
+            services=services,
+        )
+
+    def _dispatch_ready(
+        self,
+        table: _Table,
+        notifier: Notifier | None,
+        *,
+        guards: Iterable[int] = (),
+        timers: Iterable[int] = (),
+        subscriptions: Iterable[int] = (),
+        clients: Iterable[int] = (),
+        services: Iterable[int] = (),
+    ) -> int:
+        """Hand what a wait found ready, and what the notifier reported, to lanes.
+
+        Ready addresses that are not in the table belong to waitables (an
+        action server's services, a custom waitable's guard condition): the
+        waitable itself finds and takes them.
+
+        :return: the flags of the executor's own guards that fired.
+        """
+        dispatcher = self._dispatcher
+        by_pointer = table.by_pointer
         flags = 0
-        if ready:
-            subscriptions, guards, timers, clients, services, _ = ready
-            dispatcher = self._dispatcher
-            by_pointer = table.by_pointer
-            for pointer in guards:
-                own = table.own_guards.get(pointer)
-                if own is not None:
-                    flags |= own
-                elif (guard := by_pointer["guard_condition"].get(pointer)) is not None:
-                    dispatcher.submit(guard, guard.entity.callback, ())
-            if timers:
-                entries = by_pointer["timer"]
-                for pointer in timers:
-                    if (timer := entries.get(pointer)) is not None:
-                        dispatcher.take_timer(timer)
-            if subscriptions:
-                entries = by_pointer["subscription"]
-                for pointer in subscriptions:
-                    if (subscription := entries.get(pointer)) is not None:
-                        dispatcher.take_message(subscription)
-            if clients:
-                entries = by_pointer["client"]
-                for pointer in clients:
-                    if (client := entries.get(pointer)) is not None:
-                        dispatcher.take_response(client)
-            if services:
-                entries = by_pointer["service"]
-                for pointer in services:
-                    if (service := entries.get(pointer)) is not None:
-                        dispatcher.take_request(service)
+        for pointer in guards:
+            own = table.own_guards.get(pointer)
+            if own is not None:
+                flags |= own
+            elif (guard := by_pointer["guard_condition"].get(pointer)) is not None:
+                dispatcher.submit(guard, guard.entity.callback, ())
+        entries = by_pointer["timer"]
+        for pointer in timers:
+            if (timer := entries.get(pointer)) is not None:
+                dispatcher.take_timer(timer)
         if notifier is not None:
             self._take_ready(table, notifier)
+        entries = by_pointer["subscription"]
+        for pointer in subscriptions:
+            if (subscription := entries.get(pointer)) is not None:
+                dispatcher.take_messages(subscription, 1)
+        entries = by_pointer["client"]
+        for pointer in clients:
+            if (client := entries.get(pointer)) is not None:
+                dispatcher.take_response(client)
+        entries = by_pointer["service"]
+        for pointer in services:
+            if (service := entries.get(pointer)) is not None:
+                dispatcher.take_request(service)
         return flags
 
     def ready_without_wait(self) -> bool:
@@ -495,7 +499,7 @@ class _WaitSet:
         """Take every message of the subscriptions that reported new data."""
         subscriptions = table.by_pointer["subscription"]
         dispatcher = self._dispatcher
-        take = dispatcher.take_all
+        take = dispatcher.take_messages
         for pointer, count in notifier.ready():
             if (subscription := subscriptions.get(pointer)) is not None:
                 take(subscription, count)
@@ -859,19 +863,9 @@ class Dispatcher:
         else:
             self.submit(entry, tmr.callback, ())
 
-    def take_message(self, entry: _Entry) -> None:
-        sub = entry.entity
-        # The table holds the handle for as long as the entry exists.
-        taken = sub.handle.take_message(sub.msg_type, sub.raw)
-        if taken is None:
-            return
-        if entry.wants_info:
-            self.submit(entry, sub.callback, tuple(taken))
-        else:
-            self.submit(entry, sub.callback, (taken[0],))
-
-    def take_all(self, entry: _Entry, count: int) -> None:
-        """Take the ``count`` messages its new-data callbacks reported (fewer if DDS dropped some)."""
+    def take_messages(self, entry: _Entry, count: int) -> None:
+        """Take up to ``count`` messages: what its new-data callbacks reported (fewer if
+        DDS dropped some), or one for a subscription a wait found ready."""
         sub = entry.entity
         callback = sub.callback
         submit = self.submit
@@ -1072,22 +1066,20 @@ class Dispatcher:
 
     def deliver(
         self, subscription: Any, node: Node, callback: Callable[..., Any], args: tuple[Any, ...]
-    ) -> bool:
+    ) -> bool | None:
         """Hand ``callback(*args)`` to ``subscription``'s lane like a taken message (any thread).
 
-        :return: whether it was handed over on the loop thread, where the
-            loop will see it without being woken.
+        :return: ``None`` if ``node`` is not in the executor (nothing handed
+            over); else whether it was handed over on the loop thread, where
+            the loop will see it without being woken.
         """
         entry = self._hot.entry_of(subscription)
         if entry is None or entry.node is not node:
+            if node not in self.nodes():
+                return None
             entry = self.entry(subscription, node, "subscription")
         self.submit(entry, callback, args)
         return self._on_loop_thread() and not self.relieving
-
-    def knows(self, subscription: Any, node: Node) -> bool:
-        """Whether the executor serves ``subscription`` of ``node`` (as of its last collection)."""
-        entry = self._hot.entry_of(subscription)
-        return entry is not None and entry.node is node
 
 
 def _taker(subscription: Any) -> Taker | None:

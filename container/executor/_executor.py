@@ -769,10 +769,12 @@ class AsyncioExecutor(Executor):
         :return: ``False`` (nothing handed over) when ``node`` is not in this
             executor or the executor is shut down.
         """
-        dispatcher = self._dispatcher
-        if self._closed or not (dispatcher.knows(subscription, node) or node in self.get_nodes()):
+        if self._closed:
             return False
-        if not dispatcher.deliver(subscription, node, callback, args):
+        on_loop = self._dispatcher.deliver(subscription, node, callback, args)
+        if on_loop is None:
+            return False
+        if not on_loop:
             # From another thread: wake the loop (a woken rcl wait costs ~5 us).
             self._guard_trigger()
         return True

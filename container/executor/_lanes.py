@@ -334,8 +334,7 @@ class Lane:
                 self._idle_runners.pop()  # cancelled while idle; its task ends
                 continue
             error: BaseException | None
-            token = item.token
-            if token is not None and token.retired:
+            if _retired(item):
                 done, error, resume = True, Retired(), None
             else:
                 runner.current = item  # what the loop runs, should it get stuck here

@@ -8,6 +8,12 @@ listens. No handshake means a node is monitored whoever hosts it, and the
 manager can tell "silent" (crash, hang) from "said goodbye" (``active`` false,
 sent when the node is destroyed).
 
+A node beats only while something listens on the topic (a manager, or
+``ros2 topic echo /bond``): it starts when a subscription matches, with one
+beat at once, and stops when the last one goes. Unheard beats at Nav2's
+10 Hz cost a LiDAR node a sixth of its CPU (measured: 0.37 % of a core of
+2.2 %) for nothing; Nav2 itself beats only on a bond its manager formed.
+
 The node side runs in the node's default callback group on purpose: a
 callback of that group that hangs silences the heartbeat too, which is how a
 hang is told from a slow but healthy node.
@@ -21,6 +27,7 @@ import uuid
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
@@ -100,8 +107,27 @@ class HeartbeatPublisher:
         self.timeout = timeout
         # Node.create_* directly: a lifecycle base would otherwise make these
         # follow the node's state, and heartbeats must flow in every state.
-        self._publisher: Publisher | None = Node.create_publisher(node, status, topic, _QOS)
-        self._timer: Timer | None = Node.create_timer(node, period, self._beat)
+        # The matched event runs in the timer's group (the node's default).
+        self._publisher: Publisher | None = Node.create_publisher(
+            node, status, topic, _QOS, event_callbacks=PublisherEventCallbacks(matched=self._matched)
+        )
+        self._timer: Timer | None = Node.create_timer(node, period, self._beat, autostart=False)
+        self._matched(None)
+
+    @property
+    def beating(self) -> bool:
+        """Whether heartbeats go out now (something listens on the topic)."""
+        return self._timer is not None and not self._timer.is_canceled()
+
+    def _matched(self, _info: object) -> None:
+        timer, publisher = self._timer, self._publisher
+        if timer is None or publisher is None:
+            return
+        if publisher.get_subscription_count() == 0:
+            timer.cancel()
+        elif timer.is_canceled():
+            timer.reset()  # wakes the wait set through the timer's own guard condition
+            self._publish(active=True)  # a new listener hears the node at once
 
     def _beat(self) -> None:
         # Plain, not async: it must not wait for the event loop, which

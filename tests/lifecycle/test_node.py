@@ -305,3 +305,31 @@ def test_heartbeats_are_published_with_the_node_name(
     assert mine[0].heartbeat_period == pytest.approx(0.05)
     assert quiet.heartbeat is None
     assert not any(s.id == "/quiet" for s in seen)
+
+
+def test_heartbeats_go_out_only_while_something_listens(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    bond = pytest.importorskip("bond.msg")
+    node: Plain = host(Plain, "lonely", heartbeat_period=0.05)
+    heartbeat = node.heartbeat
+    assert heartbeat is not None
+    listener = host(Node, "ear")
+
+    async def until(predicate: Callable[[], bool]) -> None:
+        while not predicate():
+            await asyncio.sleep(0.01)
+
+    async def scenario() -> tuple[int, bool]:
+        # Unheard, it stops (another test's listener may linger in discovery a moment).
+        await until(lambda: not heartbeat.beating)
+        seen: list[Any] = []
+        subscription = listener.create_subscription(bond.Status, "/bond", seen.append, 100)
+        await until(lambda: sum(1 for s in seen if s.id == "/lonely") >= 3)
+        listener.destroy_subscription(subscription)
+        await until(lambda: not heartbeat.beating)
+        return len(seen), heartbeat.beating
+
+    heard, after = run(executor, scenario(), timeout=15.0)
+    assert heard >= 3
+    assert not after

@@ -171,7 +171,11 @@ class _WaitSet:
         self._own_guards = own_guards
         self._table = _Table()
         self._dirty = True
+        #: Held by the thread in ``rcl_wait`` (one at a time per wait set).
         self._lock = threading.Lock()
+        #: Held while taking and while the table changes: a lane's worker
+        #: thread takes (``carry``) while the loop thread sleeps in rcl.
+        self._take_lock = threading.Lock()
         self._closed = False
         #: When the next wait must include the QoS events (monotonic ns).
         self._events_next = 0
@@ -210,7 +214,9 @@ class _WaitSet:
                     if _hold(held, entity.handle):
                         entry = dispatcher.entry(entity, node, kind)
                         table.by_pointer[kind][entity.handle.pointer] = entry
-                        if kind != "subscription" or not self._watch(entity.handle.pointer, SUBSCRIPTION):
+                        if kind != "subscription" or not self._watch(
+                            entity.handle.pointer, SUBSCRIPTION, plain=not entry.is_async
+                        ):
                             # Not event-driven (an rmw without new-data callbacks): waited on.
                             table.handles[kind].append(entity.handle)
                         elif not entity.raw:
@@ -268,13 +274,16 @@ class _WaitSet:
             self._watched &= live
         old.held.close()
 
-    def _watch(self, pointer: int, kind: int) -> bool:
+    def _watch(self, pointer: int, kind: int, *, plain: bool = False) -> bool:
         """Have rmw report new data of the entity at ``pointer``; ``False`` where it cannot
-        (no notifier, or an rmw without that callback: the entity is then waited on)."""
+        (no notifier, or an rmw without that callback: the entity is then waited on).
+
+        :param plain: its callback is plain: a worker thread may take it (:meth:`carry`).
+        """
         if self._notifier is None:
             return False
         try:
-            self._notifier.watch(pointer, kind)
+            self._notifier.watch(pointer, kind, plain)
         except NotImplementedError:
             return False
         except RuntimeError as exc:
@@ -293,7 +302,8 @@ class _WaitSet:
                 return WOKEN
             try:
                 if self._dirty:
-                    self._rebuild()
+                    with self._take_lock:
+                        self._rebuild()
                 return self._wait_and_dispatch(self._table, timeout_ns)
             except Exception:
                 self._dirty = True
@@ -308,7 +318,7 @@ class _WaitSet:
 
     def take_ready_now(self) -> None:
         """Take what the notifier reported, without a wait (the caller saw none is due)."""
-        with self._lock:
+        with self._take_lock:
             notifier = self._notifier
             if self._closed or self._dirty or notifier is None:
                 return
@@ -325,7 +335,8 @@ class _WaitSet:
             if self.poll_is_recent():
                 # Messages are ready and timers were looked at just now:
                 # take them without a wait (no attach, no detach, no syscall).
-                self._take_ready(table, notifier)
+                with self._take_lock:
+                    self._take_ready(table, notifier)
                 return 0
             timeout_ns = 0
         if table.fast is not None:
@@ -371,26 +382,27 @@ class _WaitSet:
         def ready(kind: str) -> list[int]:
             return wait_set.get_ready_entities(kind) if handles[kind] else []
 
-        flags = self._dispatch_ready(
-            table,
-            notifier,
-            guards=wait_set.get_ready_entities("guard_condition"),
-            timers=ready("timer"),
-            subscriptions=ready("subscription"),
-            clients=ready("client"),
-            services=ready("service"),
-        )
-        if events:
-            is_ready = wait_set.is_ready
-            for index, (_, entry) in zip(indices, events, strict=True):
-                if is_ready("event", index):
-                    # Hand over to rclpy's own handler for the rare ready path.
-                    set_event_index(entry.entity, index)
-                    if entry.entity.is_ready(wait_set):
-                        dispatcher.take_waitable(entry)
-        for entry in table.waitables:
-            if entry.entity.is_ready(wait_set):
-                dispatcher.take_waitable(entry)
+        with self._take_lock:
+            flags = self._dispatch_ready(
+                table,
+                notifier,
+                guards=wait_set.get_ready_entities("guard_condition"),
+                timers=ready("timer"),
+                subscriptions=ready("subscription"),
+                clients=ready("client"),
+                services=ready("service"),
+            )
+            if events:
+                is_ready = wait_set.is_ready
+                for index, (_, entry) in zip(indices, events, strict=True):
+                    if is_ready("event", index):
+                        # Hand over to rclpy's own handler for the rare ready path.
+                        set_event_index(entry.entity, index)
+                        if entry.entity.is_ready(wait_set):
+                            dispatcher.take_waitable(entry)
+            for entry in table.waitables:
+                if entry.entity.is_ready(wait_set):
+                    dispatcher.take_waitable(entry)
         return flags
 
     def _before_wait(self, notifier: Notifier | None, timeout_ns: int) -> int:
@@ -418,18 +430,19 @@ class _WaitSet:
                 notifier.disarm()
         if self._closed:
             return WOKEN
-        if not ready:  # timed out
-            return self._dispatch_ready(table, notifier)
-        subscriptions, guards, timers, clients, services, _ = ready
-        return self._dispatch_ready(
-            table,
-            notifier,
-            guards=guards,
-            timers=timers,
-            subscriptions=subscriptions,
-            clients=clients,
-            services=services,
-        )
+        with self._take_lock:
+            if not ready:  # timed out
+                return self._dispatch_ready(table, notifier)
+            subscriptions, guards, timers, clients, services, _ = ready
+            return self._dispatch_ready(
+                table,
+                notifier,
+                guards=guards,
+                timers=timers,
+                subscriptions=subscriptions,
+                clients=clients,
+                services=services,
+            )
 
     def _dispatch_ready(
         self,
@@ -478,6 +491,36 @@ class _WaitSet:
             if (service := entries.get(pointer)) is not None:
                 dispatcher.take_request(service)
         return flags
+
+    def carry(self) -> None:
+        """Take, on a lane's worker thread, what plain callbacks are reported ready for.
+
+        Called by a worker that just ran a plain callback: what that callback
+        published to this process's other plain subscriptions is taken here
+        and the next callback runs on this same thread (see ``Lane``), instead
+        of the loop thread waking to hand it to yet another thread: a plain
+        ping-pong costs no thread switch. Left to the loop (which the
+        notifier woke anyway) while the table is being rebuilt.
+        """
+        notifier = self._notifier
+        if notifier is None or not self._take_lock.acquire(blocking=False):
+            # Whoever takes now (the loop, another worker) takes this too:
+            # waiting here would only line threads up behind the lock.
+            return
+        try:
+            if self._closed or self._dirty:
+                return
+            subscriptions = self._table.by_pointer["subscription"]
+            take = self._dispatcher.take_messages
+            for pointer, count in notifier.carry():
+                if (entry := subscriptions.get(pointer)) is not None:
+                    take(entry, count)
+        except Exception:
+            self._dirty = True
+            if self._dispatcher.context.ok():
+                _log.exception("dispatching ROS work failed")
+        finally:
+            self._take_lock.release()
 
     def ready_without_wait(self) -> bool:
         """Whether messages wait to be taken and the next ``rcl_wait`` is not due yet."""
@@ -538,6 +581,7 @@ class _WaitSet:
         """
         self._closed = True
         if self._lock.acquire(timeout=max(timeout, 0.1)):
+            self._take_lock.acquire()
             try:
                 notifier = self._notifier
                 if notifier is not None:
@@ -551,6 +595,7 @@ class _WaitSet:
                     self._notifier_guard.destroy()
                     self._notifier_guard = None
             finally:
+                self._take_lock.release()
                 self._lock.release()
 
 
@@ -1024,6 +1069,7 @@ class Dispatcher:
                 post=self._post,
                 progress=self._progress,
                 defer=self._defer_eager,
+                carry=self._hot.carry,
             )
             self._lanes[key] = (group, lane)
             return lane

@@ -34,6 +34,7 @@
 #include <stdatomic.h>
 #include <stdint.h>
 #include <stdlib.h>
+#include <string.h>
 
 #include <rcl/client.h>
 #include <rcl/error_handling.h>
@@ -55,6 +56,7 @@ typedef struct Slot {
   uintptr_t key;
   int kind;
   int queued;    /* under owner->lock */
+  int plain;     /* its callback runs on a worker thread: carry() hands it out */
   size_t count;  /* events since last ready(), under owner->lock */
   struct Slot * next;
 } Slot;
@@ -64,6 +66,7 @@ typedef struct NotifierObject {
   pthread_mutex_t lock;
   atomic_int armed;
   atomic_int pending;
+  atomic_int plain_pending;      /* queued slots that are plain */
   rcl_guard_condition_t * guard; /* under lock */
   Slot * slots;                  /* touched by the owning Python thread only */
   Slot ** ready;                 /* under lock */
@@ -108,6 +111,9 @@ static void on_event(const void * user_data, size_t number_of_events)
     }
     self->ready[self->nready++] = slot;
     slot->queued = 1;
+    if (slot->plain) {
+      atomic_fetch_add(&self->plain_pending, 1);
+    }
   }
   pthread_mutex_unlock(&self->lock);
   /* Dekker with arm(): either the waiter sees pending, or we see armed. */
@@ -164,6 +170,7 @@ static PyObject * Notifier_new(PyTypeObject * type, PyObject * args, PyObject * 
   pthread_mutex_init(&self->lock, NULL);
   atomic_init(&self->armed, 0);
   atomic_init(&self->pending, 0);
+  atomic_init(&self->plain_pending, 0);
   atomic_init(&self->triggers, 0);
   self->guard = NULL;
   self->slots = NULL;
@@ -201,9 +208,10 @@ static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
 {
   unsigned long long key;
   int kind;
+  int plain = 0;
   Slot * slot;
   rcl_ret_t ret;
-  if (!PyArg_ParseTuple(args, "Ki", &key, &kind)) {
+  if (!PyArg_ParseTuple(args, "Ki|p", &key, &kind, &plain)) {
     return NULL;
   }
   if (key == 0 || kind < KIND_SUBSCRIPTION || kind > KIND_EVENT) {
@@ -220,6 +228,7 @@ static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
   slot->owner = self;
   slot->key = (uintptr_t)key;
   slot->kind = kind;
+  slot->plain = plain;
   slot->next = self->slots;
   self->slots = slot;
   /* rmw calls back at once, in this thread, if data is already waiting:
@@ -271,7 +280,11 @@ static PyObject * Notifier_unwatch(NotifierObject * self, PyObject * arg)
   pthread_mutex_lock(&self->lock);
   for (i = 0; i < self->nready; ++i) {
     if (self->ready[i] == slot) {
-      self->ready[i] = self->ready[--self->nready];
+      memmove(&self->ready[i], &self->ready[i + 1], (self->nready - i - 1) * sizeof(Slot *));
+      --self->nready;
+      if (slot->plain) {
+        atomic_fetch_sub(&self->plain_pending, 1);
+      }
       break;
     }
   }
@@ -332,10 +345,57 @@ static PyObject * Notifier_ready(NotifierObject * self, PyObject * Py_UNUSED(ign
         self->ready[i]->count = 0;
       }
       self->nready = 0;
+      atomic_store(&self->plain_pending, 0);
     }
   }
   if (list == NULL) {
     atomic_store(&self->pending, 1);
+  }
+  pthread_mutex_unlock(&self->lock);
+  return list;
+}
+
+/* Like ready(), for plain slots only; the others stay queued for ready().
+ * A worker thread that just ran a plain callback takes what that callback's
+ * publishes made ready for other plain callbacks, and runs the next one
+ * itself instead of waking another thread. */
+static PyObject * Notifier_carry(NotifierObject * self, PyObject * Py_UNUSED(ignored))
+{
+  PyObject * list;
+  size_t i;
+  size_t kept = 0;
+  if (!atomic_load(&self->plain_pending)) {
+    return PyList_New(0);
+  }
+  list = PyList_New(0);
+  if (list == NULL) {
+    return NULL;
+  }
+  pthread_mutex_lock(&self->lock);
+  for (i = 0; i < self->nready; ++i) {
+    Slot * slot = self->ready[i];
+    if (!slot->plain) {
+      self->ready[kept++] = slot;
+      continue;
+    }
+    PyObject * item = Py_BuildValue("(Kn)", (unsigned long long)slot->key, (Py_ssize_t)slot->count);
+    if (item == NULL || PyList_Append(list, item) < 0) {
+      Py_XDECREF(item);
+      /* Leave this and the rest queued for ready(). */
+      for (; i < self->nready; ++i) {
+        self->ready[kept++] = self->ready[i];
+      }
+      Py_CLEAR(list);
+      break;
+    }
+    Py_DECREF(item);
+    slot->queued = 0;
+    slot->count = 0;
+    atomic_fetch_sub(&self->plain_pending, 1);
+  }
+  self->nready = kept;
+  if (kept == 0) {
+    atomic_store(&self->pending, 0);
   }
   pthread_mutex_unlock(&self->lock);
   return list;
@@ -367,13 +427,15 @@ static PyObject * Notifier_get_watched(NotifierObject * self, void * Py_UNUSED(c
 
 static PyMethodDef Notifier_methods[] = {
   {"watch", (PyCFunction)Notifier_watch, METH_VARARGS,
-   "watch(pointer, kind) -> bool: report new data of this rcl entity (False: already watched)."},
+   "watch(pointer, kind, plain=False) -> bool: report new data of this rcl entity (False: already watched)."},
   {"unwatch", (PyCFunction)Notifier_unwatch, METH_O,
    "unwatch(pointer) -> bool: stop; no callback for it runs once this returns."},
   {"arm", (PyCFunction)Notifier_arm, METH_NOARGS,
    "arm() -> bool: about to wait; True if something is ready already (do not block)."},
   {"disarm", (PyCFunction)Notifier_disarm, METH_NOARGS, "disarm(): back from the wait."},
   {"pending", (PyCFunction)Notifier_pending, METH_NOARGS, "pending() -> bool: something is ready."},
+  {"carry", (PyCFunction)Notifier_carry, METH_NOARGS,
+   "carry() -> [(address, count)]: what ready() would give, of the plain slots only."},
   {"ready", (PyCFunction)Notifier_ready, METH_NOARGS,
    "ready() -> list[tuple[int, int]]: (entity, events) that became ready since the last call."},
   {"close", (PyCFunction)Notifier_close, METH_NOARGS, "close(): never trigger the guard again."},

@@ -20,6 +20,14 @@ Python 3.11 has no eager tasks, so this uses asyncio's own
 ``_enter_task``/``_leave_task`` (through ``_compat``), which its tasks call
 around every step.
 
+A worker thread that finished a plain callback *carries* on: what that
+callback published to another plain callback of this process is taken on
+the same thread, and if that callback's lane is free it runs there too,
+rather than the event loop waking to wake the lane's own thread (two thread
+switches per hand-over, each costing more than the callback). Meanwhile the
+worker's own lane counts it as away, so its next work gets a thread of its
+own: a carried callback that blocks delays nobody else.
+
 Work waiting for a busy lane is kept per entity with a bound, like a DDS
 keep-last history: a subscription keeps its QoS depth of messages, a timer
 or a guard condition at most one pending firing. Without that bound a
@@ -50,6 +58,18 @@ Post = Callable[..., None]
 #: Takes async work to start eagerly after the current wait, or declines it
 #: (returns ``False``) when no wait is being dispatched on this thread.
 Defer = Callable[["Lane", "Work"], bool]
+
+#: Takes what plain callbacks are reported ready for, submitting it to lanes.
+Carry = Callable[[], None]
+
+
+class _Carrier(threading.local):
+    """Per thread: where plain work submitted while a worker carries goes (one item at most)."""
+
+    slot: list[tuple[Lane, Work]] | None = None
+
+
+_carrier = _Carrier()
 
 
 @dataclass(eq=False, slots=True)
@@ -136,9 +156,11 @@ class Lane:
         post: Post,
         progress: Callable[[], asyncio.Future[None]],
         defer: Defer | None = None,
+        carry: Carry | None = None,
     ) -> None:
         self.name = name
         self._defer = defer
+        self._carry = carry
         self._post = post
         self._progress = progress
         self.limit = limit
@@ -154,6 +176,8 @@ class Lane:
         self.dropped = 0
         # Plain side: worker threads fed through an inbox.
         self._idle_threads = 0
+        #: Threads away running another lane's work (see :meth:`_carry_on`).
+        self._away = 0
         self._threads: list[threading.Thread] = []
         self._inbox: queue.SimpleQueue[Work | None] = queue.SimpleQueue()
         # Async side, touched on the loop thread only.
@@ -243,7 +267,11 @@ class Lane:
 
     def _start(self, work: Work) -> None:
         if not work.is_async:
-            self._hand_to_thread(work)
+            slot = _carrier.slot
+            if slot is not None and not slot:
+                slot.append((self, work))  # a worker carrying on runs it next
+            else:
+                self._hand_to_thread(work)
         elif self._on_loop_thread():
             if self._defer is None or not self._defer(self, work):
                 self._hand_to_runner(work)
@@ -254,7 +282,7 @@ class Lane:
     def _hand_to_thread(self, work: Work) -> None:
         with self._lock:
             # A negative count means work is queued for a thread about to idle.
-            spawn = self._idle_threads <= 0 and len(self._threads) < self.limit
+            spawn = self._idle_threads <= 0 and len(self._threads) - self._away < self.limit
             if spawn:
                 thread = threading.Thread(
                     target=self._worker, name=f"lane:{self.name}", daemon=True
@@ -269,25 +297,57 @@ class Lane:
     def _worker(self) -> None:
         while True:
             work = self._inbox.get()
-            while work is not None:
-                error: BaseException | None = None
-                if _retired(work):
-                    error = Retired()
-                else:
-                    try:
-                        work.call(*work.args)
-                    except BaseException as exc:  # reported, never fatal: sys.exit() included
-                        error = exc
-                work.done(work, error)
-                nxt = self._next_pending(work)
-                if nxt is not None and nxt.is_async:
-                    self._start(nxt)
-                    nxt = None
-                work = nxt
+            if work is None:
+                return
+            self._run_plain(work)
+            if self._carry is not None:
+                self._carry_on(self._carry)
             with self._lock:
                 if self._closed:
                     return
                 self._idle_threads += 1
+
+    def _run_plain(self, work: Work | None) -> None:
+        """Run plain ``work`` (its slot taken) and the lane's pending work after it, on this thread."""
+        while work is not None:
+            error: BaseException | None = None
+            if _retired(work):
+                error = Retired()
+            else:
+                try:
+                    work.call(*work.args)
+                except BaseException as exc:  # reported, never fatal: sys.exit() included
+                    error = exc
+            work.done(work, error)
+            nxt = self._next_pending(work)
+            if nxt is not None and nxt.is_async:
+                self._start(nxt)
+                nxt = None
+            work = nxt
+
+    def _carry_on(self, carry: Carry) -> None:
+        """Run, on this worker thread, plain work its callbacks' publishes made ready."""
+        with self._lock:
+            self._away += 1
+        try:
+            while True:
+                slot: list[tuple[Lane, Work]] = []
+                _carrier.slot = slot
+                try:
+                    carry()
+                except BaseException:
+                    for lane, work in slot:
+                        lane._hand_to_thread(work)  # its slot is taken: it must still run
+                    raise
+                finally:
+                    _carrier.slot = None
+                if not slot:
+                    return
+                lane, work = slot[0]
+                lane._run_plain(work)
+        finally:
+            with self._lock:
+                self._away -= 1
 
     # -- async callbacks: runner tasks -----------------------------------------
     def _hand_to_runner(self, item: Work | _Resume) -> None:

@@ -96,6 +96,53 @@ def test_blocking_plain_callback_in_one_node_does_not_delay_another(
     assert max(gaps) < 0.25, gaps
 
 
+def test_callback_carried_to_another_lanes_thread_that_blocks_delays_nobody(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    """A worker that finished node A's callback runs node B's next (see ``_lanes``).
+
+    B's callback then blocks on A's thread: A's own timer must still fire
+    (on another thread of A's lane) and B's group must stay exclusive.
+    """
+    a, b = make_node("carrier_a"), make_node("carrier_b")
+    sender = a.create_publisher(Int64, "carried", 10)
+    b_threads: list[str] = []
+    b_seen = Concurrency()
+    blocking = threading.Event()
+    ticks: list[float] = []
+    enough = threading.Event()
+
+    def tick() -> None:
+        sender.publish(Int64(data=len(ticks)))
+        if blocking.is_set():
+            ticks.append(time.monotonic())
+            if len(ticks) >= 15:
+                enough.set()
+
+    def receive(msg: Int64) -> None:
+        with b_seen:
+            b_threads.append(threading.current_thread().name)
+            if threading.current_thread().name.startswith("lane:/carrier_a") and not blocking.is_set():
+                ticks.append(time.monotonic())  # the gaps count from here
+                blocking.set()
+                time.sleep(1.5)  # carried onto A's thread, and stuck there
+
+    a.create_timer(0.02, tick)
+    b.create_subscription(Int64, "carried", receive, 10)
+    executor.add_node(a)
+    executor.add_node(b)
+    thread = spin_in_thread(executor)
+    try:
+        assert enough.wait(15.0), f"A's timer stalled, or B never ran on A's thread: {set(b_threads)}"
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    gaps = [later - earlier for earlier, later in itertools.pairwise(ticks)]
+    # 15 ticks at 50 Hz from the moment B's callback got stuck on A's thread.
+    assert max(gaps) < 0.25, gaps
+    assert b_seen.peak == 1
+
+
 @pytest.mark.parametrize("kind", ["plain", "async"])
 def test_mutually_exclusive_group_never_overlaps(
     executor: AsyncioExecutor, make_node: Callable[[str], Node], kind: str

@@ -204,6 +204,47 @@ def test_ping_pong_in_one_process_needs_no_wait_per_message(
     assert waits < rounds // 4, waits
 
 
+def test_plain_ping_pong_in_one_process_stays_on_one_thread(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """Plain callbacks run on lane threads; the worker that ran one takes what
+    it published and runs the other node's callback itself (``Lane``): no
+    thread switch per message, where handing over costs two."""
+    a, b = host(Node, "fp_plain_ping"), host(Node, "fp_plain_pong")
+    ping = a.create_publisher(Int64, "fp_plain_ping", 10)
+    pong = b.create_publisher(Int64, "fp_plain_pong", 10)
+    rounds = 2000
+    done = threading.Event()
+    threads: list[int] = []
+
+    def echo(msg: Int64) -> None:
+        threads.append(threading.get_ident())
+        pong.publish(msg)
+
+    def got(msg: Int64) -> None:
+        threads.append(threading.get_ident())
+        if msg.data >= rounds:
+            done.set()
+        else:
+            ping.publish(Int64(data=msg.data + 1))
+
+    b.create_subscription(Int64, "fp_plain_ping", echo, 10)
+    a.create_subscription(Int64, "fp_plain_pong", got, 10)
+    _matched(ping)
+    _matched(pong)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        ping.publish(Int64(data=1))
+        assert done.wait(TIMEOUT)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+    switches = sum(1 for earlier, later in zip(threads, threads[1:], strict=False) if earlier != later)
+    # Handed over every time, each of the 4,000 callbacks would switch threads.
+    assert switches < len(threads) // 4, (switches, len(threads))
+
+
 def test_qos_events_arrive_without_a_wait_set(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
     a, b = host(Node, "fp_event_pub"), host(Node, "fp_event_sub")
     seen: dict[str, float] = {}
@@ -313,10 +354,10 @@ class _NoSubscriptionCallbacks:
     def __init__(self, *, guard: int) -> None:
         self._inner = Notifier(guard=guard)
 
-    def watch(self, pointer: int, kind: int) -> bool:
+    def watch(self, pointer: int, kind: int, plain: bool = False) -> bool:
         if kind == SUBSCRIPTION:
             raise NotImplementedError("no new-data callbacks here")
-        return self._inner.watch(pointer, kind)
+        return self._inner.watch(pointer, kind, plain)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)

@@ -10,6 +10,7 @@ re-created while the executor spins must keep being served.
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -240,7 +241,7 @@ def test_plain_ping_pong_in_one_process_stays_on_one_thread(
     finally:
         executor.shutdown(timeout_sec=5.0)
         spinner.join(5.0)
-    switches = sum(1 for earlier, later in zip(threads, threads[1:], strict=False) if earlier != later)
+    switches = sum(1 for earlier, later in itertools.pairwise(threads) if earlier != later)
     # Handed over every time, each of the 4,000 callbacks would switch threads.
     assert switches < len(threads) // 4, (switches, len(threads))
 

@@ -8,8 +8,9 @@ each hand-over between threads costs tens of microseconds. So:
   messages itself, with a wait set that is rebuilt only when entities change
   (``_dispatch``);
 * ``async def`` callbacks run as asyncio tasks on that same thread: no hop;
-* plain callbacks may block, so each runs on its callback group's own worker
-  thread (``_lanes``): one hop, and a slow node delays only itself.
+* plain callbacks may block, so each runs on a worker thread (``_lanes``):
+  one hop to the first of a chain, none after it (the worker carries on with
+  what its callback published), and a slow node delays only itself.
 
 On a loop the executor did not create (``await executor.spin_async()`` from
 ``asyncio.run``), a waiter thread takes the loop thread's place in rcl and

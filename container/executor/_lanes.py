@@ -2,8 +2,9 @@
 
 A lane enforces one callback group's concurrency limit (1 for a mutually
 exclusive group, a bound for a reentrant one) over both kinds of callback:
-``async def`` callbacks run on the event loop, plain ones on the lane's own
-worker threads, so a plain callback that blocks delays only its own group.
+``async def`` callbacks run on the event loop, plain ones on worker threads
+(the lane's own, or one carrying on, below), so a plain callback that blocks
+delays only its own group.
 
 Async callbacks run inside a few long-lived *runner* tasks per lane rather
 than one new task each: creating an asyncio task costs about 7 us on Python

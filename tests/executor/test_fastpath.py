@@ -14,6 +14,7 @@ import itertools
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import pytest
@@ -165,56 +166,21 @@ def test_taker_takes_what_rclpy_takes(node: Node) -> None:
     assert info["source_timestamp"] >= first[1]["source_timestamp"] > 0
 
 
-def test_ping_pong_in_one_process_needs_no_wait_per_message(
-    executor: AsyncioExecutor, host: Callable[..., Any]
-) -> None:
-    """Each publish reports to the other node's subscription inside the publish:
-    the executor takes it without entering ``rcl_wait`` again."""
-    a, b = host(Node, "fp_ping"), host(Node, "fp_pong")
-    ping = a.create_publisher(Int64, "fp_ping", 10)
-    pong = b.create_publisher(Int64, "fp_pong", 10)
-    rounds = 2000
-    done = threading.Event()
+@dataclass
+class _Bounce:
+    """What a ping-pong between two nodes of one process cost (see :func:`_bounce`)."""
 
-    async def echo(msg: Int64) -> None:
-        pong.publish(msg)
-
-    async def got(msg: Int64) -> None:
-        if msg.data >= rounds:
-            done.set()
-        else:
-            ping.publish(Int64(data=msg.data + 1))
-
-    b.create_subscription(Int64, "fp_ping", echo, 10)
-    a.create_subscription(Int64, "fp_pong", got, 10)
-    _matched(ping)
-    _matched(pong)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
-        hot = executor._dispatcher._hot
-        before = hot.waits
-        ping.publish(Int64(data=1))
-        assert done.wait(TIMEOUT)
-        waits = hot.waits - before
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
-    # 4,000 messages: one wait each on a wait set, here only the poll that
-    # looks at timers and guards at least every millisecond.
-    assert waits < rounds // 4, waits
+    #: ``rcl_wait`` calls of the hot wait set meanwhile.
+    waits: int
+    #: The thread of each callback, in order.
+    threads: list[int]
 
 
-def test_plain_ping_pong_in_one_process_stays_on_one_thread(
-    executor: AsyncioExecutor, host: Callable[..., Any]
-) -> None:
-    """Plain callbacks run on lane threads; the worker that ran one takes what
-    it published and runs the other node's callback itself (``Lane``): no
-    thread switch per message, where handing over costs two."""
-    a, b = host(Node, "fp_plain_ping"), host(Node, "fp_plain_pong")
-    ping = a.create_publisher(Int64, "fp_plain_ping", 10)
-    pong = b.create_publisher(Int64, "fp_plain_pong", 10)
-    rounds = 2000
+def _bounce(executor: AsyncioExecutor, host: Callable[..., Any], name: str, *, plain: bool, rounds: int) -> _Bounce:
+    """Bounce one message ``rounds`` times between two nodes, with plain or ``async def`` callbacks."""
+    a, b = host(Node, f"{name}_ping"), host(Node, f"{name}_pong")
+    ping = a.create_publisher(Int64, f"{name}_ping", 10)
+    pong = b.create_publisher(Int64, f"{name}_pong", 10)
     done = threading.Event()
     threads: list[int] = []
 
@@ -229,18 +195,49 @@ def test_plain_ping_pong_in_one_process_stays_on_one_thread(
         else:
             ping.publish(Int64(data=msg.data + 1))
 
-    b.create_subscription(Int64, "fp_plain_ping", echo, 10)
-    a.create_subscription(Int64, "fp_plain_pong", got, 10)
+    async def echo_async(msg: Int64) -> None:
+        echo(msg)
+
+    async def got_async(msg: Int64) -> None:
+        got(msg)
+
+    b.create_subscription(Int64, f"{name}_ping", echo if plain else echo_async, 10)
+    a.create_subscription(Int64, f"{name}_pong", got if plain else got_async, 10)
     _matched(ping)
     _matched(pong)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     try:
+        hot = executor._dispatcher._hot
+        before = hot.waits
         ping.publish(Int64(data=1))
         assert done.wait(TIMEOUT)
+        waits = hot.waits - before
     finally:
         executor.shutdown(timeout_sec=5.0)
         spinner.join(5.0)
+    return _Bounce(waits, threads)
+
+
+def test_ping_pong_in_one_process_needs_no_wait_per_message(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """Each publish reports to the other node's subscription inside the publish:
+    the executor takes it without entering ``rcl_wait`` again."""
+    rounds = 2000
+    bounce = _bounce(executor, host, "fp", plain=False, rounds=rounds)
+    # 4,000 messages: one wait each on a wait set, here only the poll that
+    # looks at timers and guards at least every millisecond.
+    assert bounce.waits < rounds // 4, bounce.waits
+
+
+def test_plain_ping_pong_in_one_process_stays_on_one_thread(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """Plain callbacks run on lane threads; the worker that ran one takes what
+    it published and runs the other node's callback itself (``Lane``): no
+    thread switch per message, where handing over costs two."""
+    threads = _bounce(executor, host, "fp_plain", plain=True, rounds=2000).threads
     switches = sum(1 for earlier, later in itertools.pairwise(threads) if earlier != later)
     # Handed over every time, each of the 4,000 callbacks would switch threads.
     assert switches < len(threads) // 4, (switches, len(threads))

@@ -323,11 +323,9 @@ class _WaitSet:
             if self._closed or self._dirty or notifier is None:
                 return
             try:
-                self._take_ready(self._table, notifier)
+                self._take_ready(self._table, notifier.ready())
             except Exception:
-                self._dirty = True
-                if self._dispatcher.context.ok():
-                    _log.exception("dispatching ROS work failed")
+                self._taking_failed()
 
     def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
         notifier = self._notifier
@@ -336,7 +334,7 @@ class _WaitSet:
                 # Messages are ready and timers were looked at just now:
                 # take them without a wait (no attach, no detach, no syscall).
                 with self._take_lock:
-                    self._take_ready(table, notifier)
+                    self._take_ready(table, notifier.ready())
                 return 0
             timeout_ns = 0
         if table.fast is not None:
@@ -477,7 +475,7 @@ class _WaitSet:
             if (timer := entries.get(pointer)) is not None:
                 dispatcher.take_timer(timer)
         if notifier is not None:
-            self._take_ready(table, notifier)
+            self._take_ready(table, notifier.ready())
         entries = by_pointer["subscription"]
         for pointer in subscriptions:
             if (subscription := entries.get(pointer)) is not None:
@@ -508,17 +506,10 @@ class _WaitSet:
             # waiting here would only line threads up behind the lock.
             return
         try:
-            if self._closed or self._dirty:
-                return
-            subscriptions = self._table.by_pointer["subscription"]
-            take = self._dispatcher.take_messages
-            for pointer, count in notifier.carry():
-                if (entry := subscriptions.get(pointer)) is not None:
-                    take(entry, count)
+            if not self._closed and not self._dirty:
+                self._take_ready(self._table, notifier.carry())
         except Exception:
-            self._dirty = True
-            if self._dispatcher.context.ok():
-                _log.exception("dispatching ROS work failed")
+            self._taking_failed()
         finally:
             self._take_lock.release()
 
@@ -538,17 +529,24 @@ class _WaitSet:
         entry = self._table.by_pointer.get("subscription", {}).get(subscription.handle.pointer)
         return entry if entry is not None and entry.entity is subscription else None
 
-    def _take_ready(self, table: _Table, notifier: Notifier) -> None:
-        """Take every message of the subscriptions that reported new data."""
+    def _take_ready(self, table: _Table, reported: list[tuple[int, int]]) -> None:
+        """Take what the notifier reported: every message of the subscriptions
+        that had new data, and the QoS events that fired."""
         subscriptions = table.by_pointer["subscription"]
         dispatcher = self._dispatcher
         take = dispatcher.take_messages
-        for pointer, count in notifier.ready():
+        for pointer, count in reported:
             if (subscription := subscriptions.get(pointer)) is not None:
                 take(subscription, count)
             elif (event := table.by_pointer["event"].get(pointer)) is not None:
                 mark_event_ready(event.entity)
                 dispatcher.take_waitable(event)
+
+    def _taking_failed(self) -> None:
+        """A take outside a wait raised: rebuild before the next wait; log unless shutting down."""
+        self._dirty = True
+        if self._dispatcher.context.ok():
+            _log.exception("dispatching ROS work failed")
 
     def _events_due_in(self) -> int:
         """Nanoseconds until a wait must include the QoS events again (0: this one).

@@ -18,7 +18,7 @@ import argparse
 import asyncio
 import inspect
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sized
 from types import FrameType
 from typing import TYPE_CHECKING, Any, TypeAlias
 
@@ -52,6 +52,7 @@ __all__ = [
     "is_built",
     "leave_task",
     "loop_is_idle",
+    "loop_ready_queue",
     "managed_entities",
     "mark_event_ready",
     "query_services",
@@ -115,6 +116,11 @@ def running_loop() -> asyncio.AbstractEventLoop | None:
 def loop_is_idle(loop: asyncio.AbstractEventLoop) -> bool:
     """Whether asyncio has nothing to run before its next select: no ready callback, no stop asked."""
     return not loop._ready and not loop._stopping  # type: ignore[attr-defined]
+
+
+def loop_ready_queue(loop: asyncio.AbstractEventLoop) -> Sized:
+    """The queue of callbacks asyncio runs before its next select (non-empty: it has work)."""
+    return loop._ready  # type: ignore[attr-defined, no-any-return]
 
 
 def thread_frame(ident: int) -> FrameType | None:

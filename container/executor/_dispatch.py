@@ -26,6 +26,7 @@ rebuild whenever a group becomes busy or idle.
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import contextlib
 import functools
@@ -34,7 +35,7 @@ import logging
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sized
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -48,21 +49,23 @@ from rclpy.waitable import NumberOfEntities
 from .._compat import (
     WaitSet,
     adopt_future,
+    enter_task,
     event_handle,
     fire_timer,
+    leave_task,
     loop_is_idle,
+    loop_ready_queue,
     mark_event_ready,
     set_event_index,
     subscription_wants_info,
     waitable_futures,
 )
-from ._fastpath import EVENT, SUBSCRIPTION, Notifier, Taker
+from . import _fastpath
+from ._fastpath import EVENT, SUBSCRIPTION, Express, Notifier, Taker
 from ._fastpath import WaitSet as FastWaitSet
 from ._lanes import Lane, Post, Retired, Token, Work
 
 if TYPE_CHECKING:
-    import asyncio
-
     from rclpy.context import Context
 
 __all__: list[str] = []
@@ -114,6 +117,9 @@ class _Table:
     #: The compiled wait set, where every entity is known by address (no
     #: generic waitable, no QoS event left to the wait set).
     fast: FastWaitSet | None = None
+    #: Subscriptions whose messages :class:`Express` takes and runs, by
+    #: handle address: (taker, entry, lane, lane lock, marker work).
+    express: dict[int, tuple[Taker, _Entry, Lane, Any, Work]] = field(default_factory=dict)
 
 
 def describe(entity: object) -> str:
@@ -182,11 +188,15 @@ class _WaitSet:
         #: New-message callbacks instead of waiting on subscriptions (hot only).
         self._notifier: Notifier | None = None
         self._notifier_guard: GuardCondition | None = None
+        #: Takes and runs reported ``async def`` subscription callbacks in C.
+        self._express: Express | None = None
         if "subscription" in kinds:
             self._notifier_guard = GuardCondition(
                 callback=None, callback_group=None, context=dispatcher.context
             )
             self._notifier = Notifier(guard=self._notifier_guard.handle.pointer)
+            if isinstance(self._notifier, _fastpath.Notifier):  # not a stand-in (tests)
+                self._express = dispatcher.express(self._notifier, self)
         #: When this wait set last entered ``rcl_wait`` (monotonic ns).
         self._polled = 0
         #: Handle addresses the notifier calls back for (their handles held).
@@ -220,7 +230,16 @@ class _WaitSet:
                             # Not event-driven (an rmw without new-data callbacks): waited on.
                             table.handles[kind].append(entity.handle)
                         elif not entity.raw:
-                            entry.taker = _taker(entity)
+                            entry.taker = taker = _taker(entity)
+                            if taker is not None and entry.is_async and not entry.wants_info:
+                                table.express[entity.handle.pointer] = (
+                                    taker,
+                                    entry,
+                                    entry.lane,
+                                    entry.lane.lock,
+                                    # What the runner carries, for the watchdog's report.
+                                    Work(entity, entity.callback, True, entry.depth, entry.done, entry.token),
+                                )
             for waitable in list(node.waitables):
                 if not self._takes_waitable(waitable) or not _hold(held, waitable):
                     continue
@@ -316,16 +335,38 @@ class _WaitSet:
                 _log.exception("dispatching ROS work failed")
                 return WOKEN
 
-    def take_ready_now(self) -> None:
-        """Take what the notifier reported, without a wait (the caller saw none is due)."""
-        with self._take_lock:
-            notifier = self._notifier
-            if self._closed or self._dirty or notifier is None:
+    def burst(
+        self, loop: asyncio.AbstractEventLoop, eager: Sized, run_eager: Callable[[], None], *, express: bool
+    ) -> None:
+        """Take what the notifier reports and run it, without waiting, for as
+        long as asyncio has nothing to run and no wait is due (timers and
+        guard conditions looked at within ``_POLL_MAX_NS``).
+
+        The hot path of a chain of callbacks in one process: one call per
+        round, the checks inlined.
+        """
+        notifier = self._notifier
+        fast = self._express if express else None
+        monotonic_ns = time.monotonic_ns
+        while loop_is_idle(loop) and not self._dirty and monotonic_ns() - self._polled < _POLL_MAX_NS:
+            if notifier is not None and notifier.pending():
+                if fast is not None:
+                    try:
+                        if fast.drain(self._polled + _POLL_MAX_NS):
+                            continue  # it ran what it took, and the eager work after
+                    except Exception:
+                        self._taking_failed()
+                        continue
+                with self._take_lock:
+                    if self._closed or self._dirty:
+                        return
+                    try:
+                        self._take_ready(self._table, notifier.ready())
+                    except Exception:
+                        self._taking_failed()
+            elif not eager:
                 return
-            try:
-                self._take_ready(self._table, notifier.ready())
-            except Exception:
-                self._taking_failed()
+            run_eager()
 
     def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
         notifier = self._notifier
@@ -640,6 +681,10 @@ class Dispatcher:
         self._tokens_lock = threading.Lock()
         self._loop_thread: int | None = None
         self._cold_wake = GuardCondition(callback=None, callback_group=None, context=context)
+        # Async work submitted on the loop thread, started eagerly once the
+        # wait set's lock is released (see ``Lane.run_eager``), each with
+        # whether its lane admitted it already (else: as it starts).
+        self._eager: collections.deque[tuple[Lane, Work, bool]] = collections.deque()
         self._hot = _WaitSet(
             self, kinds=_HOT, takes_waitable=_is_hot_waitable, own_guards=own_guards
         )
@@ -650,9 +695,6 @@ class Dispatcher:
             own_guards=lambda: [(self._cold_wake, WOKEN)],
         )
         self._cold_thread: threading.Thread | None = None
-        # Async work submitted on the loop thread, started eagerly once the
-        # wait set's lock is released (see ``Lane.run_eager``).
-        self._eager: collections.deque[tuple[Lane, Work]] = collections.deque()
         self._active = threading.Event()
         self._closed = False
         #: When the loop thread last came back from rcl (``None`` while it
@@ -792,13 +834,7 @@ class Dispatcher:
                 timeout_ns = 0  # a poll, then that work runs
             flags = self._wait_and_dispatch_once(timeout_ns)
         if not flags and self._dispatching_burst():
-            hot, loop = self._hot, self._loop
-            while loop_is_idle(loop):
-                if hot.ready_without_wait():
-                    hot.take_ready_now()
-                elif not (self._eager and hot.poll_is_recent()):
-                    break
-                self._run_eager()
+            self._hot.burst(self._loop, self._eager, self._run_eager, express=self._permits is None)
         return flags
 
     def ros_turn_due(self) -> bool:
@@ -835,8 +871,11 @@ class Dispatcher:
     def _run_eager(self) -> None:
         queue = self._eager
         while queue:
-            lane, work = queue.popleft()
-            lane.run_eager(work)
+            lane, work, admitted = queue.popleft()
+            if admitted:
+                lane.run_eager(work)
+            else:
+                lane.run_express(work)
 
     def _defer_eager(self, lane: Lane, work: Work) -> bool:
         """Keep async ``work`` (submitted on the loop thread) to start eagerly.
@@ -848,8 +887,41 @@ class Dispatcher:
         """
         if self.relieving:
             return False
-        self._eager.append((lane, work))
+        self._eager.append((lane, work, True))
         return True
+
+    # -- express: the C path's hand-overs (see ``_fastpath.Express``) -----------------
+    def express(self, notifier: Notifier, wait_set: _WaitSet) -> Express:
+        """The C path that takes and runs ``notifier``'s async subscriptions of ``wait_set``."""
+        return Express(
+            notifier=notifier,
+            waitset=wait_set,
+            loop=self._loop,
+            ready_queue=loop_ready_queue(self._loop),
+            eager=self._eager,
+            run_eager=self._run_eager,
+            enter_task=enter_task,
+            leave_task=leave_task,
+            on_done=self._on_done,
+            slow=self._express_slow,
+            suspended=self._express_suspended,
+            failed=self._express_failed,
+            cancelled_error=asyncio.CancelledError,
+        )
+
+    def _work(self, entry: _Entry, message: object) -> Work:
+        sub = entry.entity
+        return Work(sub, sub.callback, True, entry.depth, entry.done, entry.token, (message,))
+
+    def _express_slow(self, entry: _Entry, message: object) -> None:
+        """A message the C path took whose lane cannot start it there (busy, locked, no idle runner)."""
+        entry.lane.run_express(self._work(entry, message))
+
+    def _express_suspended(self, entry: _Entry, message: object, runner: Any, coro: Any, yielded: Any) -> None:
+        entry.lane.express_suspended(runner, self._work(entry, message), coro, yielded)
+
+    def _express_failed(self, entry: _Entry, message: object, error: BaseException | None) -> None:
+        entry.lane.express_finished(self._work(entry, message), error)
 
     # -- tokens: which work may still start ----------------------------------------
     def _token(self, entity: object, node: Node) -> Token:
@@ -986,6 +1058,16 @@ class Dispatcher:
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set)."""
         work = Work(entry.entity, callback, entry.is_async, entry.depth, entry.done, entry.token, args)
+        if (
+            entry.is_async
+            and self._permits is None
+            and not self.relieving
+            and threading.get_ident() == self._loop_thread
+        ):
+            # Taken on the loop thread while it dispatches: the lane admits
+            # it when it starts, eagerly, right after (one call, not five).
+            self._eager.append((entry.lane, work, False))
+            return
         if self._permits is None or self.admit(entry.entity, entry.depth, functools.partial(entry.lane.submit, work)):
             entry.lane.submit(work)
 

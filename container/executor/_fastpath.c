@@ -35,6 +35,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
 
 #include <rcl/client.h>
 #include <rcl/error_handling.h>
@@ -810,6 +811,661 @@ static PyTypeObject TakerType = {
   .tp_methods = Taker_methods,
 };
 
+/* ------------------------------------------------------------------------ */
+/* Express: the loop thread's chain of async subscription callbacks, in C.
+ *
+ * Why: a message one node of this process publishes to another is reported
+ * by the Notifier at once, and the loop thread takes it and runs its
+ * ``async def`` callback's first step without waiting (most callbacks
+ * finish in it). Done in Python that costs about 20 calls per message
+ * (taking, handing to the lane, admitting, entering the runner's task and
+ * context, finishing), more than the publish and the take together. Here it
+ * is one call per chain: take what the Notifier reported, admit each message
+ * into its callback group's lane, run the first step in an idle runner task
+ * of that lane (asyncio's current task and the runner's context, as the
+ * Python path does) and release the lane.
+ *
+ * Only the common case is handled here; everything else is handed to the
+ * Python path the executor uses anyway: a lane that is busy, locked by
+ * another thread or without an idle runner (``slow``), a callback that
+ * suspends or fails (``suspended``, ``failed``), a lane with pending work
+ * after the step (``Lane.express_release``), and entities that are not
+ * express routes (``_WaitSet._take_ready``). The lane's state is read and
+ * written only while its lock is free: this thread holds the GIL and calls
+ * no Python code in between, so no other thread is inside the lane then.
+ *
+ * Routes (a dict of handle address -> (taker, entry, lane, lane lock,
+ * marker)) are read from the wait set's current table under its take lock,
+ * with its dirty and closed flags, like the Python path.
+ */
+typedef struct {
+  PyObject_HEAD
+  NotifierObject * notifier;
+  PyObject * waitset;     /* the _WaitSet: _dirty, _closed, _table, _take_lock, _take_ready */
+  PyObject * loop;
+  PyObject * ready_queue; /* asyncio's ready deque: non-empty means asyncio has work */
+  PyObject * eager;       /* the dispatcher's eager deque */
+  PyObject * run_eager;
+  PyObject * enter_task;
+  PyObject * leave_task;
+  PyObject * on_done;
+  PyObject * slow;        /* slow(entry, message) */
+  PyObject * suspended;   /* suspended(entry, message, runner, coro, yielded) */
+  PyObject * failed;      /* failed(entry, message, error or None) */
+  unsigned long long expressed; /* callbacks run here (tests, diagnostics) */
+} ExpressObject;
+
+static PyObject * s_dirty, * s_closed, * s_table, * s_express, * s_take_lock, * s_acquire,
+  * s_release, * s_take_ready, * s_locked, * s_running, * s_limit, * s_idle_runners, * s_idle,
+  * s_done, * s_task, * s_context, * s_current, * s_callback, * s_entity, * s_token, * s_retired,
+  * s_pending, * s_express_release, * s_cancelled_error;
+
+static int intern_names(void)
+{
+#define INTERN(var, text) if ((var = PyUnicode_InternFromString(text)) == NULL) return -1
+  INTERN(s_dirty, "_dirty");
+  INTERN(s_closed, "_closed");
+  INTERN(s_table, "_table");
+  INTERN(s_express, "express");
+  INTERN(s_take_lock, "_take_lock");
+  INTERN(s_acquire, "acquire");
+  INTERN(s_release, "release");
+  INTERN(s_take_ready, "_take_ready");
+  INTERN(s_locked, "locked");
+  INTERN(s_running, "_running");
+  INTERN(s_limit, "limit");
+  INTERN(s_idle_runners, "_idle_runners");
+  INTERN(s_idle, "idle");
+  INTERN(s_done, "done");
+  INTERN(s_task, "task");
+  INTERN(s_context, "context");
+  INTERN(s_current, "current");
+  INTERN(s_callback, "callback");
+  INTERN(s_entity, "entity");
+  INTERN(s_token, "token");
+  INTERN(s_retired, "retired");
+  INTERN(s_pending, "_pending");
+  INTERN(s_express_release, "express_release");
+#undef INTERN
+  return 0;
+}
+
+static int Express_init(ExpressObject * self, PyObject * args, PyObject * kwargs)
+{
+  static char * keywords[] = {
+    "notifier", "waitset", "loop", "ready_queue", "eager", "run_eager", "enter_task", "leave_task",
+    "on_done", "slow", "suspended", "failed", "cancelled_error", NULL};
+  PyObject * notifier, * cancelled;
+  if (!PyArg_ParseTupleAndKeywords(
+        args, kwargs, "$O!OOOOOOOOOOOO", keywords, &NotifierType, &notifier, &self->waitset,
+        &self->loop, &self->ready_queue, &self->eager, &self->run_eager, &self->enter_task,
+        &self->leave_task, &self->on_done, &self->slow, &self->suspended, &self->failed, &cancelled)) {
+    return -1;
+  }
+  self->notifier = (NotifierObject *)notifier;
+  Py_INCREF(notifier);
+  Py_INCREF(self->waitset);
+  Py_INCREF(self->loop);
+  Py_INCREF(self->ready_queue);
+  Py_INCREF(self->eager);
+  Py_INCREF(self->run_eager);
+  Py_INCREF(self->enter_task);
+  Py_INCREF(self->leave_task);
+  Py_INCREF(self->on_done);
+  Py_INCREF(self->slow);
+  Py_INCREF(self->suspended);
+  Py_INCREF(self->failed);
+  Py_XSETREF(s_cancelled_error, Py_NewRef(cancelled));
+  return 0;
+}
+
+static int Express_traverse(ExpressObject * self, visitproc visit, void * arg)
+{
+  Py_VISIT(self->notifier);
+  Py_VISIT(self->waitset);
+  Py_VISIT(self->loop);
+  Py_VISIT(self->ready_queue);
+  Py_VISIT(self->eager);
+  Py_VISIT(self->run_eager);
+  Py_VISIT(self->enter_task);
+  Py_VISIT(self->leave_task);
+  Py_VISIT(self->on_done);
+  Py_VISIT(self->slow);
+  Py_VISIT(self->suspended);
+  Py_VISIT(self->failed);
+  return 0;
+}
+
+static int Express_clear(ExpressObject * self)
+{
+  Py_CLEAR(self->notifier);
+  Py_CLEAR(self->waitset);
+  Py_CLEAR(self->loop);
+  Py_CLEAR(self->ready_queue);
+  Py_CLEAR(self->eager);
+  Py_CLEAR(self->run_eager);
+  Py_CLEAR(self->enter_task);
+  Py_CLEAR(self->leave_task);
+  Py_CLEAR(self->on_done);
+  Py_CLEAR(self->slow);
+  Py_CLEAR(self->suspended);
+  Py_CLEAR(self->failed);
+  return 0;
+}
+
+static void Express_dealloc(ExpressObject * self)
+{
+  PyObject_GC_UnTrack(self);
+  Express_clear(self);
+  Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* 1 if the attribute is true, 0 if false, -1 on error. */
+static int attr_true(PyObject * object, PyObject * name)
+{
+  int result;
+  PyObject * value = PyObject_GetAttr(object, name);
+  if (value == NULL) {
+    return -1;
+  }
+  result = PyObject_IsTrue(value);
+  Py_DECREF(value);
+  return result;
+}
+
+static int lock_free(PyObject * lock)
+{
+  PyObject * locked = PyObject_CallMethodNoArgs(lock, s_locked);
+  int result;
+  if (locked == NULL) {
+    return -1;
+  }
+  result = locked == Py_False;
+  Py_DECREF(locked);
+  return result;
+}
+
+static int add_running(PyObject * lane, long delta)
+{
+  long running;
+  int result;
+  PyObject * value = PyObject_GetAttr(lane, s_running);
+  if (value == NULL) {
+    return -1;
+  }
+  running = PyLong_AsLong(value);
+  Py_DECREF(value);
+  if (running == -1 && PyErr_Occurred()) {
+    return -1;
+  }
+  value = PyLong_FromLong(running + delta);
+  if (value == NULL) {
+    return -1;
+  }
+  result = PyObject_SetAttr(lane, s_running, value);
+  Py_DECREF(value);
+  return result;
+}
+
+/* An idle runner of ``lane`` whose first step may run now (new reference),
+ * Py_None if none is (the slow path finds or makes one), NULL on error.
+ * Admits too: the lane's running count is raised when one is returned. */
+static PyObject * admit(PyObject * lane, PyObject * lock)
+{
+  PyObject * runners, * runner, * idle, * done, * value;
+  long running, limit;
+  int free = lock_free(lock);
+  if (free <= 0) {
+    return free < 0 ? NULL : Py_NewRef(Py_None);
+  }
+  switch (attr_true(lane, s_closed)) {
+    case -1: return NULL;
+    case 1: return Py_NewRef(Py_None);
+  }
+  if ((value = PyObject_GetAttr(lane, s_running)) == NULL) {
+    return NULL;
+  }
+  running = PyLong_AsLong(value);
+  Py_DECREF(value);
+  if ((value = PyObject_GetAttr(lane, s_limit)) == NULL) {
+    return NULL;
+  }
+  limit = PyLong_AsLong(value);
+  Py_DECREF(value);
+  if (PyErr_Occurred()) {
+    return NULL;
+  }
+  if (running >= limit) {
+    return Py_NewRef(Py_None);
+  }
+  if ((runners = PyObject_GetAttr(lane, s_idle_runners)) == NULL) {
+    return NULL;
+  }
+  if (!PyList_Check(runners) || PyList_GET_SIZE(runners) == 0) {
+    Py_DECREF(runners);
+    return Py_NewRef(Py_None);
+  }
+  runner = Py_NewRef(PyList_GET_ITEM(runners, PyList_GET_SIZE(runners) - 1));
+  Py_DECREF(runners);
+  if ((idle = PyObject_GetAttr(runner, s_idle)) == NULL) {
+    Py_DECREF(runner);
+    return NULL;
+  }
+  if (idle == Py_None) {
+    Py_DECREF(idle);
+    Py_DECREF(runner);
+    return Py_NewRef(Py_None);
+  }
+  done = PyObject_CallMethodNoArgs(idle, s_done);
+  Py_DECREF(idle);
+  if (done == NULL) {
+    Py_DECREF(runner);
+    return NULL;
+  }
+  if (done != Py_False) {
+    Py_DECREF(done);
+    Py_DECREF(runner);
+    return Py_NewRef(Py_None);
+  }
+  Py_DECREF(done);
+  if (add_running(lane, 1) < 0) {
+    Py_DECREF(runner);
+    return NULL;
+  }
+  return runner;
+}
+
+/* The lane's slot taken by ``admit`` is given back (or passed to pending work). */
+static int release(PyObject * lane, PyObject * lock, PyObject * marker)
+{
+  PyObject * pending, * result;
+  Py_ssize_t waiting;
+  int free = lock_free(lock);
+  if (free < 0) {
+    return -1;
+  }
+  if (free) {
+    if ((pending = PyObject_GetAttr(lane, s_pending)) == NULL) {
+      return -1;
+    }
+    waiting = PyObject_Length(pending);
+    Py_DECREF(pending);
+    if (waiting < 0) {
+      return -1;
+    }
+    if (waiting == 0) {
+      return add_running(lane, -1);
+    }
+  }
+  result = PyObject_CallMethodOneArg(lane, s_express_release, marker);
+  Py_XDECREF(result);
+  return result == NULL ? -1 : 0;
+}
+
+static PyObject * call2(PyObject * callable, PyObject * a, PyObject * b)
+{
+  PyObject * args[2] = {a, b};
+  return PyObject_Vectorcall(callable, args, 2, NULL);
+}
+
+/* Run one taken message's callback: 0, or -1 with an exception set (one that
+ * must stop the executor: KeyboardInterrupt, or a failure of this path). */
+static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
+{
+  PyObject * entry = PyTuple_GET_ITEM(route, 1);
+  PyObject * lane = PyTuple_GET_ITEM(route, 2);
+  PyObject * lock = PyTuple_GET_ITEM(route, 3);
+  PyObject * marker = PyTuple_GET_ITEM(route, 4);
+  PyObject * token, * entity, * callback, * runner, * task, * context, * coro, * yielded = NULL;
+  PyObject * result, * type, * value, * traceback;
+  PySendResult status;
+  int retired;
+
+  if ((token = PyObject_GetAttr(entry, s_token)) == NULL) {
+    return -1;
+  }
+  retired = attr_true(token, s_retired);
+  Py_DECREF(token);
+  if (retired != 0) {
+    return retired < 0 ? -1 : 0; /* its entity or node left: dropped, as rclpy drops it */
+  }
+  if ((runner = admit(lane, lock)) == NULL) {
+    return -1;
+  }
+  if (runner == Py_None) {
+    Py_DECREF(runner);
+    result = call2(self->slow, entry, message);
+    Py_XDECREF(result);
+    return result == NULL ? -1 : 0;
+  }
+  task = PyObject_GetAttr(runner, s_task);
+  context = PyObject_GetAttr(runner, s_context);
+  entity = PyObject_GetAttr(entry, s_entity);
+  callback = entity != NULL ? PyObject_GetAttr(entity, s_callback) : NULL;
+  Py_XDECREF(entity);
+  if (task == NULL || context == NULL || callback == NULL ||
+      PyObject_SetAttr(runner, s_current, marker) < 0) {
+    goto undo;
+  }
+  if (PyContext_Enter(context) < 0) {
+    goto undo;
+  }
+  result = call2(self->enter_task, self->loop, task);
+  if (result == NULL) {
+    PyContext_Exit(context);
+    goto undo;
+  }
+  Py_DECREF(result);
+  coro = PyObject_CallOneArg(callback, message);
+  status = coro != NULL ? PyIter_Send(coro, Py_None, &yielded) : PYGEN_ERROR;
+  PyErr_Fetch(&type, &value, &traceback);
+  result = call2(self->leave_task, self->loop, task);
+  Py_XDECREF(result);
+  PyContext_Exit(context);
+  Py_DECREF(task);
+  Py_DECREF(context);
+  Py_DECREF(callback);
+  if (result == NULL) { /* leaving the task failed: nothing sane is left to do */
+    Py_XDECREF(type);
+    Py_XDECREF(value);
+    Py_XDECREF(traceback);
+    Py_XDECREF(coro);
+    Py_XDECREF(yielded);
+    Py_DECREF(runner);
+    return -1;
+  }
+  if (PyObject_SetAttr(runner, s_current, Py_None) < 0) {
+    PyErr_Clear();
+  }
+  self->expressed++;
+  if (status == PYGEN_RETURN) {
+    Py_DECREF(coro);
+    Py_XDECREF(yielded);
+    Py_DECREF(runner);
+    result = PyObject_CallNoArgs(self->on_done);
+    Py_XDECREF(result);
+    if (result == NULL) {
+      return -1;
+    }
+    return release(lane, lock, marker);
+  }
+  if (status == PYGEN_NEXT) {
+    PyObject * args[5] = {entry, message, runner, coro, yielded};
+    result = PyObject_Vectorcall(self->suspended, args, 5, NULL);
+    Py_DECREF(coro);
+    Py_DECREF(yielded);
+    Py_DECREF(runner);
+    Py_XDECREF(result);
+    return result == NULL ? -1 : 0;
+  }
+  /* Failed: in creating the coroutine or in its first step. */
+  Py_XDECREF(coro);
+  Py_DECREF(runner);
+  PyErr_NormalizeException(&type, &value, &traceback);
+  if (value != NULL && traceback != NULL) {
+    PyException_SetTraceback(value, traceback);
+  }
+  if (value != NULL && PyErr_GivenExceptionMatches(value, PyExc_KeyboardInterrupt)) {
+    PyErr_Restore(type, value, traceback);
+    return -1;
+  }
+  Py_XDECREF(type);
+  Py_XDECREF(traceback);
+  {
+    /* A callback's own cancellation ends that callback only: no error. */
+    int cancelled = value != NULL && PyErr_GivenExceptionMatches(value, s_cancelled_error);
+    PyObject * args[3] = {entry, message, cancelled || value == NULL ? Py_None : value};
+    result = PyObject_Vectorcall(self->failed, args, 3, NULL);
+  }
+  Py_XDECREF(value);
+  Py_XDECREF(result);
+  return result == NULL ? -1 : 0;
+
+undo:
+  PyErr_Fetch(&type, &value, &traceback);
+  if (PyObject_SetAttr(runner, s_current, Py_None) < 0 || add_running(lane, -1) < 0) {
+    PyErr_Clear();
+  }
+  PyErr_Restore(type, value, traceback);
+  Py_XDECREF(task);
+  Py_XDECREF(context);
+  Py_XDECREF(callback);
+  Py_DECREF(runner);
+  return -1;
+}
+
+static long long monotonic_ns(void)
+{
+  struct timespec now;
+  clock_gettime(CLOCK_MONOTONIC, &now);
+  return (long long)now.tv_sec * 1000000000LL + now.tv_nsec;
+}
+
+
+/* Take what the notifier reported (into ``batch``: route, message, ...) under
+ * the take lock; 1 taken, 0 nothing to do (stop), -1 error. Entities that are
+ * not routes go through the wait set's Python ``_take_ready``. */
+static int take_batch(ExpressObject * self, PyObject * batch)
+{
+  PyObject * lock, * got, * table = NULL, * routes = NULL, * reported = NULL, * rest = NULL;
+  PyObject * result, * type = NULL, * value = NULL, * traceback = NULL;
+  Py_ssize_t i, n;
+  int status = 1, flag;
+
+  if ((lock = PyObject_GetAttr(self->waitset, s_take_lock)) == NULL) {
+    return -1;
+  }
+  got = PyObject_CallMethodOneArg(lock, s_acquire, Py_False);
+  if (got == NULL) {
+    Py_DECREF(lock);
+    return -1;
+  }
+  if (got != Py_True) {
+    /* A worker is carrying: whoever holds it takes what is plain; the
+     * caller's next round (the Python path) takes the rest. */
+    Py_DECREF(got);
+    Py_DECREF(lock);
+    return 0;
+  }
+  Py_DECREF(got);
+  if ((flag = attr_true(self->waitset, s_closed)) != 0 ||
+      (flag = attr_true(self->waitset, s_dirty)) != 0) {
+    status = flag < 0 ? -1 : 0;
+    goto out;
+  }
+  if ((table = PyObject_GetAttr(self->waitset, s_table)) == NULL ||
+      (routes = PyObject_GetAttr(table, s_express)) == NULL) {
+    status = -1;
+    goto out;
+  }
+  if (!PyDict_Check(routes)) {
+    PyErr_SetString(PyExc_TypeError, "express routes must be a dict");
+    status = -1;
+    goto out;
+  }
+  if ((reported = Notifier_ready(self->notifier, NULL)) == NULL) {
+    status = -1;
+    goto out;
+  }
+  n = PyList_GET_SIZE(reported);
+  for (i = 0; i < n; ++i) {
+    PyObject * pair = PyList_GET_ITEM(reported, i);
+    PyObject * route = PyDict_GetItemWithError(routes, PyTuple_GET_ITEM(pair, 0));
+    Py_ssize_t count, j;
+    if (route == NULL) {
+      if (PyErr_Occurred()) {
+        status = -1;
+        goto out;
+      }
+      if (rest == NULL && (rest = PyList_New(0)) == NULL) {
+        status = -1;
+        goto out;
+      }
+      if (PyList_Append(rest, pair) < 0) {
+        status = -1;
+        goto out;
+      }
+      continue;
+    }
+    count = PyLong_AsSsize_t(PyTuple_GET_ITEM(pair, 1));
+    for (j = 0; j < count; ++j) {
+      PyObject * message = take((TakerObject *)PyTuple_GET_ITEM(route, 0), 0);
+      if (message == NULL) {
+        /* Run what was taken, then report this. */
+        PyErr_Fetch(&type, &value, &traceback);
+        goto out;
+      }
+      if (message == Py_None) {
+        Py_DECREF(message);
+        break;
+      }
+      if (PyList_Append(batch, route) < 0 || PyList_Append(batch, message) < 0) {
+        Py_DECREF(message);
+        status = -1;
+        goto out;
+      }
+      Py_DECREF(message);
+    }
+  }
+  if (rest != NULL) {
+    PyObject * args[3] = {self->waitset, table, rest};
+    result = PyObject_VectorcallMethod(s_take_ready, args, 3, NULL);
+    if (result == NULL) {
+      status = -1;
+    }
+    Py_XDECREF(result);
+  }
+out:
+  Py_XDECREF(table);
+  Py_XDECREF(routes);
+  Py_XDECREF(reported);
+  Py_XDECREF(rest);
+  {
+    PyObject * et, * ev, * tb;
+    PyErr_Fetch(&et, &ev, &tb);
+    result = PyObject_CallMethodNoArgs(lock, s_release);
+    Py_XDECREF(result);
+    if (result == NULL) {
+      PyErr_Clear();
+    }
+    PyErr_Restore(et, ev, tb);
+  }
+  Py_DECREF(lock);
+  if (type != NULL || value != NULL) {
+    /* A take failed: the caller runs the batch, then raises this. */
+    PyErr_Restore(type, value, traceback);
+    return -2;
+  }
+  return status;
+}
+
+/* drain(deadline_ns) -> bool: take and run what the notifier reports until
+ * nothing is, the deadline (the next poll of timers) passes, or asyncio has
+ * work of its own. False: the take lock was busy (take the Python way). */
+static PyObject * Express_drain(ExpressObject * self, PyObject * arg)
+{
+  long long deadline = PyLong_AsLongLong(arg);
+  PyObject * batch;
+  if (deadline == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  batch = PyList_New(0);
+  if (batch == NULL) {
+    return NULL;
+  }
+  for (;;) {
+    Py_ssize_t i, n, queued;
+    int status;
+    if (!atomic_load(&self->notifier->pending) || monotonic_ns() >= deadline) {
+      break;
+    }
+    queued = PyObject_Length(self->ready_queue);
+    if (queued != 0) {
+      if (queued < 0) {
+        Py_DECREF(batch);
+        return NULL;
+      }
+      break;
+    }
+    status = take_batch(self, batch);
+    if (status == 0) {
+      Py_DECREF(batch);
+      Py_RETURN_FALSE;
+    }
+    {
+      /* A failed take (-2) still runs what was taken before it. */
+      PyObject * et = NULL, * ev = NULL, * tb = NULL;
+      if (status == -2) {
+        PyErr_Fetch(&et, &ev, &tb);
+      }
+      n = PyList_GET_SIZE(batch);
+      for (i = 0; i + 1 < n && status != -1; i += 2) {
+        if (run_one(self, PyList_GET_ITEM(batch, i), PyList_GET_ITEM(batch, i + 1)) < 0) {
+          status = -1;
+        }
+      }
+      if (status == -1) {
+        Py_XDECREF(et);
+        Py_XDECREF(ev);
+        Py_XDECREF(tb);
+      } else if (PyList_SetSlice(batch, 0, n, NULL) < 0) {
+        status = -1;
+      } else if (status == -2) {
+        PyErr_Restore(et, ev, tb);
+      }
+    }
+    if (status < 0) {
+      Py_DECREF(batch);
+      return NULL;
+    }
+    queued = PyObject_Length(self->eager);
+    if (queued > 0) {
+      PyObject * result = PyObject_CallNoArgs(self->run_eager);
+      if (result == NULL) {
+        Py_DECREF(batch);
+        return NULL;
+      }
+      Py_DECREF(result);
+    } else if (queued < 0) {
+      Py_DECREF(batch);
+      return NULL;
+    }
+  }
+  Py_DECREF(batch);
+  Py_RETURN_TRUE;
+}
+
+static PyObject * Express_get_expressed(ExpressObject * self, void * Py_UNUSED(closure))
+{
+  return PyLong_FromUnsignedLongLong(self->expressed);
+}
+
+static PyMethodDef Express_methods[] = {
+  {"drain", (PyCFunction)Express_drain, METH_O,
+   "drain(deadline_ns) -> bool: take and run reported messages until none is, the deadline, or asyncio has work; False: take lock busy."},
+  {NULL, NULL, 0, NULL},
+};
+
+static PyGetSetDef Express_getset[] = {
+  {"expressed", (getter)Express_get_expressed, NULL, "How many callbacks ran on this path.", NULL},
+  {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PyTypeObject ExpressType = {
+  PyVarObject_HEAD_INIT(NULL, 0)
+  .tp_name = "container.executor._fastpath.Express",
+  .tp_doc = "The loop thread's chain of async subscription callbacks: take, admit, first step, release.",
+  .tp_basicsize = sizeof(ExpressObject),
+  .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
+  .tp_new = PyType_GenericNew,
+  .tp_init = (initproc)Express_init,
+  .tp_dealloc = (destructor)Express_dealloc,
+  .tp_traverse = (traverseproc)Express_traverse,
+  .tp_clear = (inquiry)Express_clear,
+  .tp_methods = Express_methods,
+  .tp_getset = Express_getset,
+};
+
 static struct PyModuleDef module = {
   PyModuleDef_HEAD_INIT,
   .m_name = "_fastpath",
@@ -820,7 +1476,8 @@ static struct PyModuleDef module = {
 PyMODINIT_FUNC PyInit__fastpath(void)
 {
   PyObject * m;
-  if (PyType_Ready(&NotifierType) < 0 || PyType_Ready(&TakerType) < 0 || PyType_Ready(&WaitSetType) < 0) {
+  if (PyType_Ready(&NotifierType) < 0 || PyType_Ready(&TakerType) < 0 || PyType_Ready(&WaitSetType) < 0 ||
+      PyType_Ready(&ExpressType) < 0 || intern_names() < 0) {
     return NULL;
   }
   m = PyModule_Create(&module);
@@ -830,9 +1487,11 @@ PyMODINIT_FUNC PyInit__fastpath(void)
   Py_INCREF(&NotifierType);
   Py_INCREF(&TakerType);
   Py_INCREF(&WaitSetType);
+  Py_INCREF(&ExpressType);
   if (PyModule_AddObject(m, "Notifier", (PyObject *)&NotifierType) < 0 ||
       PyModule_AddObject(m, "Taker", (PyObject *)&TakerType) < 0 ||
       PyModule_AddObject(m, "WaitSet", (PyObject *)&WaitSetType) < 0 ||
+      PyModule_AddObject(m, "Express", (PyObject *)&ExpressType) < 0 ||
       PyModule_AddIntConstant(m, "SUBSCRIPTION", KIND_SUBSCRIPTION) < 0 ||
       PyModule_AddIntConstant(m, "CLIENT", KIND_CLIENT) < 0 ||
       PyModule_AddIntConstant(m, "SERVICE", KIND_SERVICE) < 0 ||
@@ -841,6 +1500,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     Py_DECREF(&NotifierType);
     Py_DECREF(&TakerType);
     Py_DECREF(&WaitSetType);
+    Py_DECREF(&ExpressType);
     Py_DECREF(m);
     return NULL;
   }

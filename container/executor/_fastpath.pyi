@@ -1,6 +1,6 @@
 """Type stub of the ``_fastpath`` extension (``_fastpath.c``)."""
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 SUBSCRIPTION: int
 CLIENT: int
@@ -47,3 +47,25 @@ class WaitSet:
         events: Sequence[int] = (),
     ) -> None: ...
     def wait(self, timeout_ns: int, /) -> Ready: ...
+
+class Express:
+    def __init__(
+        self,
+        *,
+        notifier: Notifier,
+        waitset: object,
+        loop: object,
+        ready_queue: object,
+        eager: object,
+        run_eager: Callable[[], object],
+        enter_task: Callable[..., object],
+        leave_task: Callable[..., object],
+        on_done: Callable[[], object],
+        slow: Callable[..., object],
+        suspended: Callable[..., object],
+        failed: Callable[..., object],
+        cancelled_error: type[BaseException],
+    ) -> None: ...
+    def drain(self, deadline_ns: int, /) -> bool: ...
+    @property
+    def expressed(self) -> int: ...

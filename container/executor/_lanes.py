@@ -377,6 +377,51 @@ class Lane:
         idle.set_result(item)
         return True
 
+    def run_express(self, work: Work) -> None:
+        """:meth:`submit` and :meth:`run_eager` in one: async ``work`` taken on
+        the loop thread starts now if the group allows it, else waits."""
+        with self._lock:
+            if self._closed:
+                return
+            if self._running >= self.limit:
+                self._keep_pending(work)
+                return
+            self._running += 1
+            self._active.add(work)
+        self.run_eager(work)
+
+    @property
+    def lock(self) -> threading.Lock:
+        """Held while the lane's state changes: the C path (``Express``) only
+        touches that state while nobody holds it."""
+        return self._lock
+
+    def express_release(self, finished: Work) -> None:
+        """The C path's first step of ``finished`` ended: its slot goes to
+        pending work (started as :meth:`run_eager` would) or is given back."""
+        nxt = self._next_pending(finished)
+        if nxt is None:
+            return
+        if nxt.is_async:
+            self.run_eager(nxt)
+        else:
+            self._hand_to_thread(nxt)
+
+    def express_suspended(self, runner: _Runner, work: Work, coro: Any, yielded: Any) -> None:
+        """The C path's first step of ``work`` suspended in ``runner``: that runner finishes it."""
+        with self._lock:
+            self._active.add(work)
+        if runner in self._idle_runners:
+            self._idle_runners.remove(runner)
+        resume = _Resume(work, coro, yielded)
+        if not self._wake(runner, resume):
+            self._hand_to_runner(resume)
+
+    def express_finished(self, work: Work, error: BaseException | None) -> None:
+        """The C path's first step of ``work`` failed with ``error`` (``None``: cancelled)."""
+        work.done(work, error)
+        self.express_release(work)
+
     def run_eager(self, work: Work) -> None:
         """Run async ``work``, whose slot is taken, up to its first suspension.
 
@@ -395,7 +440,8 @@ class Lane:
                 self._idle_runners.pop()  # cancelled while idle; its task ends
                 continue
             error: BaseException | None
-            if _retired(item):
+            token = item.token
+            if token is not None and token.retired:
                 done, error, resume = True, Retired(), None
             else:
                 runner.current = item  # what the loop runs, should it get stuck here

@@ -10,6 +10,7 @@ re-created while the executor spins must keep being served.
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import threading
 import time
@@ -229,6 +230,90 @@ def test_ping_pong_in_one_process_needs_no_wait_per_message(
     # 4,000 messages: one wait each on a wait set, here only the poll that
     # looks at timers and guards at least every millisecond.
     assert bounce.waits < rounds // 4, bounce.waits
+
+
+def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: Context) -> None:
+    """A chain of ``async def`` callbacks between two nodes of one process runs
+    on the C path (``Express``): taken, admitted to its group, first step run
+    in a lane's runner task. What the Python path guarantees holds there too:
+    a callback that suspends resumes in the same task, and its mutually
+    exclusive group stays busy meanwhile (a message for the group's other
+    subscription, arriving then, waits); an exception is reported, a
+    callback's own cancellation is not; the chain goes on through all of it."""
+    reports: list[str] = []
+    executor = AsyncioExecutor(
+        context=context, on_callback_error=lambda node, entity, exc: reports.append(str(exc))
+    )
+    a, b = Node("fp_express_a", context=context), Node("fp_express_b", context=context)
+    ping = a.create_publisher(Int64, "fp_express_ping", 10)
+    pong = b.create_publisher(Int64, "fp_express_pong", 10)
+    side = b.create_publisher(Int64, "fp_express_side", 10)
+    rounds = 400
+    done = threading.Event()
+    inside, peak = [0], [0]
+    resumed: list[bool] = []
+    sides: list[int] = []
+
+    def enter() -> None:
+        inside[0] += 1
+        peak[0] = max(peak[0], inside[0])
+
+    async def echo(msg: Int64) -> None:
+        enter()
+        try:
+            kind = msg.data % 4
+            if kind == 1:
+                side.publish(msg)  # for this group's other subscription: must wait
+                task = asyncio.current_task()
+                await asyncio.sleep(0.002)
+                resumed.append(task is not None and asyncio.current_task() is task)
+            pong.publish(msg)
+            if kind == 2:
+                raise ValueError(f"hop {msg.data}")
+            if kind == 3:
+                raise asyncio.CancelledError
+        finally:
+            inside[0] -= 1
+
+    async def on_side(msg: Int64) -> None:
+        enter()
+        sides.append(msg.data)
+        inside[0] -= 1
+
+    async def got(msg: Int64) -> None:
+        if msg.data >= rounds:
+            done.set()
+        else:
+            ping.publish(Int64(data=msg.data + 1))
+
+    b.create_subscription(Int64, "fp_express_ping", echo, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
+    b.create_subscription(Int64, "fp_express_side", on_side, 10)  # type: ignore[arg-type]
+    a.create_subscription(Int64, "fp_express_pong", got, 10)  # type: ignore[arg-type]
+    for made in (a, b):
+        executor.add_node(made)
+    for publisher in (ping, pong, side):
+        _matched(publisher)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        ping.publish(Int64(data=1))
+        assert done.wait(TIMEOUT), "the chain stopped"
+        express = executor._dispatcher._hot._express
+        assert express is not None
+        expressed = express.expressed
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        for made in (a, b):
+            made.destroy_node()
+    # 800 callbacks; the C path ran most (the rest: after a wait, or pending).
+    assert expressed > rounds, expressed
+    assert peak[0] == 1, "a mutually exclusive group ran two callbacks at once"
+    assert resumed == [True] * (rounds // 4), resumed
+    assert sorted(sides) == [n for n in range(1, rounds + 1) if n % 4 == 1]
+    assert sorted(reports, key=lambda text: int(text.split()[1])) == [
+        f"hop {n}" for n in range(1, rounds + 1) if n % 4 == 2
+    ]
 
 
 def test_plain_ping_pong_in_one_process_stays_on_one_thread(

@@ -118,8 +118,9 @@ class _Table:
     #: generic waitable, no QoS event left to the wait set).
     fast: FastWaitSet | None = None
     #: Subscriptions whose messages :class:`Express` takes and runs, by
-    #: handle address: (taker, entry, lane, lane lock, marker work).
-    express: dict[int, tuple[Taker, _Entry, Lane, Any, Work]] = field(default_factory=dict)
+    #: handle address: (taker, entry, lane, lane lock, marker work, the
+    #: subscription, its token).
+    express: dict[int, tuple[Taker, _Entry, Lane, Any, Work, Any, Token]] = field(default_factory=dict)
 
 
 def describe(entity: object) -> str:
@@ -207,6 +208,10 @@ class _WaitSet:
     def invalidate(self) -> None:
         self._dirty = True
 
+    @property
+    def take_lock(self) -> threading.Lock:
+        return self._take_lock
+
     def _rebuild(self) -> None:
         self._dirty = False
         dispatcher = self._dispatcher
@@ -239,6 +244,8 @@ class _WaitSet:
                                     entry.lane.lock,
                                     # What the runner carries, for the watchdog's report.
                                     Work(entity, entity.callback, True, entry.depth, entry.done, entry.token),
+                                    entity,
+                                    entry.token,
                                 )
             for waitable in list(node.waitables):
                 if not self._takes_waitable(waitable) or not _hold(held, waitable):
@@ -658,6 +665,7 @@ class Dispatcher:
         future_executor: object,
         on_error: ErrorHandler,
         on_done: Callable[[], None],
+        done_waiters: Sized = (),
         on_response: Callable[[], None],
         progress: Callable[[], asyncio.Future[None]],
         wake: Callable[[], None],
@@ -672,6 +680,8 @@ class Dispatcher:
         self._future_executor = future_executor
         self._on_error = on_error
         self._on_done = on_done
+        #: ``on_done`` matters only while this is non-empty (the C path skips it otherwise).
+        self._done_waiters = done_waiters
         self._on_response = on_response
         self._progress = progress
         self._lanes: dict[int, tuple[CallbackGroup, Lane]] = {}
@@ -896,6 +906,7 @@ class Dispatcher:
         return Express(
             notifier=notifier,
             waitset=wait_set,
+            take_lock=wait_set.take_lock,
             loop=self._loop,
             ready_queue=loop_ready_queue(self._loop),
             eager=self._eager,
@@ -903,6 +914,7 @@ class Dispatcher:
             enter_task=enter_task,
             leave_task=leave_task,
             on_done=self._on_done,
+            done_waiters=self._done_waiters,
             slow=self._express_slow,
             suspended=self._express_suspended,
             failed=self._express_failed,

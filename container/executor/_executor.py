@@ -141,10 +141,10 @@ class AsyncioExecutor(Executor):
         )
         self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
         self._running_loop: asyncio.AbstractEventLoop | None = None
+        self._completion_waiters: list[asyncio.Future[None]] = []
         self._dispatcher = self._make_dispatcher(self._loop)
         self._stopped: asyncio.Future[None] | None = None
         self._progress: asyncio.Future[None] | None = None
-        self._completion_waiters: list[asyncio.Future[None]] = []
         self._state = ExecutorState.IDLE
         #: Guards ``_state``; notified whenever it changes.
         self._state_changed = threading.Condition()
@@ -582,6 +582,7 @@ class AsyncioExecutor(Executor):
             future_executor=self,
             on_error=self._report_error,
             on_done=self._callback_completed,
+            done_waiters=self._completion_waiters,
             on_response=self._notify_progress,
             progress=self._progress_future,
             wake=self._guard_trigger,

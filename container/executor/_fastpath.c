@@ -835,13 +835,14 @@ static PyTypeObject TakerType = {
  * no Python code in between, so no other thread is inside the lane then.
  *
  * Routes (a dict of handle address -> (taker, entry, lane, lane lock,
- * marker)) are read from the wait set's current table under its take lock,
+ * marker, subscription, token)) are read from the wait set's current table under its take lock,
  * with its dirty and closed flags, like the Python path.
  */
 typedef struct {
   PyObject_HEAD
   NotifierObject * notifier;
-  PyObject * waitset;     /* the _WaitSet: _dirty, _closed, _table, _take_lock, _take_ready */
+  PyObject * waitset;     /* the _WaitSet: _dirty, _closed, _table, _take_ready */
+  PyObject * take_lock;   /* its _take_lock */
   PyObject * loop;
   PyObject * ready_queue; /* asyncio's ready deque: non-empty means asyncio has work */
   PyObject * eager;       /* the dispatcher's eager deque */
@@ -849,16 +850,17 @@ typedef struct {
   PyObject * enter_task;
   PyObject * leave_task;
   PyObject * on_done;
+  PyObject * done_waiters; /* on_done is called only while this is non-empty */
   PyObject * slow;        /* slow(entry, message) */
   PyObject * suspended;   /* suspended(entry, message, runner, coro, yielded) */
   PyObject * failed;      /* failed(entry, message, error or None) */
   unsigned long long expressed; /* callbacks run here (tests, diagnostics) */
 } ExpressObject;
 
-static PyObject * s_dirty, * s_closed, * s_table, * s_express, * s_take_lock, * s_acquire,
-  * s_release, * s_take_ready, * s_locked, * s_running, * s_limit, * s_idle_runners, * s_idle,
-  * s_done, * s_task, * s_context, * s_current, * s_callback, * s_entity, * s_token, * s_retired,
-  * s_pending, * s_express_release, * s_cancelled_error;
+static PyObject * s_dirty, * s_closed, * s_table, * s_express, * s_acquire, * s_release,
+  * s_take_ready, * s_locked, * s_running, * s_limit, * s_idle_runners, * s_idle, * s_done,
+  * s_task, * s_context, * s_current, * s_callback, * s_retired, * s_pending, * s_express_release,
+  * s_cancelled_error;
 
 static int intern_names(void)
 {
@@ -867,7 +869,6 @@ static int intern_names(void)
   INTERN(s_closed, "_closed");
   INTERN(s_table, "_table");
   INTERN(s_express, "express");
-  INTERN(s_take_lock, "_take_lock");
   INTERN(s_acquire, "acquire");
   INTERN(s_release, "release");
   INTERN(s_take_ready, "_take_ready");
@@ -881,8 +882,6 @@ static int intern_names(void)
   INTERN(s_context, "context");
   INTERN(s_current, "current");
   INTERN(s_callback, "callback");
-  INTERN(s_entity, "entity");
-  INTERN(s_token, "token");
   INTERN(s_retired, "retired");
   INTERN(s_pending, "_pending");
   INTERN(s_express_release, "express_release");
@@ -893,18 +892,19 @@ static int intern_names(void)
 static int Express_init(ExpressObject * self, PyObject * args, PyObject * kwargs)
 {
   static char * keywords[] = {
-    "notifier", "waitset", "loop", "ready_queue", "eager", "run_eager", "enter_task", "leave_task",
-    "on_done", "slow", "suspended", "failed", "cancelled_error", NULL};
+    "notifier", "waitset", "take_lock", "loop", "ready_queue", "eager", "run_eager", "enter_task", "leave_task",
+    "on_done", "done_waiters", "slow", "suspended", "failed", "cancelled_error", NULL};
   PyObject * notifier, * cancelled;
   if (!PyArg_ParseTupleAndKeywords(
-        args, kwargs, "$O!OOOOOOOOOOOO", keywords, &NotifierType, &notifier, &self->waitset,
-        &self->loop, &self->ready_queue, &self->eager, &self->run_eager, &self->enter_task,
-        &self->leave_task, &self->on_done, &self->slow, &self->suspended, &self->failed, &cancelled)) {
+        args, kwargs, "$O!OOOOOOOOOOOOOO", keywords, &NotifierType, &notifier, &self->waitset,
+        &self->take_lock, &self->loop, &self->ready_queue, &self->eager, &self->run_eager, &self->enter_task,
+        &self->leave_task, &self->on_done, &self->done_waiters, &self->slow, &self->suspended, &self->failed, &cancelled)) {
     return -1;
   }
   self->notifier = (NotifierObject *)notifier;
   Py_INCREF(notifier);
   Py_INCREF(self->waitset);
+  Py_INCREF(self->take_lock);
   Py_INCREF(self->loop);
   Py_INCREF(self->ready_queue);
   Py_INCREF(self->eager);
@@ -912,6 +912,7 @@ static int Express_init(ExpressObject * self, PyObject * args, PyObject * kwargs
   Py_INCREF(self->enter_task);
   Py_INCREF(self->leave_task);
   Py_INCREF(self->on_done);
+  Py_INCREF(self->done_waiters);
   Py_INCREF(self->slow);
   Py_INCREF(self->suspended);
   Py_INCREF(self->failed);
@@ -923,6 +924,7 @@ static int Express_traverse(ExpressObject * self, visitproc visit, void * arg)
 {
   Py_VISIT(self->notifier);
   Py_VISIT(self->waitset);
+  Py_VISIT(self->take_lock);
   Py_VISIT(self->loop);
   Py_VISIT(self->ready_queue);
   Py_VISIT(self->eager);
@@ -930,6 +932,7 @@ static int Express_traverse(ExpressObject * self, visitproc visit, void * arg)
   Py_VISIT(self->enter_task);
   Py_VISIT(self->leave_task);
   Py_VISIT(self->on_done);
+  Py_VISIT(self->done_waiters);
   Py_VISIT(self->slow);
   Py_VISIT(self->suspended);
   Py_VISIT(self->failed);
@@ -940,6 +943,7 @@ static int Express_clear(ExpressObject * self)
 {
   Py_CLEAR(self->notifier);
   Py_CLEAR(self->waitset);
+  Py_CLEAR(self->take_lock);
   Py_CLEAR(self->loop);
   Py_CLEAR(self->ready_queue);
   Py_CLEAR(self->eager);
@@ -947,6 +951,7 @@ static int Express_clear(ExpressObject * self)
   Py_CLEAR(self->enter_task);
   Py_CLEAR(self->leave_task);
   Py_CLEAR(self->on_done);
+  Py_CLEAR(self->done_waiters);
   Py_CLEAR(self->slow);
   Py_CLEAR(self->suspended);
   Py_CLEAR(self->failed);
@@ -1116,16 +1121,15 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
   PyObject * lane = PyTuple_GET_ITEM(route, 2);
   PyObject * lock = PyTuple_GET_ITEM(route, 3);
   PyObject * marker = PyTuple_GET_ITEM(route, 4);
-  PyObject * token, * entity, * callback, * runner, * task, * context, * coro, * yielded = NULL;
+  PyObject * entity = PyTuple_GET_ITEM(route, 5);
+  PyObject * token = PyTuple_GET_ITEM(route, 6);
+  PyObject * callback, * runner, * task, * context, * coro, * yielded = NULL;
   PyObject * result, * type, * value, * traceback;
   PySendResult status;
+  Py_ssize_t waiting;
   int retired;
 
-  if ((token = PyObject_GetAttr(entry, s_token)) == NULL) {
-    return -1;
-  }
   retired = attr_true(token, s_retired);
-  Py_DECREF(token);
   if (retired != 0) {
     return retired < 0 ? -1 : 0; /* its entity or node left: dropped, as rclpy drops it */
   }
@@ -1140,9 +1144,7 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
   }
   task = PyObject_GetAttr(runner, s_task);
   context = PyObject_GetAttr(runner, s_context);
-  entity = PyObject_GetAttr(entry, s_entity);
-  callback = entity != NULL ? PyObject_GetAttr(entity, s_callback) : NULL;
-  Py_XDECREF(entity);
+  callback = PyObject_GetAttr(entity, s_callback);
   if (task == NULL || context == NULL || callback == NULL ||
       PyObject_SetAttr(runner, s_current, marker) < 0) {
     goto undo;
@@ -1182,10 +1184,13 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
     Py_DECREF(coro);
     Py_XDECREF(yielded);
     Py_DECREF(runner);
-    result = PyObject_CallNoArgs(self->on_done);
-    Py_XDECREF(result);
-    if (result == NULL) {
-      return -1;
+    waiting = PyObject_Length(self->done_waiters);
+    if (waiting != 0) {
+      result = waiting > 0 ? PyObject_CallNoArgs(self->on_done) : NULL;
+      Py_XDECREF(result);
+      if (result == NULL) {
+        return -1;
+      }
     }
     return release(lane, lock, marker);
   }
@@ -1242,29 +1247,57 @@ static long long monotonic_ns(void)
 }
 
 
+/* What ready() gives, into a C array (no Python objects): how many pairs
+ * were moved into ``*out`` (malloc'd, the caller frees), -1 out of memory
+ * (nothing consumed). */
+static Py_ssize_t take_reported(NotifierObject * self, uintptr_t ** keys, size_t ** counts)
+{
+  size_t i, n;
+  pthread_mutex_lock(&self->lock);
+  atomic_store(&self->pending, 0);
+  n = self->nready;
+  *keys = malloc((n ? n : 1) * sizeof(uintptr_t));
+  *counts = malloc((n ? n : 1) * sizeof(size_t));
+  if (*keys == NULL || *counts == NULL) {
+    free(*keys);
+    free(*counts);
+    atomic_store(&self->pending, 1);
+    pthread_mutex_unlock(&self->lock);
+    PyErr_NoMemory();
+    return -1;
+  }
+  for (i = 0; i < n; ++i) {
+    (*keys)[i] = self->ready[i]->key;
+    (*counts)[i] = self->ready[i]->count;
+    self->ready[i]->queued = 0;
+    self->ready[i]->count = 0;
+  }
+  self->nready = 0;
+  atomic_store(&self->plain_pending, 0);
+  pthread_mutex_unlock(&self->lock);
+  return (Py_ssize_t)n;
+}
+
 /* Take what the notifier reported (into ``batch``: route, message, ...) under
  * the take lock; 1 taken, 0 nothing to do (stop), -1 error. Entities that are
  * not routes go through the wait set's Python ``_take_ready``. */
 static int take_batch(ExpressObject * self, PyObject * batch)
 {
-  PyObject * lock, * got, * table = NULL, * routes = NULL, * reported = NULL, * rest = NULL;
+  PyObject * lock = self->take_lock, * got, * table = NULL, * routes = NULL, * rest = NULL;
+  uintptr_t * keys = NULL;
+  size_t * counts = NULL;
   PyObject * result, * type = NULL, * value = NULL, * traceback = NULL;
   Py_ssize_t i, n;
   int status = 1, flag;
 
-  if ((lock = PyObject_GetAttr(self->waitset, s_take_lock)) == NULL) {
-    return -1;
-  }
   got = PyObject_CallMethodOneArg(lock, s_acquire, Py_False);
   if (got == NULL) {
-    Py_DECREF(lock);
     return -1;
   }
   if (got != Py_True) {
     /* A worker is carrying: whoever holds it takes what is plain; the
      * caller's next round (the Python path) takes the rest. */
     Py_DECREF(got);
-    Py_DECREF(lock);
     return 0;
   }
   Py_DECREF(got);
@@ -1283,32 +1316,32 @@ static int take_batch(ExpressObject * self, PyObject * batch)
     status = -1;
     goto out;
   }
-  if ((reported = Notifier_ready(self->notifier, NULL)) == NULL) {
+  if ((n = take_reported(self->notifier, &keys, &counts)) < 0) {
     status = -1;
     goto out;
   }
-  n = PyList_GET_SIZE(reported);
   for (i = 0; i < n; ++i) {
-    PyObject * pair = PyList_GET_ITEM(reported, i);
-    PyObject * route = PyDict_GetItemWithError(routes, PyTuple_GET_ITEM(pair, 0));
-    Py_ssize_t count, j;
+    PyObject * key = PyLong_FromUnsignedLongLong((unsigned long long)keys[i]);
+    PyObject * route = key != NULL ? PyDict_GetItemWithError(routes, key) : NULL;
+    size_t j;
     if (route == NULL) {
+      PyObject * pair;
       if (PyErr_Occurred()) {
+        Py_XDECREF(key);
         status = -1;
         goto out;
       }
-      if (rest == NULL && (rest = PyList_New(0)) == NULL) {
+      pair = Py_BuildValue("(Nn)", key, (Py_ssize_t)counts[i]);
+      if (pair == NULL || (rest == NULL && (rest = PyList_New(0)) == NULL) || PyList_Append(rest, pair) < 0) {
+        Py_XDECREF(pair);
         status = -1;
         goto out;
       }
-      if (PyList_Append(rest, pair) < 0) {
-        status = -1;
-        goto out;
-      }
+      Py_DECREF(pair);
       continue;
     }
-    count = PyLong_AsSsize_t(PyTuple_GET_ITEM(pair, 1));
-    for (j = 0; j < count; ++j) {
+    Py_DECREF(key);
+    for (j = 0; j < counts[i]; ++j) {
       PyObject * message = take((TakerObject *)PyTuple_GET_ITEM(route, 0), 0);
       if (message == NULL) {
         /* Run what was taken, then report this. */
@@ -1338,7 +1371,8 @@ static int take_batch(ExpressObject * self, PyObject * batch)
 out:
   Py_XDECREF(table);
   Py_XDECREF(routes);
-  Py_XDECREF(reported);
+  free(keys);
+  free(counts);
   Py_XDECREF(rest);
   {
     PyObject * et, * ev, * tb;
@@ -1350,7 +1384,6 @@ out:
     }
     PyErr_Restore(et, ev, tb);
   }
-  Py_DECREF(lock);
   if (type != NULL || value != NULL) {
     /* A take failed: the caller runs the batch, then raises this. */
     PyErr_Restore(type, value, traceback);

@@ -1,6 +1,6 @@
 """Type stub of the ``_fastpath`` extension (``_fastpath.c``)."""
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Sequence, Sized
 
 SUBSCRIPTION: int
 CLIENT: int
@@ -54,6 +54,7 @@ class Express:
         *,
         notifier: Notifier,
         waitset: object,
+        take_lock: object,
         loop: object,
         ready_queue: object,
         eager: object,
@@ -61,6 +62,7 @@ class Express:
         enter_task: Callable[..., object],
         leave_task: Callable[..., object],
         on_done: Callable[[], object],
+        done_waiters: Sized,
         slow: Callable[..., object],
         suspended: Callable[..., object],
         failed: Callable[..., object],

@@ -1247,20 +1247,32 @@ static long long monotonic_ns(void)
 }
 
 
-/* What ready() gives, into a C array (no Python objects): how many pairs
- * were moved into ``*out`` (malloc'd, the caller frees), -1 out of memory
- * (nothing consumed). */
-static Py_ssize_t take_reported(NotifierObject * self, uintptr_t ** keys, size_t ** counts)
+/* How many reported entities ``take_reported`` moves without allocating. */
+#define REPORTED_INLINE 16
+
+/* What ready() gives, into C arrays (no Python objects): how many pairs were
+ * moved into ``*keys`` and ``*counts`` (the given ``inline`` buffers of
+ * REPORTED_INLINE, or malloc'd ones the caller frees when they differ), -1
+ * out of memory (nothing consumed). */
+static Py_ssize_t take_reported(
+  NotifierObject * self, uintptr_t ** keys, size_t ** counts, uintptr_t * inline_keys, size_t * inline_counts)
 {
   size_t i, n;
   pthread_mutex_lock(&self->lock);
   atomic_store(&self->pending, 0);
   n = self->nready;
-  *keys = malloc((n ? n : 1) * sizeof(uintptr_t));
-  *counts = malloc((n ? n : 1) * sizeof(size_t));
+  if (n <= REPORTED_INLINE) {
+    *keys = inline_keys;
+    *counts = inline_counts;
+  } else {
+    *keys = malloc(n * sizeof(uintptr_t));
+    *counts = malloc(n * sizeof(size_t));
+  }
   if (*keys == NULL || *counts == NULL) {
     free(*keys);
     free(*counts);
+    *keys = inline_keys;
+    *counts = inline_counts;
     atomic_store(&self->pending, 1);
     pthread_mutex_unlock(&self->lock);
     PyErr_NoMemory();
@@ -1284,8 +1296,10 @@ static Py_ssize_t take_reported(NotifierObject * self, uintptr_t ** keys, size_t
 static int take_batch(ExpressObject * self, PyObject * batch)
 {
   PyObject * lock = self->take_lock, * got, * table = NULL, * routes = NULL, * rest = NULL;
-  uintptr_t * keys = NULL;
-  size_t * counts = NULL;
+  uintptr_t inline_keys[REPORTED_INLINE];
+  size_t inline_counts[REPORTED_INLINE];
+  uintptr_t * keys = inline_keys;
+  size_t * counts = inline_counts;
   PyObject * result, * type = NULL, * value = NULL, * traceback = NULL;
   Py_ssize_t i, n;
   int status = 1, flag;
@@ -1316,7 +1330,7 @@ static int take_batch(ExpressObject * self, PyObject * batch)
     status = -1;
     goto out;
   }
-  if ((n = take_reported(self->notifier, &keys, &counts)) < 0) {
+  if ((n = take_reported(self->notifier, &keys, &counts, inline_keys, inline_counts)) < 0) {
     status = -1;
     goto out;
   }
@@ -1371,8 +1385,10 @@ static int take_batch(ExpressObject * self, PyObject * batch)
 out:
   Py_XDECREF(table);
   Py_XDECREF(routes);
-  free(keys);
-  free(counts);
+  if (keys != inline_keys) {
+    free(keys);
+    free(counts);
+  }
   Py_XDECREF(rest);
   {
     PyObject * et, * ev, * tb;

@@ -198,7 +198,8 @@ class _WaitSet:
             self._notifier = Notifier(guard=self._notifier_guard.handle.pointer)
             if isinstance(self._notifier, _fastpath.Notifier):  # not a stand-in (tests)
                 self._express = dispatcher.express(self._notifier, self)
-        #: When this wait set last entered ``rcl_wait`` (monotonic ns).
+        #: When timers and guard conditions were last looked at (monotonic ns):
+        #: as a wait returns, which reports what was ready then.
         self._polled = 0
         #: Handle addresses the notifier calls back for (their handles held).
         self._watched: set[int] = set()
@@ -419,8 +420,7 @@ class _WaitSet:
         try:
             wait_set.wait(timeout_ns)
         finally:
-            if notifier is not None:
-                notifier.disarm()
+            self._waited(notifier)
         if self._closed:
             return WOKEN
         dispatcher = self._dispatcher
@@ -462,9 +462,18 @@ class _WaitSet:
             # once (~5 us) and still reports everything else that is ready.
             self._notifier_guard.trigger()
             timeout_ns = _EVENT_SKIP_MAX_NS
-        self._polled = time.monotonic_ns()
         self.waits += 1
         return timeout_ns
+
+    def _waited(self, notifier: Notifier | None) -> None:
+        """Back from ``rcl_wait``: what it reported is what was ready now.
+
+        A burst of callbacks right after a long wait (a timer's callback
+        publishing to another node) may then run without another wait.
+        """
+        self._polled = time.monotonic_ns()
+        if notifier is not None:
+            notifier.disarm()
 
     def _wait_fast(self, table: _Table, fast: FastWaitSet, notifier: Notifier | None, timeout_ns: int) -> int:
         """:meth:`_wait_and_dispatch` on the compiled wait set: one call fills, waits and reads it."""
@@ -472,8 +481,7 @@ class _WaitSet:
         try:
             ready = fast.wait(timeout_ns)
         finally:
-            if notifier is not None:
-                notifier.disarm()
+            self._waited(notifier)
         if self._closed:
             return WOKEN
         with self._take_lock:

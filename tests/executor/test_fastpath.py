@@ -316,6 +316,47 @@ def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: C
     ]
 
 
+def test_a_timers_publish_is_run_right_after_the_wait_that_fired_it(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """A timer's ``async def`` callback publishes to another node's ``async
+    def`` subscription: the message is taken and run in the same turn as the
+    timer (on the compiled path), not after a second ``rcl_wait``: the wait
+    that fired the timer looked at timers just now."""
+    talker, listener = host(Node, "fp_tick_pub"), host(Node, "fp_tick_sub")
+    pub = talker.create_publisher(Int64, "fp_tick", 10)
+    got: list[int] = []
+    enough = threading.Event()
+    cycles = 30
+
+    async def tick() -> None:
+        pub.publish(Int64(data=len(got)))
+
+    async def on(msg: Int64) -> None:
+        got.append(msg.data)
+        if len(got) >= cycles:
+            enough.set()
+
+    listener.create_subscription(Int64, "fp_tick", on, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
+    _matched(pub)
+    talker.create_timer(0.02, tick)  # type: ignore[arg-type]
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        assert enough.wait(TIMEOUT)
+        hot = executor._dispatcher._hot
+        waits = hot.waits
+        assert hot._express is not None
+        expressed = hot._express.expressed
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+    # A second wait per cycle (to look at timers again before taking) would
+    # make about 2 * cycles.
+    assert waits < cycles * 1.5, waits
+    assert expressed >= cycles - 2, expressed  # the first: its lane had no idle runner yet
+
+
 def test_plain_ping_pong_in_one_process_stays_on_one_thread(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:

@@ -337,9 +337,9 @@ def test_a_timers_publish_is_run_right_after_the_wait_that_fired_it(
         if len(got) >= cycles:
             enough.set()
 
-    listener.create_subscription(Int64, "fp_tick", on, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
+    listener.create_subscription(Int64, "fp_tick", on, 10)
     _matched(pub)
-    talker.create_timer(0.02, tick)  # type: ignore[arg-type]
+    talker.create_timer(0.02, tick)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     try:

@@ -22,6 +22,11 @@ group's lane. rcl wait sets are level-triggered, so an entity left untaken
 would wake the next wait immediately; taking eagerly and bounding what is
 pending per entity (see ``_lanes``) avoids both the busy loop and a wait-set
 rebuild whenever a group becomes busy or idle.
+
+On the loop thread, a chain of ``async def`` subscription callbacks (one
+node's callback publishing to another's) runs in C (``_fastpath.Express``):
+this module gives it the routes (``_Table.express``) and takes back every
+case but the common one (``Dispatcher._express_*``, ``Lane.express_*``).
 """
 
 from __future__ import annotations

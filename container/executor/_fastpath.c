@@ -1,4 +1,4 @@
-/* _fastpath: the executor's hot path in C: readiness and takes.
+/* _fastpath: the executor's hot path in C: readiness, takes, the async chain.
  *
  * Notifier: event-driven readiness for rcl subscriptions, clients and services.
  *
@@ -26,6 +26,10 @@
  * converted with the message type's own rosidl capsules; what rclpy's
  * take_message does, without rebuilding the message, the pybind11 call
  * and the message-info dictionary nobody asked for.
+ *
+ * Express: the loop thread's chain of async def subscription callbacks
+ * (take, admit to the callback group's lane, first step, release) without
+ * returning to Python between messages; see its own comment below.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

@@ -188,15 +188,21 @@ class Lane:
     # -- submission -------------------------------------------------------
     def submit(self, work: Work) -> None:
         """Start ``work`` now if the group allows it, else keep it pending."""
+        if self._admit(work):
+            self._start(work)
+
+    def _admit(self, work: Work) -> bool:
+        """Whether ``work`` may start now (its slot taken); if not, it is kept
+        pending, or dropped once the lane is closed."""
         with self._lock:
             if self._closed:
-                return
+                return False
             if self._running >= self.limit:
                 self._keep_pending(work)
-                return
+                return False
             self._running += 1
             self._active.add(work)
-        self._start(work)
+            return True
 
     def busy(self) -> bool:
         with self._lock:
@@ -380,15 +386,8 @@ class Lane:
     def run_express(self, work: Work) -> None:
         """:meth:`submit` and :meth:`run_eager` in one: async ``work`` taken on
         the loop thread starts now if the group allows it, else waits."""
-        with self._lock:
-            if self._closed:
-                return
-            if self._running >= self.limit:
-                self._keep_pending(work)
-                return
-            self._running += 1
-            self._active.add(work)
-        self.run_eager(work)
+        if self._admit(work):
+            self.run_eager(work)
 
     @property
     def lock(self) -> threading.Lock:

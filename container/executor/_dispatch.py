@@ -678,7 +678,7 @@ class Dispatcher:
         future_executor: object,
         on_error: ErrorHandler,
         on_done: Callable[[], None],
-        done_waiters: Sized = (),
+        done_waiters: Sized,
         on_response: Callable[[], None],
         progress: Callable[[], asyncio.Future[None]],
         wake: Callable[[], None],
@@ -1083,12 +1083,7 @@ class Dispatcher:
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set)."""
         work = Work(entry.entity, callback, entry.is_async, entry.depth, entry.done, entry.token, args)
-        if (
-            entry.is_async
-            and self._permits is None
-            and not self.relieving
-            and threading.get_ident() == self._loop_thread
-        ):
+        if entry.is_async and self._permits is None and self._dispatching_burst():
             # Taken on the loop thread while it dispatches: the lane admits
             # it when it starts, eagerly, right after (one call, not five).
             self._eager.append((entry.lane, work, False))

@@ -322,6 +322,18 @@ static PyObject * Notifier_pending(NotifierObject * self, PyObject * Py_UNUSED(i
   return PyBool_FromLong(atomic_load(&self->pending));
 }
 
+/* Everything reported has been handed out: clear the queue (under lock). */
+static void forget_reported(NotifierObject * self)
+{
+  size_t i;
+  for (i = 0; i < self->nready; ++i) {
+    self->ready[i]->queued = 0;
+    self->ready[i]->count = 0;
+  }
+  self->nready = 0;
+  atomic_store(&self->plain_pending, 0);
+}
+
 /* The keys of the entities that became ready since the last call, oldest
  * first; each appears once however many events it had. */
 static PyObject * Notifier_ready(NotifierObject * self, PyObject * Py_UNUSED(ignored))
@@ -345,12 +357,7 @@ static PyObject * Notifier_ready(NotifierObject * self, PyObject * Py_UNUSED(ign
       PyList_SET_ITEM(list, (Py_ssize_t)i, item);
     }
     if (list != NULL) {
-      for (i = 0; i < self->nready; ++i) {
-        self->ready[i]->queued = 0;
-        self->ready[i]->count = 0;
-      }
-      self->nready = 0;
-      atomic_store(&self->plain_pending, 0);
+      forget_reported(self);
     }
   }
   if (list == NULL) {
@@ -858,13 +865,13 @@ typedef struct {
   PyObject * slow;        /* slow(entry, message) */
   PyObject * suspended;   /* suspended(entry, message, runner, coro, yielded) */
   PyObject * failed;      /* failed(entry, message, error or None) */
+  PyObject * cancelled_error; /* asyncio.CancelledError: a callback's own cancellation is no error */
   unsigned long long expressed; /* callbacks run here (tests, diagnostics) */
 } ExpressObject;
 
 static PyObject * s_dirty, * s_closed, * s_table, * s_express, * s_acquire, * s_release,
   * s_take_ready, * s_locked, * s_running, * s_limit, * s_idle_runners, * s_idle, * s_done,
-  * s_task, * s_context, * s_current, * s_callback, * s_retired, * s_pending, * s_express_release,
-  * s_cancelled_error;
+  * s_task, * s_context, * s_current, * s_callback, * s_retired, * s_pending, * s_express_release;
 
 static int intern_names(void)
 {
@@ -898,11 +905,11 @@ static int Express_init(ExpressObject * self, PyObject * args, PyObject * kwargs
   static char * keywords[] = {
     "notifier", "waitset", "take_lock", "loop", "ready_queue", "eager", "run_eager", "enter_task", "leave_task",
     "on_done", "done_waiters", "slow", "suspended", "failed", "cancelled_error", NULL};
-  PyObject * notifier, * cancelled;
+  PyObject * notifier;
   if (!PyArg_ParseTupleAndKeywords(
         args, kwargs, "$O!OOOOOOOOOOOOOO", keywords, &NotifierType, &notifier, &self->waitset,
         &self->take_lock, &self->loop, &self->ready_queue, &self->eager, &self->run_eager, &self->enter_task,
-        &self->leave_task, &self->on_done, &self->done_waiters, &self->slow, &self->suspended, &self->failed, &cancelled)) {
+        &self->leave_task, &self->on_done, &self->done_waiters, &self->slow, &self->suspended, &self->failed, &self->cancelled_error)) {
     return -1;
   }
   self->notifier = (NotifierObject *)notifier;
@@ -920,7 +927,7 @@ static int Express_init(ExpressObject * self, PyObject * args, PyObject * kwargs
   Py_INCREF(self->slow);
   Py_INCREF(self->suspended);
   Py_INCREF(self->failed);
-  Py_XSETREF(s_cancelled_error, Py_NewRef(cancelled));
+  Py_INCREF(self->cancelled_error);
   return 0;
 }
 
@@ -940,6 +947,7 @@ static int Express_traverse(ExpressObject * self, visitproc visit, void * arg)
   Py_VISIT(self->slow);
   Py_VISIT(self->suspended);
   Py_VISIT(self->failed);
+  Py_VISIT(self->cancelled_error);
   return 0;
 }
 
@@ -959,6 +967,7 @@ static int Express_clear(ExpressObject * self)
   Py_CLEAR(self->slow);
   Py_CLEAR(self->suspended);
   Py_CLEAR(self->failed);
+  Py_CLEAR(self->cancelled_error);
   return 0;
 }
 
@@ -1222,7 +1231,7 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
   Py_XDECREF(traceback);
   {
     /* A callback's own cancellation ends that callback only: no error. */
-    int cancelled = value != NULL && PyErr_GivenExceptionMatches(value, s_cancelled_error);
+    int cancelled = value != NULL && PyErr_GivenExceptionMatches(value, self->cancelled_error);
     PyObject * args[3] = {entry, message, cancelled || value == NULL ? Py_None : value};
     result = PyObject_Vectorcall(self->failed, args, 3, NULL);
   }
@@ -1285,11 +1294,8 @@ static Py_ssize_t take_reported(
   for (i = 0; i < n; ++i) {
     (*keys)[i] = self->ready[i]->key;
     (*counts)[i] = self->ready[i]->count;
-    self->ready[i]->queued = 0;
-    self->ready[i]->count = 0;
   }
-  self->nready = 0;
-  atomic_store(&self->plain_pending, 0);
+  forget_reported(self);
   pthread_mutex_unlock(&self->lock);
   return (Py_ssize_t)n;
 }

@@ -410,9 +410,13 @@ class Lane:
         """The C path's first step of ``work`` suspended in ``runner``: that runner finishes it."""
         with self._lock:
             self._active.add(work)
+        self._finish_in(runner, _Resume(work, coro, yielded))
+
+    def _finish_in(self, runner: _Runner, resume: _Resume) -> None:
+        """A first step suspended in idle ``runner``: that runner (no longer
+        idle) finishes it, or a new one if it was cancelled meanwhile."""
         if runner in self._idle_runners:
             self._idle_runners.remove(runner)
-        resume = _Resume(work, coro, yielded)
         if not self._wake(runner, resume):
             self._hand_to_runner(resume)
 
@@ -439,8 +443,7 @@ class Lane:
                 self._idle_runners.pop()  # cancelled while idle; its task ends
                 continue
             error: BaseException | None
-            token = item.token
-            if token is not None and token.retired:
+            if _retired(item):
                 done, error, resume = True, Retired(), None
             else:
                 runner.current = item  # what the loop runs, should it get stuck here
@@ -448,9 +451,7 @@ class Lane:
                 runner.current = None
             if not done:
                 assert resume is not None
-                self._idle_runners.pop()
-                if not self._wake(runner, resume):
-                    self._hand_to_runner(resume)
+                self._finish_in(runner, resume)
                 return
             item.done(item, error)
             item = self._next_pending(item)

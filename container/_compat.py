@@ -44,6 +44,7 @@ __all__ = [
     "UnknownROSArgsError",
     "WaitSet",
     "adopt_future",
+    "callback_attribute",
     "change_state_service",
     "enter_task",
     "event_handle",
@@ -77,6 +78,7 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.event_handler.EventHandler", "_event_index", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.event_handler.EventHandler", "_ready_to_take_data", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.subscription.Subscription", "_callback_type", "rclpy 4.0-10.x (instance attribute)"),
+    ("rclpy.subscription.Subscription", "_callback", "rclpy 4.0-10.x (instance attribute); what .callback returns"),
     ("rclpy.task.Future", "_set_executor", "rclpy 1.0-10.x"),
     ("rclpy.waitable.Waitable", "_futures", "rclpy 1.0-10.x (instance attribute)"),
     ("rclpy.executors.Executor", "_guard", "rclpy 1.0-10.x (instance attribute)"),
@@ -209,6 +211,18 @@ def waitable_futures(waitable: Waitable) -> list[Future]:
     """The futures a waitable (an action client) completes when it executes."""
     futures: list[Future] = waitable._futures
     return futures
+
+
+def callback_attribute(entity: object) -> str:
+    """The attribute holding ``entity``'s callback, for code that reads it per call.
+
+    rclpy's ``Subscription.callback`` is a property over ``_callback``: a
+    Python call on every message where reading the attribute is a dict
+    lookup. Both are current, so a callback replaced later is still seen.
+    """
+    if isinstance(entity, Subscription) and "_callback" in vars(entity):
+        return "_callback"
+    return "callback"
 
 
 # -- timers ---------------------------------------------------------------------------

@@ -54,6 +54,7 @@ from rclpy.waitable import NumberOfEntities
 from .._compat import (
     WaitSet,
     adopt_future,
+    callback_attribute,
     enter_task,
     event_handle,
     fire_timer,
@@ -63,6 +64,7 @@ from .._compat import (
     mark_event_ready,
     set_event_index,
     subscription_wants_info,
+    timer_info_parameter,
     waitable_futures,
 )
 from . import _fastpath
@@ -106,6 +108,12 @@ class _Entry:
     wants_info: bool = False
 
 
+#: What :class:`Express` reads per callback, resolved once per table: (taker
+#: or timer address, entry, lane, the lane lock's ``locked``, the marker work
+#: a runner carries, the entity, its token, the attribute holding its callback).
+_Route = tuple[Any, _Entry, Lane, Callable[[], bool], Work, Any, Token, str]
+
+
 @dataclass(slots=True)
 class _Table:
     """The entities one wait set waits on, collected once per change."""
@@ -123,9 +131,10 @@ class _Table:
     #: generic waitable, no QoS event left to the wait set).
     fast: FastWaitSet | None = None
     #: Subscriptions whose messages :class:`Express` takes and runs, by
-    #: handle address: (taker, entry, lane, lane lock, marker work, the
-    #: subscription, its token).
-    express: dict[int, tuple[Taker, _Entry, Lane, Any, Work, Any, Token]] = field(default_factory=dict)
+    #: handle address (see :func:`_route`).
+    express: dict[int, _Route] = field(default_factory=dict)
+    #: Timers whose calls and callbacks :class:`Express` makes, by handle address.
+    express_timers: dict[int, _Route] = field(default_factory=dict)
 
 
 def describe(entity: object) -> str:
@@ -240,19 +249,17 @@ class _WaitSet:
                         ):
                             # Not event-driven (an rmw without new-data callbacks): waited on.
                             table.handles[kind].append(entity.handle)
+                            if (
+                                kind == "timer"
+                                and entry.is_async
+                                and self._express is not None
+                                and timer_info_parameter(entity.callback) is None
+                            ):
+                                table.express_timers[entity.handle.pointer] = _route(entity.handle.pointer, entry)
                         elif not entity.raw:
                             entry.taker = taker = _taker(entity)
                             if taker is not None and entry.is_async and not entry.wants_info:
-                                table.express[entity.handle.pointer] = (
-                                    taker,
-                                    entry,
-                                    entry.lane,
-                                    entry.lane.lock,
-                                    # What the runner carries, for the watchdog's report.
-                                    Work(entity, entity.callback, True, entry.depth, entry.done, entry.token),
-                                    entity,
-                                    entry.token,
-                                )
+                                table.express[entity.handle.pointer] = _route(taker, entry)
             for waitable in list(node.waitables):
                 if not self._takes_waitable(waitable) or not _hold(held, waitable):
                     continue
@@ -532,6 +539,10 @@ class _WaitSet:
             elif (guard := by_pointer["guard_condition"].get(pointer)) is not None:
                 dispatcher.submit(guard, guard.entity.callback, ())
         entries = by_pointer["timer"]
+        if timers and table.express_timers and dispatcher.expressing():
+            assert self._express is not None  # routes are made only with it
+            # Called here, under the locks; their callbacks run once released.
+            timers = self._express.call_timers(table.express_timers, timers)
         for pointer in timers:
             if (timer := entries.get(pointer)) is not None:
                 dispatcher.take_timer(timer)
@@ -708,6 +719,8 @@ class Dispatcher:
         # wait set's lock is released (see ``Lane.run_eager``), each with
         # whether its lane admitted it already (else: as it starts).
         self._eager: collections.deque[tuple[Lane, Work, bool]] = collections.deque()
+        #: The hot wait set's C path, once it has one (see :meth:`express`).
+        self._express: Express | None = None
         self._hot = _WaitSet(
             self, kinds=_HOT, takes_waitable=_is_hot_waitable, own_guards=own_guards
         )
@@ -874,6 +887,11 @@ class Dispatcher:
     def _dispatching_burst(self) -> bool:
         return self._on_loop_thread() and not self.relieving
 
+    def expressing(self) -> bool:
+        """Whether async work taken now may start on the C path (``Express``):
+        on the loop thread, nobody relieving it, no ``spin_once`` gate."""
+        return self._permits is None and self._dispatching_burst()
+
     def _wait_and_dispatch_once(self, timeout_ns: int) -> int:
         if self._hot._dirty:
             self._retire_lanes()
@@ -888,6 +906,8 @@ class Dispatcher:
             if eager:
                 self.busy_since = time.monotonic()
         if eager:
+            if self._express is not None:
+                self._express.run_fired()
             self._run_eager()
         return flags
 
@@ -915,8 +935,9 @@ class Dispatcher:
 
     # -- express: the C path's hand-overs (see ``_fastpath.Express``) -----------------
     def express(self, notifier: Notifier, wait_set: _WaitSet) -> Express:
-        """The C path that takes and runs ``notifier``'s async subscriptions of ``wait_set``."""
-        return Express(
+        """The C path that takes and runs ``notifier``'s async subscriptions of
+        ``wait_set``, and calls and runs its async timers."""
+        self._express = Express(
             notifier=notifier,
             waitset=wait_set,
             take_lock=wait_set.take_lock,
@@ -933,10 +954,13 @@ class Dispatcher:
             failed=self._express_failed,
             cancelled_error=asyncio.CancelledError,
         )
+        return self._express
 
     def _work(self, entry: _Entry, message: object) -> Work:
-        sub = entry.entity
-        return Work(sub, sub.callback, True, entry.depth, entry.done, entry.token, (message,))
+        """The work of a message the C path took (``None``: of a timer it called)."""
+        entity = entry.entity
+        args = () if message is None else (message,)
+        return Work(entity, entity.callback, True, entry.depth, entry.done, entry.token, args)
 
     def _express_slow(self, entry: _Entry, message: object) -> None:
         """A message the C path took whose lane cannot start it there (busy, locked, no idle runner)."""
@@ -1083,7 +1107,7 @@ class Dispatcher:
     def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
         """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set)."""
         work = Work(entry.entity, callback, entry.is_async, entry.depth, entry.done, entry.token, args)
-        if entry.is_async and self._permits is None and self._dispatching_burst():
+        if entry.is_async and self.expressing():
             # Taken on the loop thread while it dispatches: the lane admits
             # it when it starts, eagerly, right after (one call, not five).
             self._eager.append((entry.lane, work, False))
@@ -1226,6 +1250,14 @@ class Dispatcher:
             entry = self.entry(subscription, node, "subscription")
         self.submit(entry, callback, args)
         return self._on_loop_thread() and not self.relieving
+
+
+def _route(first: Any, entry: _Entry) -> _Route:
+    """An express route of ``entry`` (see ``_Table.express``); ``first``: its taker or timer address."""
+    entity = entry.entity
+    # The marker is what the runner carries, for the watchdog's report.
+    marker = Work(entity, entity.callback, True, entry.depth, entry.done, entry.token)
+    return (first, entry, entry.lane, entry.lane.lock.locked, marker, entity, entry.token, callback_attribute(entity))
 
 
 def _taker(subscription: Any) -> Taker | None:

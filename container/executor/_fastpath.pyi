@@ -1,6 +1,7 @@
 """Type stub of the ``_fastpath`` extension (``_fastpath.c``)."""
 
-from collections.abc import Callable, Sequence, Sized
+from collections.abc import Callable, Iterable, Mapping, Sequence, Sized
+from typing import Any
 
 SUBSCRIPTION: int
 CLIENT: int
@@ -69,5 +70,7 @@ class Express:
         cancelled_error: type[BaseException],
     ) -> None: ...
     def drain(self, deadline_ns: int, /) -> bool: ...
+    def call_timers(self, routes: Mapping[int, tuple[Any, ...]], ready: Iterable[int], /) -> list[int]: ...
+    def run_fired(self) -> None: ...
     @property
     def expressed(self) -> int: ...

@@ -357,6 +357,88 @@ def test_a_timers_publish_is_run_right_after_the_wait_that_fired_it(
     assert expressed >= cycles - 2, expressed  # the first: its lane had no idle runner yet
 
 
+
+def test_async_timers_on_the_compiled_path_keep_the_callback_contract(context: Context) -> None:
+    """An ``async def`` timer callback is called and run on the C path after
+    the wait that found it ready (``Express.call_timers``/``run_fired``),
+    with the Python path's guarantees: a callback that suspends resumes in
+    the same task and keeps its mutually exclusive group busy (a plain
+    callback of that group, due meanwhile, waits), an exception is reported,
+    the callback's own cancellation is not, and the timer keeps firing."""
+    reports: list[str] = []
+    executor = AsyncioExecutor(
+        context=context, on_callback_error=lambda node, entity, exc: reports.append(str(exc))
+    )
+    made = Node("fp_timer_express", context=context)
+    executor.add_node(made)
+    side = made.create_publisher(Int64, "fp_timer_side", 10)
+    calls = 60
+    count = [0]
+    done = threading.Event()
+    inside, peak = [0], [0]
+    counting = threading.Lock()
+    resumed: list[bool] = []
+    sides: list[int] = []
+
+    def enter() -> None:
+        with counting:
+            inside[0] += 1
+            peak[0] = max(peak[0], inside[0])
+
+    def leave() -> None:
+        with counting:
+            inside[0] -= 1
+
+    async def tick() -> None:
+        count[0] += 1
+        n = count[0]
+        if n > calls:
+            done.set()
+            return
+        enter()
+        try:
+            kind = n % 4
+            if kind == 1:
+                side.publish(Int64(data=n))  # for this group's plain subscription: must wait
+                task = asyncio.current_task()
+                await asyncio.sleep(0.003)
+                resumed.append(task is not None and asyncio.current_task() is task)
+            if kind == 2:
+                raise ValueError(f"tick {n}")
+            if kind == 3:
+                raise asyncio.CancelledError
+        finally:
+            leave()
+
+    def on_side(msg: Int64) -> None:
+        enter()
+        sides.append(msg.data)
+        leave()
+
+    made.create_subscription(Int64, "fp_timer_side", on_side, 10)
+    _matched(side)
+    made.create_timer(0.005, tick)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        assert done.wait(TIMEOUT), "the timer stopped"
+        express = executor._dispatcher._hot._express
+        assert express is not None
+        expressed = express.expressed
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        made.destroy_node()
+    # No async subscription here: what the C path ran were timer callbacks,
+    # most of them (the rest: their group busy with the plain callback).
+    assert expressed > calls // 2, expressed
+    assert peak[0] == 1, "a mutually exclusive group ran two callbacks at once"
+    assert resumed == [True] * (calls // 4), resumed
+    assert sorted(sides) == [n for n in range(1, calls + 1) if n % 4 == 1]
+    assert sorted(reports, key=lambda text: int(text.split()[1])) == [
+        f"tick {n}" for n in range(1, calls + 1) if n % 4 == 2
+    ]
+
 def test_plain_ping_pong_in_one_process_stays_on_one_thread(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:

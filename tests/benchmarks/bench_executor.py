@@ -309,6 +309,16 @@ def _run_child(measure: str, kind: str, seconds: float) -> tuple[float, str]:
     return float("nan"), "failed"
 
 
+def _running_order(kinds: list[str], round_index: int) -> list[str]:
+    """The order one round runs ``kinds`` in: each of this project's kinds right
+    beside the EventsExecutor (the machine drifts within seconds, so a ratio
+    is fairest between neighbours), and reversed every other round so that
+    neither runs first every time."""
+    paired = ["asyncio-async", "events", "asyncio-plain"]
+    order = [kind for kind in paired if kind in kinds] + [kind for kind in kinds if kind not in paired]
+    return order if round_index % 2 == 0 else order[::-1]
+
+
 def _median(values: list[float]) -> float:
     return statistics.median(values) if values else float("nan")
 
@@ -327,7 +337,7 @@ def main() -> None:
     results: dict[tuple[str, str], list[float]] = {}
     for round_index in range(args.rounds):
         for measure in [args.only] if args.only else MEASURES:
-            for kind in kinds:
+            for kind in _running_order(kinds, round_index):
                 if (measure != "pingpong" and kind in TIMERLESS) or (measure in FLOORLESS and kind == "floor"):
                     continue
                 seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)
@@ -359,7 +369,10 @@ def main() -> None:
             if kind == peer or not ratios:
                 continue
             listed = " ".join(f"{r:.2f}x" for r in ratios)
-            print(f"{KINDS[kind]:38} vs {peer:6} {listed}   (min {min(ratios):.2f}x)")
+            print(
+                f"{KINDS[kind]:38} vs {peer:6} {listed}"
+                f"   (median {_median(ratios):.2f}x, min {min(ratios):.2f}x)"
+            )
 
 
 if __name__ == "__main__":

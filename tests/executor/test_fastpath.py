@@ -232,6 +232,31 @@ def test_ping_pong_in_one_process_needs_no_wait_per_message(
     assert bounce.waits < rounds // 4, bounce.waits
 
 
+def _expressed_until(
+    executor: AsyncioExecutor,
+    done: threading.Event,
+    nodes: list[Node],
+    *,
+    stopped: str,
+    kick: Callable[[], None] = lambda: None,
+) -> int:
+    """Spin ``executor``, ``kick``, wait for ``done``; then shut it down and
+    destroy ``nodes``: how many callbacks ran on the C path meanwhile."""
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        kick()
+        assert done.wait(TIMEOUT), stopped
+        express = executor._dispatcher._hot._express
+        assert express is not None
+        return express.expressed
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        for made in nodes:
+            made.destroy_node()
+
+
 def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: Context) -> None:
     """A chain of ``async def`` callbacks between two nodes of one process runs
     on the C path (``Express``): taken, admitted to its group, first step run
@@ -293,19 +318,9 @@ def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: C
         executor.add_node(made)
     for publisher in (ping, pong, side):
         _matched(publisher)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
-        ping.publish(Int64(data=1))
-        assert done.wait(TIMEOUT), "the chain stopped"
-        express = executor._dispatcher._hot._express
-        assert express is not None
-        expressed = express.expressed
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
-        for made in (a, b):
-            made.destroy_node()
+    expressed = _expressed_until(
+        executor, done, [a, b], kick=lambda: ping.publish(Int64(data=1)), stopped="the chain stopped"
+    )
     # 800 callbacks; the C path ran most (the rest: after a wait, or pending).
     assert expressed > rounds, expressed
     assert peak[0] == 1, "a mutually exclusive group ran two callbacks at once"
@@ -418,17 +433,7 @@ def test_async_timers_on_the_compiled_path_keep_the_callback_contract(context: C
     made.create_subscription(Int64, "fp_timer_side", on_side, 10)
     _matched(side)
     made.create_timer(0.005, tick)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
-        assert done.wait(TIMEOUT), "the timer stopped"
-        express = executor._dispatcher._hot._express
-        assert express is not None
-        expressed = express.expressed
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
-        made.destroy_node()
+    expressed = _expressed_until(executor, done, [made], stopped="the timer stopped")
     # No async subscription here: what the C path ran were timer callbacks,
     # most of them (the rest: their group busy with the plain callback).
     assert expressed > calls // 2, expressed

@@ -719,8 +719,6 @@ class Dispatcher:
         # wait set's lock is released (see ``Lane.run_eager``), each with
         # whether its lane admitted it already (else: as it starts).
         self._eager: collections.deque[tuple[Lane, Work, bool]] = collections.deque()
-        #: The hot wait set's C path, once it has one (see :meth:`express`).
-        self._express: Express | None = None
         self._hot = _WaitSet(
             self, kinds=_HOT, takes_waitable=_is_hot_waitable, own_guards=own_guards
         )
@@ -906,8 +904,9 @@ class Dispatcher:
             if eager:
                 self.busy_since = time.monotonic()
         if eager:
-            if self._express is not None:
-                self._express.run_fired()
+            express = self._hot._express
+            if express is not None:
+                express.run_fired()  # the timers its dispatch called
             self._run_eager()
         return flags
 
@@ -937,7 +936,7 @@ class Dispatcher:
     def express(self, notifier: Notifier, wait_set: _WaitSet) -> Express:
         """The C path that takes and runs ``notifier``'s async subscriptions of
         ``wait_set``, and calls and runs its async timers."""
-        self._express = Express(
+        return Express(
             notifier=notifier,
             waitset=wait_set,
             take_lock=wait_set.take_lock,
@@ -954,13 +953,10 @@ class Dispatcher:
             failed=self._express_failed,
             cancelled_error=asyncio.CancelledError,
         )
-        return self._express
 
     def _work(self, entry: _Entry, message: object) -> Work:
         """The work of a message the C path took (``None``: of a timer it called)."""
-        entity = entry.entity
-        args = () if message is None else (message,)
-        return Work(entity, entity.callback, True, entry.depth, entry.done, entry.token, args)
+        return _express_work(entry, () if message is None else (message,))
 
     def _express_slow(self, entry: _Entry, message: object) -> None:
         """A message the C path took whose lane cannot start it there (busy, locked, no idle runner)."""
@@ -1256,8 +1252,14 @@ def _route(first: Any, entry: _Entry) -> _Route:
     """An express route of ``entry`` (see ``_Table.express``); ``first``: its taker or timer address."""
     entity = entry.entity
     # The marker is what the runner carries, for the watchdog's report.
-    marker = Work(entity, entity.callback, True, entry.depth, entry.done, entry.token)
+    marker = _express_work(entry, ())
     return (first, entry, entry.lane, entry.lane.lock.locked, marker, entity, entry.token, callback_attribute(entity))
+
+
+def _express_work(entry: _Entry, args: tuple[Any, ...]) -> Work:
+    """Async work of ``entry``'s callback called with ``args``, as the C path runs it."""
+    entity = entry.entity
+    return Work(entity, entity.callback, True, entry.depth, entry.done, entry.token, args)
 
 
 def _taker(subscription: Any) -> Taker | None:

@@ -864,8 +864,7 @@ typedef struct {
   PyObject_HEAD
   NotifierObject * notifier;
   PyObject * waitset;     /* the _WaitSet: _dirty, _closed, _table, _take_ready */
-  PyObject * take_lock;   /* its _take_lock */
-  PyObject * take_acquire, * take_release; /* its bound acquire and release */
+  PyObject * take_acquire, * take_release; /* its _take_lock's bound acquire and release */
   PyObject * loop;
   PyObject * ready_queue; /* asyncio's ready deque: non-empty means asyncio has work */
   PyObject * eager;       /* the dispatcher's eager deque */
@@ -916,17 +915,16 @@ static int Express_init(ExpressObject * self, PyObject * args, PyObject * kwargs
   static char * keywords[] = {
     "notifier", "waitset", "take_lock", "loop", "ready_queue", "eager", "run_eager", "enter_task", "leave_task",
     "on_done", "done_waiters", "slow", "suspended", "failed", "cancelled_error", NULL};
-  PyObject * notifier;
+  PyObject * notifier, * take_lock;
   if (!PyArg_ParseTupleAndKeywords(
         args, kwargs, "$O!OOOOOOOOOOOOOO", keywords, &NotifierType, &notifier, &self->waitset,
-        &self->take_lock, &self->loop, &self->ready_queue, &self->eager, &self->run_eager, &self->enter_task,
+        &take_lock, &self->loop, &self->ready_queue, &self->eager, &self->run_eager, &self->enter_task,
         &self->leave_task, &self->on_done, &self->done_waiters, &self->slow, &self->suspended, &self->failed, &self->cancelled_error)) {
     return -1;
   }
   self->notifier = (NotifierObject *)notifier;
   Py_INCREF(notifier);
   Py_INCREF(self->waitset);
-  Py_INCREF(self->take_lock);
   Py_INCREF(self->loop);
   Py_INCREF(self->ready_queue);
   Py_INCREF(self->eager);
@@ -939,8 +937,8 @@ static int Express_init(ExpressObject * self, PyObject * args, PyObject * kwargs
   Py_INCREF(self->suspended);
   Py_INCREF(self->failed);
   Py_INCREF(self->cancelled_error);
-  Py_XSETREF(self->take_acquire, PyObject_GetAttr(self->take_lock, s_acquire));
-  Py_XSETREF(self->take_release, PyObject_GetAttr(self->take_lock, s_release));
+  Py_XSETREF(self->take_acquire, PyObject_GetAttr(take_lock, s_acquire));
+  Py_XSETREF(self->take_release, PyObject_GetAttr(take_lock, s_release));
   Py_XSETREF(self->fired, PyList_New(0));
   return self->take_acquire == NULL || self->take_release == NULL || self->fired == NULL ? -1 : 0;
 }
@@ -949,7 +947,6 @@ static int Express_traverse(ExpressObject * self, visitproc visit, void * arg)
 {
   Py_VISIT(self->notifier);
   Py_VISIT(self->waitset);
-  Py_VISIT(self->take_lock);
   Py_VISIT(self->loop);
   Py_VISIT(self->ready_queue);
   Py_VISIT(self->eager);
@@ -972,7 +969,6 @@ static int Express_clear(ExpressObject * self)
 {
   Py_CLEAR(self->notifier);
   Py_CLEAR(self->waitset);
-  Py_CLEAR(self->take_lock);
   Py_CLEAR(self->loop);
   Py_CLEAR(self->ready_queue);
   Py_CLEAR(self->eager);

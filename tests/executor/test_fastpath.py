@@ -257,6 +257,22 @@ def _expressed_until(
             made.destroy_node()
 
 
+def _assert_contract_kept(
+    count: int, word: str, *, peak: int, resumed: list[bool], sides: list[int], reports: list[str]
+) -> None:
+    """What callbacks ``1..count`` cycling through kinds (``n % 4``: 1 suspends
+    while a message for its group waits, 2 raises ``f"{word} {n}"``, 3
+    cancels itself) must show: one callback of the group at a time, each
+    suspended one resumed in its own task, every waiting message handled,
+    every exception reported and no cancellation."""
+    assert peak == 1, "a mutually exclusive group ran two callbacks at once"
+    assert resumed == [True] * (count // 4), resumed
+    assert sorted(sides) == [n for n in range(1, count + 1) if n % 4 == 1]
+    assert sorted(reports, key=lambda text: int(text.split()[1])) == [
+        f"{word} {n}" for n in range(1, count + 1) if n % 4 == 2
+    ]
+
+
 def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: Context) -> None:
     """A chain of ``async def`` callbacks between two nodes of one process runs
     on the C path (``Express``): taken, admitted to its group, first step run
@@ -323,12 +339,7 @@ def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: C
     )
     # 800 callbacks; the C path ran most (the rest: after a wait, or pending).
     assert expressed > rounds, expressed
-    assert peak[0] == 1, "a mutually exclusive group ran two callbacks at once"
-    assert resumed == [True] * (rounds // 4), resumed
-    assert sorted(sides) == [n for n in range(1, rounds + 1) if n % 4 == 1]
-    assert sorted(reports, key=lambda text: int(text.split()[1])) == [
-        f"hop {n}" for n in range(1, rounds + 1) if n % 4 == 2
-    ]
+    _assert_contract_kept(rounds, "hop", peak=peak[0], resumed=resumed, sides=sides, reports=reports)
 
 
 def test_a_timers_publish_is_run_right_after_the_wait_that_fired_it(
@@ -437,12 +448,7 @@ def test_async_timers_on_the_compiled_path_keep_the_callback_contract(context: C
     # No async subscription here: what the C path ran were timer callbacks,
     # most of them (the rest: their group busy with the plain callback).
     assert expressed > calls // 2, expressed
-    assert peak[0] == 1, "a mutually exclusive group ran two callbacks at once"
-    assert resumed == [True] * (calls // 4), resumed
-    assert sorted(sides) == [n for n in range(1, calls + 1) if n % 4 == 1]
-    assert sorted(reports, key=lambda text: int(text.split()[1])) == [
-        f"tick {n}" for n in range(1, calls + 1) if n % 4 == 2
-    ]
+    _assert_contract_kept(calls, "tick", peak=peak[0], resumed=resumed, sides=sides, reports=reports)
 
 def test_plain_ping_pong_in_one_process_stays_on_one_thread(
     executor: AsyncioExecutor, host: Callable[..., Any]

@@ -293,6 +293,8 @@ class _WaitSet:
                 timers=[handle.pointer for handle in handles["timer"]],
                 clients=[handle.pointer for handle in handles["client"]],
                 services=[handle.pointer for handle in handles["service"]],
+                # Told how long each wait may last: a carrier's publish need not wake it.
+                notifier=self._notifier if isinstance(self._notifier, _fastpath.Notifier) else None,
             )
         else:
             table.wait_set = WaitSet(

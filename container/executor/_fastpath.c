@@ -11,7 +11,9 @@
  * and triggers one rcl guard condition only while the executor's thread is
  * actually asleep in rcl_wait (armed). The executor then takes what is
  * ready without another wait: a ping-pong between two nodes of one process
- * never enters rcl_wait at all.
+ * never enters rcl_wait at all. Nor is it triggered when a lane's worker
+ * publishes to a plain callback it will carry on to itself, while the
+ * waiter wakes within DEFER_MAX_NS anyway (see on_event).
  *
  * Entities are identified by their rcl handle's address, which rclpy exposes
  * as ``handle.pointer``. The caller keeps each handle alive (held) from
@@ -35,8 +37,10 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <limits.h>
 #include <pthread.h>
 #include <stdatomic.h>
+#include <stdbool.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -53,6 +57,25 @@
 #include <rmw/types.h>
 
 enum { KIND_SUBSCRIPTION = 0, KIND_CLIENT = 1, KIND_SERVICE = 2, KIND_EVENT = 3 };
+
+static long long monotonic_ns(void)
+{
+  struct timespec now;
+  clock_gettime(CLOCK_MONOTONIC, &now);
+  return (long long)now.tv_sec * 1000000000LL + now.tv_nsec;
+}
+
+/* The longest a carrier thread's publish may leave the waiter asleep (see
+ * on_event), should the publishing callback run on: rclpy's (and rclcpp's)
+ * single-threaded executors hold such a message until the callback returns,
+ * however long. 2 ms skipped only three quarters of the pointless wake-ups
+ * of ten 100 Hz timers (the loop's next firing is often further away); 5 ms
+ * skipped all of them. */
+#define DEFER_MAX_NS 5000000LL
+
+/* Set on lane worker threads that, after every plain callback, take what it
+ * published for other plain callbacks themselves (Notifier.carry). */
+static _Thread_local int carrier_thread = 0;
 
 /* The event count that means "take until nothing is left". */
 #define DRAIN ((size_t)1 << 30)
@@ -79,6 +102,10 @@ typedef struct NotifierObject {
   size_t nready;
   size_t capacity;
   atomic_ulong triggers;
+  /* While the waiter blocks in WaitSet.wait: when it wakes at the latest
+   * (CLOCK_MONOTONIC ns, its timeout or its soonest timer); LLONG_MAX
+   * otherwise, or when unknown. */
+  atomic_llong wake_by;
 } NotifierObject;
 
 static void trigger(rcl_guard_condition_t * guard)
@@ -124,6 +151,19 @@ static void on_event(const void * user_data, size_t number_of_events)
   pthread_mutex_unlock(&self->lock);
   /* Dekker with arm(): either the waiter sees pending, or we see armed. */
   atomic_store(&self->pending, 1);
+  /* A plain callback on a carrier thread published to another plain
+   * callback: the carrier takes that message itself once its callback
+   * returns, so waking the waiter now would only have it find nothing (and
+   * fight the carrier for the GIL): measured, that wake-up was a third of a
+   * plain timer's cost. Skipped only while the waiter wakes within
+   * DEFER_MAX_NS anyway, and finds the message then (pending stays set), in
+   * case the callback runs on long after publishing. */
+  if (slot->plain && carrier_thread) {
+    long long by = atomic_load(&self->wake_by);
+    if (by != LLONG_MAX && by - monotonic_ns() <= DEFER_MAX_NS) {
+      return;
+    }
+  }
   if (atomic_exchange(&self->armed, 0)) {
     pthread_mutex_lock(&self->lock);
     if (self->guard != NULL) {
@@ -178,6 +218,7 @@ static PyObject * Notifier_new(PyTypeObject * type, PyObject * args, PyObject * 
   atomic_init(&self->pending, 0);
   atomic_init(&self->plain_pending, 0);
   atomic_init(&self->triggers, 0);
+  atomic_init(&self->wake_by, LLONG_MAX);
   self->guard = NULL;
   self->slots = NULL;
   self->ready = NULL;
@@ -483,6 +524,7 @@ typedef struct {
   int initialised;
   void ** entities[WS_KINDS];
   size_t counts[WS_KINDS];
+  NotifierObject * notifier; /* told when each wait ends at the latest, or NULL */
 } WaitSetObject;
 
 static int addresses(PyObject * sequence, void *** out, size_t * count)
@@ -520,8 +562,10 @@ static int addresses(PyObject * sequence, void *** out, size_t * count)
 static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs)
 {
   static char * keywords[] = {
-    "context", "subscriptions", "guard_conditions", "timers", "clients", "services", "events", NULL};
+    "context", "subscriptions", "guard_conditions", "timers", "clients", "services", "events", "notifier",
+    NULL};
   unsigned long long context;
+  PyObject * notifier = Py_None;
   PyObject * given[WS_KINDS] = {NULL, NULL, NULL, NULL, NULL, NULL};
   PyObject * empty;
   rcl_ret_t ret;
@@ -531,9 +575,13 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
     return -1;
   }
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwargs, "K|$OOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
-      &given[WS_TIMERS], &given[WS_CLIENTS], &given[WS_SERVICES], &given[WS_EVENTS]))
+      args, kwargs, "K|$OOOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
+      &given[WS_TIMERS], &given[WS_CLIENTS], &given[WS_SERVICES], &given[WS_EVENTS], &notifier))
   {
+    return -1;
+  }
+  if (notifier != Py_None && !PyObject_TypeCheck(notifier, &NotifierType)) {
+    PyErr_SetString(PyExc_TypeError, "notifier must be a Notifier or None");
     return -1;
   }
   if (context == 0) {
@@ -561,6 +609,10 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
     rcl_reset_error();
     return -1;
   }
+  if (notifier != Py_None) {
+    Py_INCREF(notifier);
+    self->notifier = (NotifierObject *)notifier;
+  }
   self->initialised = 1;
   return 0;
 }
@@ -574,6 +626,7 @@ static void WaitSet_dealloc(WaitSetObject * self)
   for (kind = 0; kind < WS_KINDS; ++kind) {
     free(self->entities[kind]);
   }
+  Py_XDECREF(self->notifier);
   Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -625,6 +678,44 @@ static PyObject * ready_of(const void * const * slots, size_t count)
   return list;
 }
 
+/* When an rcl_wait with this timeout (ns, negative: none) returns at the
+ * latest, on CLOCK_MONOTONIC: rcl_wait's own rule (the timeout or the soonest
+ * timer, skipping cancelled timers and ROS-time timers under a time
+ * override, which only their clock's jumps wake); LLONG_MAX when unknown. */
+static long long wake_deadline(WaitSetObject * self, long long timeout)
+{
+  long long soonest = timeout >= 0 ? timeout : LLONG_MAX;
+  size_t i;
+  for (i = 0; i < self->counts[WS_TIMERS]; ++i) {
+    const rcl_timer_t * timer = self->entities[WS_TIMERS][i];
+    rcl_clock_t * clock = NULL;
+    int64_t until = 0;
+    rcl_ret_t ret = rcl_timer_clock((rcl_timer_t *)timer, &clock);
+    if (ret == RCL_RET_OK && clock->type == RCL_ROS_TIME) {
+      bool overridden = false;
+      ret = rcl_is_enabled_ros_time_override(clock, &overridden);
+      if (ret == RCL_RET_OK && overridden) {
+        continue;
+      }
+    }
+    if (ret == RCL_RET_OK) {
+      ret = rcl_timer_get_time_until_next_call(timer, &until);
+    }
+    if (ret == RCL_RET_TIMER_CANCELED) {
+      rcl_reset_error();
+      continue;
+    }
+    if (ret != RCL_RET_OK) {
+      rcl_reset_error();
+      return LLONG_MAX;
+    }
+    if (until < soonest) {
+      soonest = until > 0 ? until : 0;
+    }
+  }
+  return soonest == LLONG_MAX ? LLONG_MAX : monotonic_ns() + soonest;
+}
+
 static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * arg)
 {
   long long timeout = PyLong_AsLongLong(arg);
@@ -639,8 +730,15 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * arg)
   }
   ret = fill(self);
   if (ret == RCL_RET_OK) {
+    NotifierObject * notifier = self->notifier;
     Py_BEGIN_ALLOW_THREADS
+    if (notifier != NULL) {
+      atomic_store(&notifier->wake_by, wake_deadline(self, timeout));
+    }
     ret = rcl_wait(ws, (int64_t)timeout);
+    if (notifier != NULL) {
+      atomic_store(&notifier->wake_by, LLONG_MAX);
+    }
     Py_END_ALLOW_THREADS
   }
   if (ret == RCL_RET_TIMEOUT) {
@@ -1273,13 +1371,6 @@ undo:
   return -1;
 }
 
-static long long monotonic_ns(void)
-{
-  struct timespec now;
-  clock_gettime(CLOCK_MONOTONIC, &now);
-  return (long long)now.tv_sec * 1000000000LL + now.tv_nsec;
-}
-
 
 /* How many reported entities ``take_reported`` moves without allocating. */
 #define REPORTED_INLINE 16
@@ -1644,11 +1735,25 @@ static PyTypeObject ExpressType = {
   .tp_getset = Express_getset,
 };
 
+static PyObject * mark_carrier(PyObject * Py_UNUSED(module), PyObject * Py_UNUSED(ignored))
+{
+  carrier_thread = 1;
+  Py_RETURN_NONE;
+}
+
+static PyMethodDef module_methods[] = {
+  {"mark_carrier", mark_carrier, METH_NOARGS,
+   "mark_carrier() -> None: this thread takes, after each plain callback, what it published to other "
+   "plain callbacks (Notifier.carry); a notifier's waiter that wakes soon anyway is not woken for that"},
+  {NULL, NULL, 0, NULL},
+};
+
 static struct PyModuleDef module = {
   PyModuleDef_HEAD_INIT,
   .m_name = "_fastpath",
   .m_doc = "The executor's hot path: readiness and takes of rcl entities (see the C source for why).",
   .m_size = -1,
+  .m_methods = module_methods,
 };
 
 PyMODINIT_FUNC PyInit__fastpath(void)

@@ -25,6 +25,11 @@ class Notifier:
     @property
     def watched(self) -> int: ...
 
+def mark_carrier() -> None:
+    """This thread takes, after each plain callback, what it published to
+    other plain callbacks (``Notifier.carry``): a notifier's waiter due to
+    wake within 5 ms anyway is not woken for such a publish."""
+
 class Taker:
     def __init__(self, *, subscription: int, message_type: type) -> None: ...
     def take(self) -> object | None: ...
@@ -46,6 +51,7 @@ class WaitSet:
         clients: Sequence[int] = (),
         services: Sequence[int] = (),
         events: Sequence[int] = (),
+        notifier: Notifier | None = None,
     ) -> None: ...
     def wait(self, timeout_ns: int, /) -> Ready: ...
 

@@ -25,7 +25,9 @@ A worker thread that finished a plain callback *carries* on: what that
 callback published to another plain callback of this process is taken on
 the same thread, and if that callback's lane is free it runs there too,
 rather than the event loop waking to wake the lane's own thread (two thread
-switches per hand-over, each costing more than the callback). Meanwhile the
+switches per hand-over, each costing more than the callback); the loop is
+not even woken for such a message while it wakes soon anyway (see
+``_fastpath``'s ``mark_carrier``). Meanwhile the
 worker's own lane counts it as away, so its next work gets a thread of its
 own: a carried callback that blocks delays nobody else.
 
@@ -50,6 +52,7 @@ from typing import Any
 
 from .._compat import enter_task, leave_task
 from ._bridge import drive
+from ._fastpath import mark_carrier
 
 __all__: list[str] = []
 
@@ -302,6 +305,8 @@ class Lane:
             thread.start()
 
     def _worker(self) -> None:
+        if self._carry is not None:
+            mark_carrier()  # its publishes to plain callbacks need not wake the loop
         while True:
             work = self._inbox.get()
             if work is None:

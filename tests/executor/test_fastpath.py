@@ -462,6 +462,95 @@ def test_plain_ping_pong_in_one_process_stays_on_one_thread(
     assert switches < len(threads) // 4, (switches, len(threads))
 
 
+def _notifier(executor: AsyncioExecutor) -> Notifier:
+    notifier = executor._dispatcher._hot._notifier
+    assert isinstance(notifier, Notifier)
+    return notifier
+
+
+def test_a_plain_timers_publish_to_a_plain_callback_does_not_wake_the_loop(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """A plain timer's callback publishes to another node's plain callback:
+    the worker that ran the timer carries the message on (see ``Lane``), so
+    the loop, due to wake within 5 ms for the next firing anyway, is not
+    woken for it: that wake-up found nothing and fought the worker for the
+    GIL (a third of a plain timer's cost, measured)."""
+    talker, listener = host(Node, "fp_defer_pub"), host(Node, "fp_defer_sub")
+    pub = talker.create_publisher(Int64, "fp_defer", 10)
+    got: list[int] = []
+    threads: set[str] = set()
+    enough = threading.Event()
+    window = 200
+
+    def receive(msg: Int64) -> None:
+        got.append(msg.data)
+        threads.add(threading.current_thread().name)
+        if len(got) >= 2 * window:
+            enough.set()
+
+    listener.create_subscription(Int64, "fp_defer", receive, 10)
+    _matched(pub)
+    talker.create_timer(0.002, lambda: pub.publish(Int64(data=len(got))))
+    notifier = _notifier(executor)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        assert _until(lambda: len(got) >= window), "the timer's messages never arrived"
+        triggers, received = notifier.triggers, len(got)
+        assert enough.wait(TIMEOUT), "the timer's messages stopped"
+        triggers, received = notifier.triggers - triggers, len(got) - received
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+    # Woken for every publish, the loop would count one trigger per message.
+    assert triggers < received // 4, (triggers, received)
+    assert all(name.startswith("lane:") for name in threads), threads
+
+
+def test_a_plain_callback_running_on_after_publishing_does_not_hold_the_message(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """The loop skips that wake-up only while it wakes within 5 ms anyway:
+    a callback that publishes and then runs on for half a second must not
+    hold its message that long when the loop's next wake-up is far (here,
+    the next firing of a 2 Hz timer)."""
+    talker, listener = host(Node, "fp_hold_pub"), host(Node, "fp_hold_sub")
+    pub = talker.create_publisher(Int64, "fp_hold", 10)
+    sent: list[float] = []
+    arrived: list[float] = []
+    finished: list[float] = []
+    calls: list[float] = []
+    done = threading.Event()
+
+    def tick() -> None:
+        calls.append(time.monotonic())
+        if sent or len(calls) < 3:  # once the executor has settled
+            return
+        sent.append(time.monotonic())
+        pub.publish(Int64(data=1))
+        time.sleep(0.5)
+        finished.append(time.monotonic())
+
+    def receive(msg: Int64) -> None:
+        arrived.append(time.monotonic())
+        done.set()
+
+    listener.create_subscription(Int64, "fp_hold", receive, 10)
+    _matched(pub)
+    talker.create_timer(0.5, tick)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        assert done.wait(TIMEOUT), "the message never arrived"
+        assert _until(lambda: bool(finished)), "the publishing callback never returned"
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+    # Held until the publishing callback returned, it would arrive 0.5 s late.
+    assert arrived[0] - sent[0] < 0.2, (arrived[0] - sent[0], finished[0] - sent[0])
+
+
 def test_qos_events_arrive_without_a_wait_set(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
     a, b = host(Node, "fp_event_pub"), host(Node, "fp_event_sub")
     seen: dict[str, float] = {}

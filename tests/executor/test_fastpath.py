@@ -11,6 +11,7 @@ re-created while the executor spins must keep being served.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import threading
 import time
@@ -33,6 +34,18 @@ from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, T
 from container.executor._fastpath import WaitSet as FastWaitSet
 
 TIMEOUT = 10.0
+
+
+@contextlib.contextmanager
+def _spinning(executor: AsyncioExecutor) -> Iterator[None]:
+    """Spin ``executor`` on a thread of its own for the ``with`` block, then shut it down."""
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        yield
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
 
 
 def _until(condition: Callable[[], bool], timeout: float = TIMEOUT) -> bool:
@@ -206,17 +219,12 @@ def _bounce(executor: AsyncioExecutor, host: Callable[..., Any], name: str, *, p
     a.create_subscription(Int64, f"{name}_pong", got if plain else got_async, 10)
     _matched(ping)
     _matched(pong)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with _spinning(executor):
         hot = executor._dispatcher._hot
         before = hot.waits
         ping.publish(Int64(data=1))
         assert done.wait(TIMEOUT)
         waits = hot.waits - before
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
     return _Bounce(waits, threads)
 
 
@@ -366,17 +374,12 @@ def test_a_timers_publish_is_run_right_after_the_wait_that_fired_it(
     listener.create_subscription(Int64, "fp_tick", on, 10)
     _matched(pub)
     talker.create_timer(0.02, tick)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with _spinning(executor):
         assert enough.wait(TIMEOUT)
         hot = executor._dispatcher._hot
         waits = hot.waits
         assert hot._express is not None
         expressed = hot._express.expressed
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
     # A second wait per cycle (to look at timers again before taking) would
     # make about 2 * cycles.
     assert waits < cycles * 1.5, waits
@@ -493,16 +496,11 @@ def test_a_plain_timers_publish_to_a_plain_callback_does_not_wake_the_loop(
     _matched(pub)
     talker.create_timer(0.002, lambda: pub.publish(Int64(data=len(got))))
     notifier = _notifier(executor)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with _spinning(executor):
         assert _until(lambda: len(got) >= window), "the timer's messages never arrived"
         triggers, received = notifier.triggers, len(got)
         assert enough.wait(TIMEOUT), "the timer's messages stopped"
         triggers, received = notifier.triggers - triggers, len(got) - received
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
     # Woken for every publish, the loop would count one trigger per message.
     assert triggers < received // 4, (triggers, received)
     assert all(name.startswith("lane:") for name in threads), threads
@@ -539,14 +537,9 @@ def test_a_plain_callback_running_on_after_publishing_does_not_hold_the_message(
     listener.create_subscription(Int64, "fp_hold", receive, 10)
     _matched(pub)
     talker.create_timer(0.5, tick)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with _spinning(executor):
         assert done.wait(TIMEOUT), "the message never arrived"
         assert _until(lambda: bool(finished)), "the publishing callback never returned"
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
     # Held until the publishing callback returned, it would arrive 0.5 s late.
     assert arrived[0] - sent[0] < 0.2, (arrived[0] - sent[0], finished[0] - sent[0])
 
@@ -564,9 +557,7 @@ def test_qos_events_arrive_without_a_wait_set(executor: AsyncioExecutor, host: C
 
         return record
 
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with _spinning(executor):
         b.create_subscription(
             Int64,
             "fp_qos",
@@ -585,9 +576,6 @@ def test_qos_events_arrive_without_a_wait_set(executor: AsyncioExecutor, host: C
         assert _until(lambda: not hot._dirty)
         assert hot._table.events == [], "QoS events should come through rmw callbacks, not the wait set"
         assert hot._notifier is not None and hot._notifier.watched >= 4
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
     assert EVENT != SUBSCRIPTION
 
 
@@ -598,9 +586,7 @@ def test_subscriptions_destroyed_and_created_while_spinning_keep_being_served(
     new one at the same address is watched afresh (none goes unserved)."""
     talker, listener = host(Node, "fp_churn_pub"), host(Node, "fp_churn_sub")
     pub = talker.create_publisher(Int64, "fp_churn", 10)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with _spinning(executor):
         for round_index in range(40):
             got = threading.Event()
 
@@ -620,9 +606,6 @@ def test_subscriptions_destroyed_and_created_while_spinning_keep_being_served(
         notifier = executor._dispatcher._hot._notifier
         assert notifier is not None
         assert _until(lambda: executor._dispatcher._hot.waits > 0 and notifier.watched < 10)
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
 
 
 def test_compiled_wait_set_reports_what_rclpys_reports(context: Context, node: Node, guard: GuardCondition) -> None:

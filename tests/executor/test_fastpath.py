@@ -478,7 +478,7 @@ def test_a_plain_timers_publish_to_a_plain_callback_does_not_wake_the_loop(
     the worker that ran the timer carries the message on (see ``Lane``), so
     the loop, due to wake within 5 ms for the next firing anyway, is not
     woken for it: that wake-up found nothing and fought the worker for the
-    GIL (a third of a plain timer's cost, measured)."""
+    GIL (a quarter to nearly half of a plain timer's cost, measured)."""
     talker, listener = host(Node, "fp_defer_pub"), host(Node, "fp_defer_sub")
     pub = talker.create_publisher(Int64, "fp_defer", 10)
     got: list[int] = []

@@ -1247,7 +1247,7 @@ class Dispatcher:
                 return None
             entry = self.entry(subscription, node, "subscription")
         self.submit(entry, callback, args)
-        return self._on_loop_thread() and not self.relieving
+        return self._dispatching_burst()
 
 
 def _route(first: Any, entry: _Entry) -> _Route:

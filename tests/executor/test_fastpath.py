@@ -250,17 +250,14 @@ def _expressed_until(
 ) -> int:
     """Spin ``executor``, ``kick``, wait for ``done``; then shut it down and
     destroy ``nodes``: how many callbacks ran on the C path meanwhile."""
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
     try:
-        kick()
-        assert done.wait(TIMEOUT), stopped
-        express = executor._dispatcher._hot._express
-        assert express is not None
-        return express.expressed
+        with _spinning(executor):
+            kick()
+            assert done.wait(TIMEOUT), stopped
+            express = executor._dispatcher._hot._express
+            assert express is not None
+            return express.expressed
     finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
         for made in nodes:
             made.destroy_node()
 
@@ -672,18 +669,15 @@ def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
     listener.create_subscription(Int64, "fp_nocb", on, 50)  # type: ignore[arg-type]  # rclpy types only plain callbacks
     for node in (talker, listener):
         executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
     try:
-        _matched(pub)
-        for index in range(20):
-            pub.publish(Int64(data=index))
-        assert enough.wait(TIMEOUT), got
-        assert got == list(range(20))
-        hot = executor._dispatcher._hot
-        assert len(hot._table.handles["subscription"]) >= 1  # in the wait set instead
+        with _spinning(executor):
+            _matched(pub)
+            for index in range(20):
+                pub.publish(Int64(data=index))
+            assert enough.wait(TIMEOUT), got
+            assert got == list(range(20))
+            hot = executor._dispatcher._hot
+            assert len(hot._table.handles["subscription"]) >= 1  # in the wait set instead
     finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(5.0)
         talker.destroy_node()
         listener.destroy_node()

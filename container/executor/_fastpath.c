@@ -76,6 +76,9 @@ static long long monotonic_ns(void)
 /* Set on lane worker threads that, after every plain callback, take what it
  * published for other plain callbacks themselves (Notifier.carry). */
 static _Thread_local int carrier_thread = 0;
+/* Whether any thread was ever marked: until then no publish can be deferred,
+ * and a wait need not work out when it ends (an async-only process). */
+static atomic_int carriers_exist = 0;
 
 /* The event count that means "take until nothing is left". */
 #define DRAIN ((size_t)1 << 30)
@@ -730,14 +733,15 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * arg)
   }
   ret = fill(self);
   if (ret == RCL_RET_OK) {
-    NotifierObject * notifier = self->notifier;
+    /* Only a carrier's publish reads it (on_event). */
+    NotifierObject * told = atomic_load(&carriers_exist) ? self->notifier : NULL;
     Py_BEGIN_ALLOW_THREADS
-    if (notifier != NULL) {
-      atomic_store(&notifier->wake_by, wake_deadline(self, timeout));
+    if (told != NULL) {
+      atomic_store(&told->wake_by, wake_deadline(self, timeout));
     }
     ret = rcl_wait(ws, (int64_t)timeout);
-    if (notifier != NULL) {
-      atomic_store(&notifier->wake_by, LLONG_MAX);
+    if (told != NULL) {
+      atomic_store(&told->wake_by, LLONG_MAX);
     }
     Py_END_ALLOW_THREADS
   }
@@ -1738,6 +1742,7 @@ static PyTypeObject ExpressType = {
 static PyObject * mark_carrier(PyObject * Py_UNUSED(module), PyObject * Py_UNUSED(ignored))
 {
   carrier_thread = 1;
+  atomic_store(&carriers_exist, 1);
   Py_RETURN_NONE;
 }
 

@@ -16,7 +16,7 @@ Besides rclpy's three executors, ``floor`` is a bare loop on rclpy's wait set
 with no executor at all (see :class:`BareLoop`): what any executor built on
 rclpy's Python API can at best approach.
 
-Printed as medians and as ratios to rclpy's SingleThreadedExecutor and EventsExecutor.
+Printed as medians and as ratios to each of rclpy's three executors.
 """
 
 from __future__ import annotations
@@ -323,6 +323,17 @@ def _median(values: list[float]) -> float:
     return statistics.median(values) if values else float("nan")
 
 
+def _ratio(mine: float, other: float) -> float:
+    """``mine / other``; nan when the peer got nothing through (rclpy's
+    MultiThreadedExecutor can end a ping-pong window at 0 round trips)."""
+    return mine / other if other else float("nan")
+
+
+def _x(ratio: float) -> str:
+    """A ratio as printed: two decimals, none once it is in the hundreds."""
+    return f"{ratio:.2f}x" if not ratio >= 100 else f"{ratio:.0f}x"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=3)
@@ -347,31 +358,32 @@ def main() -> None:
     print()
     rt = {kind: results.get(("pingpong", kind), []) for kind in kinds}
     print(
-        f"{'executor':38} {'round trips/s':>13} {'vs single':>9} {'vs events':>9}"
+        f"{'executor':38} {'round trips/s':>13} {'vs single':>9} {'vs multi':>9} {'vs events':>9}"
         f" {'20 Hz gap':>10} {'load CPU':>9}"
     )
+    single, multi, events = (_median(rt.get(peer, [])) for peer in ("single", "multi", "events"))
     for kind in kinds:
-        single, events = _median(rt.get("single", [])), _median(rt.get("events", []))
         mine = _median(rt[kind])
         gap = _median(results.get(("gap", kind), []))
         cpu = _median(results.get(("load", kind), []))
         print(
-            f"{KINDS[kind]:38} {mine:13.0f} {mine / single:8.2f}x {mine / events:8.2f}x"
+            f"{KINDS[kind]:38} {mine:13.0f} {_x(_ratio(mine, single)):>9} {_x(_ratio(mine, multi)):>9}"
+            f" {_x(_ratio(mine, events)):>9}"
             f" {gap:7.0f} ms {cpu:8.1f}%"
         )
     print("\nround by round (same round's peer):")
-    for peer in ("single", "events"):
+    for peer in ("single", "multi", "events"):
         peers = rt.get(peer, [])
         if not peers:
             continue
         for kind in kinds:
-            ratios = [mine / other for mine, other in zip(rt[kind], peers, strict=False)]
+            ratios = [_ratio(mine, other) for mine, other in zip(rt[kind], peers, strict=False)]
             if kind == peer or not ratios:
                 continue
-            listed = " ".join(f"{r:.2f}x" for r in ratios)
+            listed = " ".join(_x(r) for r in ratios)
             print(
                 f"{KINDS[kind]:38} vs {peer:6} {listed}"
-                f"   (median {_median(ratios):.2f}x, min {min(ratios):.2f}x)"
+                f"   (median {_x(_median(ratios))}, min {_x(min(ratios))})"
             )
 
 

@@ -430,9 +430,9 @@ class _WaitSet:
             timeout_ns = due_in
         for entry in table.waitables:
             entry.entity.add_to_wait_set(wait_set)
-        timeout_ns = self._before_wait(notifier, timeout_ns)
+        timeout_ns, _ = self._before_wait(notifier, timeout_ns)
         try:
-            wait_set.wait(timeout_ns)
+            wait_set.wait(timeout_ns)  # rclpy's: releases the GIL even for a poll
         finally:
             self._waited(notifier)
         if self._closed:
@@ -465,8 +465,10 @@ class _WaitSet:
                     dispatcher.take_waitable(entry)
         return flags
 
-    def _before_wait(self, notifier: Notifier | None, timeout_ns: int) -> int:
-        """Arm the notifier and count the wait; the timeout to wait with."""
+    def _before_wait(self, notifier: Notifier | None, timeout_ns: int) -> tuple[int, bool]:
+        """Arm the notifier and count the wait: the timeout to wait with, and
+        whether the wait is a poll (a guard condition already triggered)."""
+        poll = False
         if notifier is not None and notifier.arm():
             timeout_ns = 0
         if timeout_ns == 0 and self._notifier_guard is not None:
@@ -475,9 +477,9 @@ class _WaitSet:
             # slack); with a guard condition already triggered it returns at
             # once (~5 us) and still reports everything else that is ready.
             self._notifier_guard.trigger()
-            timeout_ns = _EVENT_SKIP_MAX_NS
+            timeout_ns, poll = _EVENT_SKIP_MAX_NS, True
         self.waits += 1
-        return timeout_ns
+        return timeout_ns, poll
 
     def _waited(self, notifier: Notifier | None) -> None:
         """Back from ``rcl_wait``: what it reported is what was ready now.
@@ -491,9 +493,10 @@ class _WaitSet:
 
     def _wait_fast(self, table: _Table, fast: FastWaitSet, notifier: Notifier | None, timeout_ns: int) -> int:
         """:meth:`_wait_and_dispatch` on the compiled wait set: one call fills, waits and reads it."""
-        timeout_ns = self._before_wait(notifier, timeout_ns)
+        timeout_ns, poll = self._before_wait(notifier, timeout_ns)
         try:
-            ready = fast.wait(timeout_ns)
+            # A poll keeps the GIL: see WaitSet_wait in _fastpath.c.
+            ready = fast.wait(timeout_ns, poll)
         finally:
             self._waited(notifier)
         if self._closed:

@@ -719,12 +719,29 @@ static long long wake_deadline(WaitSetObject * self, long long timeout)
   return soonest == LLONG_MAX ? LLONG_MAX : monotonic_ns() + soonest;
 }
 
-static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * arg)
+/* wait(timeout_ns, poll=False). A poll (a wait whose guard condition is
+ * already triggered, so rcl_wait returns at once) keeps the GIL. Released
+ * for those few microseconds, once a millisecond while a chain of callbacks
+ * runs, it wakes a thread waiting for it (a lane's worker, the watchdog),
+ * which loses the race to take it back and starts its wait for a forced
+ * switch (sys.getswitchinterval()) all over again: a plain 20 Hz timer beside
+ * a busy chain ran 0-12 times in 4 s instead of 80. Kept, the waiting
+ * thread's switch interval runs out and CPython hands the GIL over. */
+static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py_ssize_t nargs)
 {
-  long long timeout = PyLong_AsLongLong(arg);
+  long long timeout;
+  int poll = 0;
   rcl_wait_set_t * ws = &self->wait_set;
   rcl_ret_t ret;
+  if (nargs < 1 || nargs > 2) {
+    PyErr_SetString(PyExc_TypeError, "wait(timeout_ns, poll=False)");
+    return NULL;
+  }
+  timeout = PyLong_AsLongLong(args[0]);
   if (timeout == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  if (nargs == 2 && (poll = PyObject_IsTrue(args[1])) < 0) {
     return NULL;
   }
   if (!self->initialised) {
@@ -732,7 +749,9 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * arg)
     return NULL;
   }
   ret = fill(self);
-  if (ret == RCL_RET_OK) {
+  if (ret == RCL_RET_OK && poll) {
+    ret = rcl_wait(ws, (int64_t)timeout);
+  } else if (ret == RCL_RET_OK) {
     /* Only a carrier's publish reads it (on_event). */
     NotifierObject * told = atomic_load(&carriers_exist) ? self->notifier : NULL;
     Py_BEGIN_ALLOW_THREADS
@@ -765,8 +784,8 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * arg)
 }
 
 static PyMethodDef WaitSet_methods[] = {
-  {"wait", (PyCFunction)WaitSet_wait, METH_O,
-   "wait(timeout_ns) -> () on timeout, else the ready addresses: (subscriptions, guard_conditions, "
+  {"wait", (PyCFunction)(void (*)(void))WaitSet_wait, METH_FASTCALL,
+   "wait(timeout_ns, poll=False) -> () on timeout, else the ready addresses: (subscriptions, guard_conditions, "
    "timers, clients, services, events)"},
   {NULL, NULL, 0, NULL},
 };

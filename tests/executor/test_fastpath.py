@@ -681,3 +681,58 @@ def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
     finally:
         talker.destroy_node()
         listener.destroy_node()
+
+
+def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
+    context: Context, executor: AsyncioExecutor
+) -> None:
+    """Two nodes bouncing a message with ``async def`` callbacks keep the loop
+    thread busy for good; a third node's plain 20 Hz timer (run by a lane
+    worker, which needs the GIL) must keep its rate.
+
+    The loop looks at timers once a millisecond with a wait that returns at
+    once: when that wait let go of the GIL, the worker woke for it each time,
+    lost it again before it could run, and waited for CPython's forced switch
+    all over again: 0-12 ticks in 4 s instead of 80, gaps of a second.
+    """
+    a, b, c = (Node(f"fp_gil_{name}", context=context) for name in "abc")
+    ping = a.create_publisher(Int64, "fp_gil_ping", 10)
+    pong = b.create_publisher(Int64, "fp_gil_pong", 10)
+    hops = [0]
+
+    async def echo(msg: Int64) -> None:
+        pong.publish(msg)
+
+    async def back(msg: Int64) -> None:
+        hops[0] += 1
+        ping.publish(msg)
+
+    b.create_subscription(Int64, "fp_gil_ping", echo, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
+    a.create_subscription(Int64, "fp_gil_pong", back, 10)  # type: ignore[arg-type]
+    ticks: list[float] = []
+    enough = threading.Event()
+    wanted = 30  # 1.5 s of a 20 Hz timer
+
+    def tick() -> None:
+        ticks.append(time.monotonic())
+        if len(ticks) > wanted:
+            enough.set()
+
+    for made in (a, b, c):
+        executor.add_node(made)
+    for publisher in (ping, pong):
+        _matched(publisher)
+    try:
+        with _spinning(executor):
+            ping.publish(Int64(data=0))
+            assert _until(lambda: hops[0] > 1000), "the chain never got going"
+            c.create_timer(0.05, tick)
+            executor.wake()
+            assert enough.wait(TIMEOUT), f"the timer ran {len(ticks)} times in {TIMEOUT} s beside the chain"
+            chained = hops[0]
+    finally:
+        for made in (a, b, c):
+            made.destroy_node()
+    gaps = [later - earlier for earlier, later in itertools.pairwise(ticks)]
+    assert max(gaps) < 0.2, f"largest gap {max(gaps):.3f} s"
+    assert chained > 10_000, chained  # the chain really ran beside it

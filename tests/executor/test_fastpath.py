@@ -726,13 +726,14 @@ def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
         with _spinning(executor):
             ping.publish(Int64(data=0))
             assert _until(lambda: hops[0] > 1000), "the chain never got going"
+            started = hops[0]
             c.create_timer(0.05, tick)
             executor.wake()
             assert enough.wait(TIMEOUT), f"the timer ran {len(ticks)} times in {TIMEOUT} s beside the chain"
-            chained = hops[0]
+            chained = hops[0] - started
     finally:
         for made in (a, b, c):
             made.destroy_node()
     gaps = [later - earlier for earlier, later in itertools.pairwise(ticks)]
     assert max(gaps) < 0.2, f"largest gap {max(gaps):.3f} s"
-    assert chained > 10_000, chained  # the chain really ran beside it
+    assert chained > 5 * wanted, chained  # the chain ran on all along, dozens of round trips per tick

@@ -430,9 +430,13 @@ class _WaitSet:
             timeout_ns = due_in
         for entry in table.waitables:
             entry.entity.add_to_wait_set(wait_set)
-        timeout_ns, _ = self._before_wait(notifier, timeout_ns)
+        timeout_ns, poll = self._before_wait(notifier, timeout_ns)
         try:
-            wait_set.wait(timeout_ns)  # rclpy's: releases the GIL even for a poll
+            if poll:
+                # rclpy's wait lets go of the GIL even for a poll: see WaitSet_wait in _fastpath.c.
+                _fastpath.poll(wait_set.pointer, timeout_ns)
+            else:
+                wait_set.wait(timeout_ns)
         finally:
             self._waited(notifier)
         if self._closed:

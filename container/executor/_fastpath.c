@@ -1765,7 +1765,42 @@ static PyObject * mark_carrier(PyObject * Py_UNUSED(module), PyObject * Py_UNUSE
   Py_RETURN_NONE;
 }
 
+/* poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set (its
+ * ``pointer``) keeping the GIL, where rclpy's own ``wait`` would let go of it
+ * even for a poll: WaitSet_wait's poll, for the wait set rclpy fills. */
+static PyObject * poll_wait_set(PyObject * Py_UNUSED(module), PyObject * const * args, Py_ssize_t nargs)
+{
+  rcl_wait_set_t * ws;
+  long long timeout;
+  rcl_ret_t ret;
+  if (nargs != 2) {
+    PyErr_SetString(PyExc_TypeError, "poll(wait_set, timeout_ns)");
+    return NULL;
+  }
+  ws = (rcl_wait_set_t *)PyLong_AsVoidPtr(args[0]);
+  if (ws == NULL) {
+    if (!PyErr_Occurred()) {
+      PyErr_SetString(PyExc_ValueError, "poll: no wait set at address 0");
+    }
+    return NULL;
+  }
+  timeout = PyLong_AsLongLong(args[1]);
+  if (timeout == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  ret = rcl_wait(ws, (int64_t)timeout);
+  if (ret != RCL_RET_OK && ret != RCL_RET_TIMEOUT) {
+    PyErr_Format(PyExc_RuntimeError, "rcl_wait failed: %s", rcl_get_error_string().str);
+    rcl_reset_error();
+    return NULL;
+  }
+  Py_RETURN_NONE;
+}
+
 static PyMethodDef module_methods[] = {
+  {"poll", (PyCFunction)(void (*)(void))poll_wait_set, METH_FASTCALL,
+   "poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set at that address, keeping the GIL "
+   "(for a wait whose guard condition is already triggered)"},
   {"mark_carrier", mark_carrier, METH_NOARGS,
    "mark_carrier() -> None: this thread takes, after each plain callback, what it published to other "
    "plain callbacks (Notifier.carry); a notifier's waiter that wakes soon anyway is not woken for that"},

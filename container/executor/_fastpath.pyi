@@ -25,6 +25,10 @@ class Notifier:
     @property
     def watched(self) -> int: ...
 
+def poll(wait_set: int, timeout_ns: int, /) -> None:
+    """``rcl_wait`` on rclpy's wait set at that address (its ``pointer``),
+    keeping the GIL: for a wait whose guard condition is already triggered."""
+
 def mark_carrier() -> None:
     """This thread takes, after each plain callback, what it published to
     other plain callbacks (``Notifier.carry``): a notifier's waiter due to

@@ -30,6 +30,7 @@ from std_msgs.msg import Int64
 
 from container import AsyncioExecutor
 from container._compat import WaitSet
+from container.executor._dispatch import _WaitSet
 from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, Taker
 from container.executor._fastpath import WaitSet as FastWaitSet
 
@@ -683,8 +684,9 @@ def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
         listener.destroy_node()
 
 
+@pytest.mark.parametrize("wait_set", ["compiled", "rclpy"])
 def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
-    context: Context, executor: AsyncioExecutor
+    context: Context, executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch, wait_set: str
 ) -> None:
     """Two nodes bouncing a message with ``async def`` callbacks keep the loop
     thread busy for good; a third node's plain 20 Hz timer (run by a lane
@@ -694,8 +696,25 @@ def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
     once: when that wait let go of the GIL, the worker woke for it each time,
     lost it again before it could run, and waited for CPython's forced switch
     all over again: 0-12 ticks in 4 s instead of 80, gaps of a second.
+
+    ``rclpy``: a QoS event that rmw would not report by callback puts
+    rclpy's own wait set in the loop's place, whose ``wait`` lets go of the
+    GIL whatever the timeout; polls go around it.
     """
+    if wait_set == "rclpy":
+        watch = _WaitSet._watch
+
+        def no_events(self: _WaitSet, pointer: int, kind: int, *, plain: bool = False) -> bool:
+            return kind != EVENT and watch(self, pointer, kind, plain=plain)
+
+        monkeypatch.setattr(_WaitSet, "_watch", no_events)
     a, b, c = (Node(f"fp_gil_{name}", context=context) for name in "abc")
+    if wait_set == "rclpy":
+        c.create_subscription(
+            Int64, "fp_gil_quiet", lambda msg: None, 10, event_callbacks=SubscriptionEventCallbacks(
+                liveliness=lambda event: None
+            )
+        )
     ping = a.create_publisher(Int64, "fp_gil_ping", 10)
     pong = b.create_publisher(Int64, "fp_gil_pong", 10)
     hops = [0]
@@ -729,6 +748,7 @@ def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
             started = hops[0]
             c.create_timer(0.05, tick)
             executor.wake()
+            assert (executor._dispatcher._hot._table.fast is None) == (wait_set == "rclpy")
             assert enough.wait(TIMEOUT), f"the timer ran {len(ticks)} times in {TIMEOUT} s beside the chain"
             chained = hops[0] - started
     finally:

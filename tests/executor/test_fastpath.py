@@ -755,5 +755,5 @@ def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
         for made in (a, b, c):
             made.destroy_node()
     gaps = [later - earlier for earlier, later in itertools.pairwise(ticks)]
-    assert max(gaps) < 0.2, f"largest gap {max(gaps):.3f} s"
+    assert max(gaps) < 0.5, f"largest gap {max(gaps):.3f} s"  # 50-60 ms here; starved: seconds
     assert chained > 5 * wanted, chained  # the chain ran on all along, dozens of round trips per tick

@@ -726,7 +726,17 @@ static long long wake_deadline(WaitSetObject * self, long long timeout)
  * which loses the race to take it back and starts its wait for a forced
  * switch (sys.getswitchinterval()) all over again: a plain 20 Hz timer beside
  * a busy chain ran 0-12 times in 4 s instead of 80. Kept, the waiting
- * thread's switch interval runs out and CPython hands the GIL over. */
+ * thread's switch interval runs out and CPython hands the GIL over. A poll
+ * waits at most POLL_HOLD_MAX_NS, whatever its timeout. */
+/* The longest a poll may hold the GIL in rcl_wait, should its guard
+ * condition not be in the wait set after all (destroyed at shutdown). */
+#define POLL_HOLD_MAX_NS 1000000LL
+
+static long long poll_timeout(long long timeout)
+{
+  return timeout < 0 || timeout > POLL_HOLD_MAX_NS ? POLL_HOLD_MAX_NS : timeout;
+}
+
 static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py_ssize_t nargs)
 {
   long long timeout;
@@ -750,7 +760,7 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
   }
   ret = fill(self);
   if (ret == RCL_RET_OK && poll) {
-    ret = rcl_wait(ws, (int64_t)timeout);
+    ret = rcl_wait(ws, (int64_t)poll_timeout(timeout));
   } else if (ret == RCL_RET_OK) {
     /* Only a carrier's publish reads it (on_event). */
     NotifierObject * told = atomic_load(&carriers_exist) ? self->notifier : NULL;
@@ -1788,7 +1798,7 @@ static PyObject * poll_wait_set(PyObject * Py_UNUSED(module), PyObject * const *
   if (timeout == -1 && PyErr_Occurred()) {
     return NULL;
   }
-  ret = rcl_wait(ws, (int64_t)timeout);
+  ret = rcl_wait(ws, (int64_t)poll_timeout(timeout));
   if (ret != RCL_RET_OK && ret != RCL_RET_TIMEOUT) {
     PyErr_Format(PyExc_RuntimeError, "rcl_wait failed: %s", rcl_get_error_string().str);
     rcl_reset_error();

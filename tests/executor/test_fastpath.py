@@ -30,6 +30,7 @@ from std_msgs.msg import Int64
 
 from container import AsyncioExecutor
 from container._compat import WaitSet
+from container.executor import _fastpath
 from container.executor._dispatch import _WaitSet
 from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, Taker
 from container.executor._fastpath import WaitSet as FastWaitSet
@@ -648,6 +649,40 @@ class _NoSubscriptionCallbacks:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)
+
+
+@pytest.mark.parametrize("wait_set", ["compiled", "rclpy"])
+def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: GuardCondition, wait_set: str) -> None:
+    """A poll keeps the GIL because its guard condition is already triggered;
+    should that guard be missing, it still gives the GIL back within 1 ms
+    (plus the kernel's timer slack), not after its 50 ms timeout."""
+    with guard.handle:
+        if wait_set == "compiled":
+            fast = FastWaitSet(context.handle.pointer, guard_conditions=[guard.handle.pointer])  # type: ignore[union-attr]
+
+            def poll() -> None:
+                fast.wait(50_000_000, True)
+        else:
+            rclpys = WaitSet(0, 1, 0, 0, 0, 0, context.handle)
+
+            def poll() -> None:
+                rclpys.clear_entities()  # rcl_wait empties the slots of what was not ready
+                rclpys.add_guard_condition(guard.handle)
+                _fastpath.poll(rclpys.pointer, 50_000_000)
+
+        started = time.monotonic()
+        poll()  # nothing triggered
+        assert time.monotonic() - started < 0.02
+        guard.trigger()
+        started = time.monotonic()
+        poll()
+        assert time.monotonic() - started < 0.02
+    if wait_set == "compiled":
+        started = time.monotonic()
+        assert fast.wait(50_000_000) == ()  # not a poll: the whole timeout
+        assert time.monotonic() - started >= 0.045
+    with pytest.raises(ValueError, match="address 0"):
+        _fastpath.poll(0, 0)
 
 
 def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(

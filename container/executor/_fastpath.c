@@ -65,6 +65,14 @@ static long long monotonic_ns(void)
   return (long long)now.tv_sec * 1000000000LL + now.tv_nsec;
 }
 
+/* NULL, with RuntimeError "<call> failed: <rcl's error>" set and rcl's error reset. */
+static PyObject * rcl_failed(const char * call)
+{
+  PyErr_Format(PyExc_RuntimeError, "%s failed: %s", call, rcl_get_error_string().str);
+  rcl_reset_error();
+  return NULL;
+}
+
 /* The longest a carrier thread's publish may leave the waiter asleep (see
  * on_event), should the publishing callback run on: rclpy's (and rclcpp's)
  * single-threaded executors hold such a message until the callback returns,
@@ -608,8 +616,7 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
     self->counts[WS_CLIENTS], self->counts[WS_SERVICES], self->counts[WS_EVENTS],
     (rcl_context_t *)(uintptr_t)context, rcl_get_default_allocator());
   if (ret != RCL_RET_OK) {
-    PyErr_Format(PyExc_RuntimeError, "rcl_wait_set_init failed: %s", rcl_get_error_string().str);
-    rcl_reset_error();
+    rcl_failed("rcl_wait_set_init");
     return -1;
   }
   if (notifier != Py_None) {
@@ -719,15 +726,6 @@ static long long wake_deadline(WaitSetObject * self, long long timeout)
   return soonest == LLONG_MAX ? LLONG_MAX : monotonic_ns() + soonest;
 }
 
-/* wait(timeout_ns, poll=False). A poll (a wait whose guard condition is
- * already triggered, so rcl_wait returns at once) keeps the GIL. Released
- * for those few microseconds, once a millisecond while a chain of callbacks
- * runs, it wakes a thread waiting for it (a lane's worker, the watchdog),
- * which loses the race to take it back and starts its wait for a forced
- * switch (sys.getswitchinterval()) all over again: a plain 20 Hz timer beside
- * a busy chain ran 0-12 times in 4 s instead of 80. Kept, the waiting
- * thread's switch interval runs out and CPython hands the GIL over. A poll
- * waits at most POLL_HOLD_MAX_NS, whatever its timeout. */
 /* The longest a poll may hold the GIL in rcl_wait, should its guard
  * condition not be in the wait set after all (destroyed at shutdown). */
 #define POLL_HOLD_MAX_NS 1000000LL
@@ -737,6 +735,15 @@ static long long poll_timeout(long long timeout)
   return timeout < 0 || timeout > POLL_HOLD_MAX_NS ? POLL_HOLD_MAX_NS : timeout;
 }
 
+/* wait(timeout_ns, poll=False). A poll (a wait whose guard condition is
+ * already triggered, so rcl_wait returns at once) keeps the GIL. Released
+ * for those few microseconds, once a millisecond while a chain of callbacks
+ * runs, it wakes a thread waiting for it (a lane's worker, the watchdog),
+ * which loses the race to take it back and starts its wait for a forced
+ * switch (sys.getswitchinterval()) all over again: a plain 20 Hz timer beside
+ * a busy chain ran 0-12 times in 4 s instead of 80. Kept, the waiting
+ * thread's switch interval runs out and CPython hands the GIL over. A poll
+ * waits at most POLL_HOLD_MAX_NS, whatever its timeout. */
 static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py_ssize_t nargs)
 {
   long long timeout;
@@ -779,9 +786,7 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
     return Py_BuildValue("()");
   }
   if (ret != RCL_RET_OK) {
-    PyErr_Format(PyExc_RuntimeError, "rcl_wait failed: %s", rcl_get_error_string().str);
-    rcl_reset_error();
-    return NULL;
+    return rcl_failed("rcl_wait");
   }
   return Py_BuildValue(
     "(NNNNNN)",
@@ -904,9 +909,7 @@ static PyObject * take(TakerObject * self, int with_info)
     Py_RETURN_NONE;
   }
   if (ret != RCL_RET_OK) {
-    PyErr_Format(PyExc_RuntimeError, "rcl_take failed: %s", rcl_get_error_string().str);
-    rcl_reset_error();
-    return NULL;
+    return rcl_failed("rcl_take");
   }
   message = self->to_py(self->message);
   if (message == NULL || !with_info) {
@@ -1800,9 +1803,7 @@ static PyObject * poll_wait_set(PyObject * Py_UNUSED(module), PyObject * const *
   }
   ret = rcl_wait(ws, (int64_t)poll_timeout(timeout));
   if (ret != RCL_RET_OK && ret != RCL_RET_TIMEOUT) {
-    PyErr_Format(PyExc_RuntimeError, "rcl_wait failed: %s", rcl_get_error_string().str);
-    rcl_reset_error();
-    return NULL;
+    return rcl_failed("rcl_wait");
   }
   Py_RETURN_NONE;
 }

@@ -228,7 +228,16 @@ class AsyncioExecutor(Executor):
 
     def spin_once(self, timeout_sec: float | None = None) -> None:
         """Run callbacks until one of them completes, or ``timeout_sec`` passes."""
-        self._run_owned(self._until_a_callback_completes(timeout_sec), permits=1)
+        # Listening before the gate opens: what was held since the last spin
+        # (a ready timer, a task) starts as it opens and may complete before
+        # the loop first runs the coroutine that waits for it.
+        completed = self._loop.create_future()
+        self._completion_waiters.append(completed)
+        try:
+            self._run_owned(self._until_a_callback_completes(completed, timeout_sec), permits=1)
+        finally:
+            with contextlib.suppress(ValueError):
+                self._completion_waiters.remove(completed)
 
     def spin_until_future_complete(
         self,
@@ -288,13 +297,14 @@ class AsyncioExecutor(Executor):
         :raises ExecutorError: the executor is shut down (or shutting down).
         """
         self._refuse_if_closed("create a task")
-        result = RclFuture(executor=self)
+        result = _TaskFuture(executor=self)
         begin: Callable[[], None]
         if inspect.iscoroutinefunction(callback) and runs_plain_callback(callback, args):
             function: Callable[..., Any] = callback
 
             def drive_here() -> None:
-                _settle_from(result, lambda: drive_in_thread(function(*args, **kwargs)))
+                if not result.cancelled():
+                    _settle_from(result, lambda: drive_in_thread(function(*args, **kwargs)))
 
             begin = functools.partial(self._tasks_lane().submit, _work(drive_here, self._task_done))
         elif inspect.iscoroutine(callback) or inspect.iscoroutinefunction(callback):
@@ -303,7 +313,8 @@ class AsyncioExecutor(Executor):
             plain: Callable[..., Any] = callback  # type: ignore[assignment]  # not a coroutine here
 
             def run() -> None:
-                _settle_from(result, lambda: plain(*args, **kwargs))
+                if not result.cancelled():
+                    _settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
 
             begin = functools.partial(self._post_to, self.loop, run)
@@ -317,7 +328,7 @@ class AsyncioExecutor(Executor):
         callback: Callable[..., Any] | Coroutine[Any, Any, Any],
         args: tuple[Any, ...],
         kwargs: dict[str, Any],
-        result: RclFuture,
+        result: _TaskFuture,
     ) -> Callable[[], None]:
         """What starts a coroutine task of :meth:`create_task` on the loop."""
         loop = self.loop
@@ -330,7 +341,13 @@ class AsyncioExecutor(Executor):
             self._callback_completed()
 
         def start() -> None:
-            loop.create_task(self.adapt(contained(coro))).add_done_callback(finished)
+            if result.cancelled():
+                coro.close()
+                self._callback_completed()
+                return
+            task = loop.create_task(self.adapt(contained(coro)))
+            task.add_done_callback(finished)
+            result.stop_with(functools.partial(self._call_soon, loop, task.cancel))
 
         return functools.partial(self._call_soon, loop, start)
 
@@ -619,17 +636,11 @@ class AsyncioExecutor(Executor):
     async def _until_stopped(self) -> None:
         await self._stopped_future()
 
-    async def _until_a_callback_completes(self, timeout_sec: float | None) -> None:
+    async def _until_a_callback_completes(self, completed: asyncio.Future[None], timeout_sec: float | None) -> None:
         # rclpy resumes every pending task on each spin: a coroutine parked on
         # a bare yield (an rclpy future) looks again now, not at the next poll.
         self._notify_progress()
-        waiter = self.loop.create_future()
-        self._completion_waiters.append(waiter)
-        try:
-            await self._bounded(waiter, timeout_sec)
-        finally:
-            with contextlib.suppress(ValueError):
-                self._completion_waiters.remove(waiter)
+        await self._bounded(completed, timeout_sec)
 
     async def _until_done(
         self,
@@ -794,7 +805,36 @@ def _resolve(future: asyncio.Future[None]) -> None:
         future.set_result(None)
 
 
+class _TaskFuture(RclFuture):
+    """What :meth:`AsyncioExecutor.create_task` returns: cancelling it stops the task.
+
+    As with rclpy's ``Task``: a task cancelled before it starts never runs,
+    one suspended at an ``await`` is cancelled there (asyncio's
+    ``CancelledError`` where rclpy closes the coroutine), and whatever it
+    returns after that leaves it cancelled. A plain callable already running
+    runs to its end, as in rclpy.
+    """
+
+    def __init__(self, *, executor: Executor) -> None:
+        super().__init__(executor=executor)  # type: ignore[no-untyped-call]  # rclpy's is untyped
+        self._on_cancel: Callable[[], None] | None = None
+
+    def cancel(self) -> None:
+        super().cancel()  # type: ignore[no-untyped-call]
+        on_cancel = self._on_cancel
+        if on_cancel is not None and self.cancelled():
+            on_cancel()
+
+    def stop_with(self, on_cancel: Callable[[], None]) -> None:
+        """Have ``on_cancel`` called once this is cancelled (now, if it is)."""
+        self._on_cancel = on_cancel
+        if self.cancelled():
+            on_cancel()
+
+
 def _settle(result: RclFuture, task: asyncio.Task[Any]) -> None:
+    if result.cancelled():
+        return  # cancelled by its owner; what the coroutine did after is moot
     if task.cancelled():
         result.cancel()
     elif task.exception() is not None:
@@ -808,13 +848,15 @@ def _work(run: Callable[[], None], done: Callable[[Work, BaseException | None], 
 
 
 def _settle_from(result: RclFuture, call: Callable[[], Any]) -> None:
-    """Complete ``result`` with what ``call()`` returns or raises."""
+    """Complete ``result`` with what ``call()`` returns or raises (unless cancelled meanwhile)."""
     try:
         value = call()
     except BaseException as exc:  # handed to the future's owner
-        result.set_exception(exc)
+        if not result.cancelled():
+            result.set_exception(exc)
     else:
-        result.set_result(value)
+        if not result.cancelled():
+            result.set_result(value)
 
 
 #: Executors not yet shut down. Their waiter threads sit in ``rcl_wait``; one

@@ -26,7 +26,7 @@ from rclpy.task import Future
 from rclpy.waitable import NumberOfEntities, Waitable
 from std_srvs.srv import Trigger
 
-from container import AsyncioExecutor
+from container import AsyncioExecutor, ExecutorError
 
 #: Every bounded wait in these tests (seconds).
 TIMEOUT = 10.0
@@ -99,6 +99,55 @@ def test_spin_once_returns_after_its_timeout_when_nothing_is_ready(
     assert 0.15 <= time.monotonic() - started < 2.0
 
 
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_spin_once_returns_as_soon_as_a_callback_ready_before_it_ran(
+    style: str, executor_of: Callable[[], Executor], node: Node
+) -> None:
+    # The usual loop: ``while rclpy.ok(): executor.spin_once(timeout_sec=1.0)``.
+    # A timer that came due while nobody spun runs at once, and spin_once
+    # returns then, not at its timeout.
+    ran: list[float] = []
+
+    def tick() -> None:
+        ran.append(time.monotonic())
+
+    async def tick_async() -> None:
+        tick()
+
+    node.create_timer(0.05, tick if style == "plain" else tick_async)
+    executor = executor_of()
+    executor.add_node(node)
+    for round_ in range(3):
+        due = time.monotonic() + 0.1
+        while time.monotonic() < due:
+            time.sleep(0.02)  # nobody spins: the timer comes due meanwhile
+        started = time.monotonic()
+        executor.spin_once(timeout_sec=TIMEOUT)
+        assert len(ran) == round_ + 1
+        assert time.monotonic() - started < 1.0, "spin_once waited on after its callback ran"
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_spin_once_returns_once_a_task_created_before_it_ran(
+    style: str, executor_of: Callable[[], Executor], node: Node
+) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+
+    def plain() -> str:
+        return "ran"
+
+    async def coroutine() -> str:
+        return "ran"
+
+    for _ in range(3):
+        task = executor.create_task(plain if style == "plain" else coroutine)
+        started = time.monotonic()
+        executor.spin_once(timeout_sec=TIMEOUT)  # with None, it never returned when the task's end went unseen
+        assert task.done() and task.result() == "ran"
+        assert time.monotonic() - started < 1.0
+
+
 # -- create_task ------------------------------------------------------------------------
 
 
@@ -139,6 +188,47 @@ def test_create_task_of_a_coroutine_gives_its_result_and_its_error(
         # Deliberate difference: the error is the future's (and logged); the spin goes on.
         executor.spin_until_future_complete(failing, timeout_sec=TIMEOUT)
     assert isinstance(failing.exception(), ValueError)
+
+
+def test_a_task_cancelled_before_it_runs_never_runs(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    ran: list[str] = []
+
+    async def coroutine() -> None:
+        ran.append("coroutine")
+
+    tasks = [executor.create_task(coroutine), executor.create_task(lambda: ran.append("plain"))]
+    for task in tasks:
+        task.cancel()
+    for _ in range(3):
+        executor.spin_once(timeout_sec=0.1)
+    assert ran == []
+    assert [task.cancelled() for task in tasks] == [True, True]
+
+
+def test_cancelling_a_task_at_an_await_stops_it_there(executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    gate = Future()
+    steps: list[str] = []
+
+    async def waits() -> str:
+        steps.append("before")
+        await gate
+        steps.append("after")
+        return "finished"
+
+    task = executor.create_task(waits)
+    for _ in range(3):
+        executor.spin_once(timeout_sec=0.05)
+    assert steps == ["before"]
+    task.cancel()
+    gate.set_result(None)
+    for _ in range(3):
+        executor.spin_once(timeout_sec=0.05)
+    assert steps == ["before"], "the task went on past the await it was cancelled at"
+    assert task.cancelled()
 
 
 class BareYield:
@@ -430,3 +520,22 @@ def test_rclpy_shutdown_while_spinning_ends_the_spin_quietly(
     # rclpy raises ExternalShutdownException out of spin(); AsyncioExecutor's
     # spin() returns (code that catches the exception runs unchanged).
     assert [type(e) for e in outcome] == [ExternalShutdownException if kind == "single" else type(None)]
+
+
+def test_spinning_a_shut_down_executor(kind: str, executor_of: Callable[[], Executor], node: Node) -> None:
+    executor = executor_of()
+    executor.add_node(node)
+    assert executor.shutdown(timeout_sec=2.0)
+    if kind == "single":
+        # rclpy: spin*() returns at once and a task created now never runs.
+        started = time.monotonic()
+        executor.spin_once(timeout_sec=1.0)
+        executor.spin()
+        assert time.monotonic() - started < 0.5
+    else:
+        # Deliberate difference: a spin loop around a shut-down executor would
+        # spin for nothing; AsyncioExecutor says so instead.
+        with pytest.raises(ExecutorError, match="shut down"):
+            executor.spin_once(timeout_sec=1.0)
+        with pytest.raises(ExecutorError, match="shut down"):
+            executor.create_task(lambda: None)

@@ -1172,6 +1172,15 @@ class Dispatcher:
                     left -= 1
             start()
 
+    def refund(self) -> None:
+        """Give back the permit of a callback that turned out to have nothing
+        to run (a task cancelled before its turn): under ``spin_once`` the
+        next one starts instead, as rclpy skips cancelled tasks."""
+        with self._gate_lock:
+            permits = self._permits
+        if permits is not None:
+            self.limit(permits + 1)
+
     def run(self, entry: _Entry, call: Callable[[], Any]) -> None:
         self.submit(entry, call, ())
 

@@ -313,8 +313,10 @@ class AsyncioExecutor(Executor):
             plain: Callable[..., Any] = callback  # type: ignore[assignment]  # not a coroutine here
 
             def run() -> None:
-                if not result.cancelled():
-                    _settle_from(result, lambda: plain(*args, **kwargs))
+                if result.cancelled():
+                    self._dispatcher.refund()
+                    return
+                _settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
 
             begin = functools.partial(self._post_to, self.loop, run)
@@ -343,7 +345,7 @@ class AsyncioExecutor(Executor):
         def start() -> None:
             if result.cancelled():
                 coro.close()
-                self._callback_completed()
+                self._dispatcher.refund()
                 return
             task = loop.create_task(self.adapt(contained(coro)))
             task.add_done_callback(finished)

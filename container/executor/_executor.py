@@ -530,7 +530,10 @@ class AsyncioExecutor(Executor):
         with self._state_changed:
             self._refuse_if_closed("spin")
             if self._state is ExecutorState.SPINNING:
-                raise ExecutorError("the executor is already spinning")
+                raise ExecutorError(
+                    "the executor is already spinning (in another thread, or this is one of its"
+                    " callbacks: there, await the future in an async def callback instead)"
+                )
             self._move(ExecutorState.SPINNING)
             owned = self._dispatcher
             if loop is not self._loop:

@@ -541,3 +541,33 @@ def test_spinning_a_shut_down_executor(kind: str, executor_of: Callable[[], Exec
             executor.spin_once(timeout_sec=1.0)
         with pytest.raises(ExecutorError, match="shut down"):
             executor.create_task(lambda: None)
+
+
+def test_spinning_inside_one_of_its_own_callbacks(kind: str, executor_of: Callable[[], Executor], node: Node) -> None:
+    # The rclpy habit of spinning until a client's future completes from inside a callback.
+    executor = executor_of()
+    inner = Future()
+    outcome: list[object] = []
+
+    def callback() -> None:
+        try:
+            executor.spin_until_future_complete(inner, timeout_sec=TIMEOUT)
+        except ExecutorError as exc:
+            outcome.append(exc)
+        else:
+            outcome.append(inner.result())
+
+    node.create_guard_condition(callback).trigger()
+    node.create_guard_condition(
+        lambda: inner.set_result("nested"), callback_group=MutuallyExclusiveCallbackGroup()
+    ).trigger()
+    executor.add_node(node)
+    deadline = time.monotonic() + TIMEOUT
+    while not outcome and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.1)
+    if kind == "single":
+        assert outcome == ["nested"], "rclpy runs the other callback inside the nested spin"
+    else:
+        # Deliberate difference: said plainly rather than nested.
+        assert len(outcome) == 1 and "already spinning" in str(outcome[0])
+        assert "async def" in str(outcome[0])

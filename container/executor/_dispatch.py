@@ -749,6 +749,9 @@ class Dispatcher:
         self._permits: int | None = 0
         self._held: collections.deque[tuple[object, Callable[[], None]]] = collections.deque()
         self._held_per_entity: dict[int, int] = {}
+        #: Whether a spin holds the gate open (``limit`` other than 0): a
+        #: permit given back after the spin returned must not start anything.
+        self._gate_open = False
         self._gate_lock = threading.Lock()
 
     # -- threads ----------------------------------------------------------------
@@ -833,6 +836,15 @@ class Dispatcher:
 
     def nodes(self) -> list[Node]:
         return list(self._nodes())
+
+    @staticmethod
+    def members(node: Node) -> tuple[object, ...]:
+        """What of ``node`` the wait sets collect: the same members, the same wait sets."""
+        found: list[object] = []
+        for kind in _HOT + _COLD:
+            found += _entities_of(node, kind)
+        found += list(node.waitables)
+        return tuple(found)
 
     def entry(self, entity: Any, node: Node, kind: str) -> _Entry:
         if kind == "waitable":
@@ -1007,9 +1019,15 @@ class Dispatcher:
                 _, token = self._tokens.pop(key)
                 token.retired = True
 
-    def retire(self, node: Node) -> None:
-        """Drop and cancel ``node``'s work: it was removed (on the loop thread, or not running)."""
-        self._sweep_tokens()
+    def retire(self, node: Node, *, sweep: bool = True) -> None:
+        """Drop and cancel ``node``'s work: it was removed (on the loop thread, or not running).
+
+        :param sweep: also retire the tokens of what left the executor, so
+            that its work held at ``spin_once``'s gate is dropped when its
+            turn comes; ``False`` keeps that work for the node's return.
+        """
+        if sweep:
+            self._sweep_tokens()
         for lane in self.lanes():
             lane.retire(node)
 
@@ -1155,38 +1173,51 @@ class Dispatcher:
         behind it, so a subscription's messages never overtake each other.
         """
         left = permits
+        with self._gate_lock:
+            self._gate_open = permits != 0
         while True:
             with self._gate_lock:
                 if not self._held or left == 0:
                     self._permits = left
                     return
                 self._permits = 0
-                entity, start = self._held.popleft()
-                key = id(entity)
-                kept = self._held_per_entity[key] - 1
-                if kept:
-                    self._held_per_entity[key] = kept
-                else:
-                    del self._held_per_entity[key]
+                start = self._pop_held()
                 if left is not None:
                     left -= 1
             start()
 
     def refund(self) -> None:
         """Give back the permit of a callback that turned out to have nothing
-        to run (a task cancelled before its turn): under ``spin_once`` the
-        next one starts instead, as rclpy skips cancelled tasks."""
+        to run (a task cancelled before its turn, work of a removed node):
+        under ``spin_once`` the next one starts instead, as rclpy passes
+        over what it will not run. Nothing once the spin has returned."""
         with self._gate_lock:
-            permits = self._permits
-        if permits is not None:
-            self.limit(permits + 1)
+            if self._permits is None or not self._gate_open:
+                return
+            if not self._held:
+                self._permits += 1
+                return
+            start = self._pop_held()
+        start()
+
+    def _pop_held(self) -> Callable[[], None]:
+        """The oldest held work's start (under the gate lock)."""
+        entity, start = self._held.popleft()
+        key = id(entity)
+        kept = self._held_per_entity[key] - 1
+        if kept:
+            self._held_per_entity[key] = kept
+        else:
+            del self._held_per_entity[key]
+        return start
 
     def run(self, entry: _Entry, call: Callable[[], Any]) -> None:
         self.submit(entry, call, ())
 
     def _done(self, node: Node, work: Work, error: BaseException | None) -> None:
         if isinstance(error, Retired):
-            return  # dropped, never started: nothing to report
+            self.refund()  # dropped, never started: nothing to report; the next runs
+            return
         if error is not None:
             self._on_error(node, work.entity, error)
         self._on_done()

@@ -127,7 +127,10 @@ class AsyncioExecutor(Executor):
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout
         self._stall_after = stall_after
+        #: The loop watchdog while the owned loop spins (see ``watchdog``).
         self._watchdog: LoopWatchdog | None = None
+        #: Its thread, started by the first spin and parked between spins.
+        self._loop_watchdog: LoopWatchdog | None = None
         # One guard condition wakes the loop for everything: entities changed
         # (rclpy's base class), a file descriptor is ready (the selector's
         # watcher), a hand-over arrived in the inbox. Each guard condition in
@@ -142,6 +145,9 @@ class AsyncioExecutor(Executor):
         self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
         self._running_loop: asyncio.AbstractEventLoop | None = None
         self._completion_waiters: list[asyncio.Future[None]] = []
+        #: Nodes removed while nobody spun (and what they had then), retired
+        #: when the next spin starts unless added back first (see :meth:`remove_node`).
+        self._removed_idle: weakref.WeakKeyDictionary[Node, tuple[object, ...]] = weakref.WeakKeyDictionary()
         self._dispatcher = self._make_dispatcher(self._loop)
         self._stopped: asyncio.Future[None] | None = None
         self._progress: asyncio.Future[None] | None = None
@@ -186,7 +192,11 @@ class AsyncioExecutor(Executor):
 
     def add_node(self, node: Node) -> bool:
         added = super().add_node(node)
-        self._dispatcher.invalidate()
+        with self._state_changed:
+            members = self._removed_idle.pop(node, None)
+        if not _same(members, Dispatcher.members(node)):
+            self._dispatcher.invalidate()
+        # else: back before anyone spun, unchanged: the wait sets still hold it.
         return added
 
     def remove_node(self, node: Node) -> None:
@@ -198,11 +208,21 @@ class AsyncioExecutor(Executor):
         """
         super().remove_node(node)
         dispatcher = self._dispatcher
-        dispatcher.invalidate()
-        if self._on_loop() or not self.loop.is_running():
+        if self._on_loop():
+            dispatcher.invalidate()
             dispatcher.retire(node)
-        else:
+        elif self.loop.is_running():
+            dispatcher.invalidate()
             self._post_to(self.loop, dispatcher.retire, node)
+        else:
+            # Nobody spins: rclpy.spin_once(node, executor=...) adds and
+            # removes the node around every call. The next spin retires it
+            # unless it is back by then: what was taken for it and is held
+            # at spin_once's gate then runs (as rcl keeps what rclpy has not
+            # taken), and an unchanged node costs no rebuild of the wait sets.
+            dispatcher.retire(node, sweep=False)
+            with self._state_changed:
+                self._removed_idle[node] = Dispatcher.members(node)
         self._guard_trigger()
 
     async def retire(self, node: Node, *, timeout: float) -> list[str]:
@@ -450,6 +470,8 @@ class AsyncioExecutor(Executor):
             return self._released
 
     def _release_once(self, timeout: float) -> bool:
+        if self._loop_watchdog is not None:
+            self._loop_watchdog.stop()
         joined = self._dispatcher.close(timeout=timeout)
         if self._task_lane is not None:
             joined = self._task_lane.close(timeout=timeout) and joined
@@ -515,7 +537,7 @@ class AsyncioExecutor(Executor):
                     self._loop.run_until_complete(main)
                 finally:
                     if watchdog is not None:
-                        watchdog.stop()
+                        watchdog.pause()
                         self._watchdog = None
                     self._selector.attach(None)
         finally:
@@ -536,6 +558,8 @@ class AsyncioExecutor(Executor):
                 )
             self._move(ExecutorState.SPINNING)
             owned = self._dispatcher
+            removed = list(self._removed_idle)
+            self._removed_idle.clear()
             if loop is not self._loop:
                 self._dispatcher = self._make_dispatcher(loop)
             self._dispatcher.bind_loop_thread(threading.get_ident())
@@ -545,6 +569,10 @@ class AsyncioExecutor(Executor):
                 # Coroutines parked on the owned loop's progress stay parked
                 # there (and look again on the next spin of it, not before).
                 self._progress = None
+        if removed:  # removed while nobody spun, and not added back
+            owned.invalidate()
+            for node in removed:
+                owned.retire(node, sweep=False)
         self._dispatcher.start()
         self._dispatcher.limit(permits)
         try:
@@ -571,16 +599,20 @@ class AsyncioExecutor(Executor):
     def _start_watchdog(self) -> LoopWatchdog | None:
         if self._stall_after is None:
             return None
-        dispatcher = self._dispatcher
-        self._watchdog = LoopWatchdog(
-            busy_since=lambda: dispatcher.busy_since,
-            loop_thread=lambda: dispatcher.loop_thread,
-            relieve=dispatcher.relieve,
-            rewake=self._guard_trigger,
-            describe=self._describe_loop_work,
-            stall_after=self._stall_after,
-        )
-        return self._watchdog
+        watchdog = self._loop_watchdog
+        if watchdog is None:
+            dispatcher = self._dispatcher  # the owned loop's, for good
+            watchdog = self._loop_watchdog = LoopWatchdog(
+                busy_since=lambda: dispatcher.busy_since,
+                loop_thread=lambda: dispatcher.loop_thread,
+                relieve=dispatcher.relieve,
+                rewake=self._guard_trigger,
+                describe=self._describe_loop_work,
+                stall_after=self._stall_after,
+            )
+        watchdog.resume()
+        self._watchdog = watchdog
+        return watchdog
 
     def _describe_loop_work(self) -> str:
         """What the loop thread runs now: which node's which callback, if a lane's."""
@@ -835,6 +867,10 @@ class _TaskFuture(RclFuture):
         self._on_cancel = on_cancel
         if self.cancelled():
             on_cancel()
+
+
+def _same(members: tuple[object, ...] | None, now: tuple[object, ...]) -> bool:
+    return members is not None and len(members) == len(now) and all(a is b for a, b in zip(members, now, strict=True))
 
 
 def _settle(result: RclFuture, task: asyncio.Task[Any]) -> None:

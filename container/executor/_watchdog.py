@@ -77,7 +77,10 @@ class LoopWatchdog:
         self.stalls = 0
         self.longest = 0.0
         self._stall: Stall | None = None
-        self._stop = threading.Event()
+        #: Held by the watching thread whenever it is not asleep; guards the rest.
+        self._changed = threading.Condition()
+        self._watching = False
+        self._closed = False
         self._thread = threading.Thread(target=self._watch, name="loop-watchdog", daemon=True)
         self._thread.start()
 
@@ -86,39 +89,67 @@ class LoopWatchdog:
         """The stall in progress, if the loop is stuck now."""
         return self._stall
 
+    def resume(self) -> None:
+        """Watch the loop: it spins (again).
+
+        One thread for the executor's life, parked between spins: a
+        ``spin_once()`` loop pays no thread start per call.
+        """
+        with self._changed:
+            self._watching = True
+            self._changed.notify()
+
+    def pause(self) -> None:
+        """Stop watching until :meth:`resume`. Once this returns the
+        thread no longer waits in rcl in the loop's place, nor reports."""
+        with self._changed:
+            self._watching = False
+            if self._stall is not None:
+                self._end_stall(time.monotonic())
+            self._changed.notify()
+
     def stop(self) -> None:
-        self._stop.set()
+        with self._changed:
+            self._watching = False
+            self._closed = True
+            self._changed.notify()
         if self._thread is not threading.current_thread():
             self._thread.join(5.0)
 
     def _watch(self) -> None:
         next_report = 0.0
         woken = 0
-        while not self._stop.is_set():
-            since = self._busy_since()
-            now = time.monotonic()
-            if self._stall is not None and since != self._stall.since:
-                self._end_stall(now)
-            if since is None or now - since < self.relieve_after:
-                if woken:
-                    self._rewake()
-                    woken = 0
-                # Sleep until the loop could first count as stuck: while it
-                # waits in rcl, one relieve_after from now; while it works,
-                # until its current turn reaches relieve_after. An idle
-                # container costs this thread a wake-up every relieve_after.
-                left = self.relieve_after if since is None else since + self.relieve_after - now
-                self._stop.wait(max(left, _MIN_SLEEP_S))
-                continue
-            if now - since >= self.stall_after:
-                if self._stall is None:
-                    self._stall = Stall(since, self._describe())
-                    self.stalls += 1
-                    next_report = now
-                if now >= next_report:
-                    self._report(now)
-                    next_report = now + self.report_every
-            woken |= self._relieve(int(_TICK_S * 1e9))
+        with self._changed:
+            while not self._closed:
+                since = self._busy_since() if self._watching else None
+                now = time.monotonic()
+                if self._stall is not None and since != self._stall.since:
+                    self._end_stall(now)
+                if since is None or now - since < self.relieve_after:
+                    if woken:
+                        self._rewake()
+                        woken = 0
+                    if not self._watching:
+                        self._changed.wait()
+                        continue
+                    # Sleep until the loop could first count as stuck: while
+                    # it waits in rcl, one relieve_after from now; while it
+                    # works, until its current turn reaches relieve_after. An
+                    # idle container costs this thread a wake-up every
+                    # relieve_after.
+                    left = self.relieve_after if since is None else since + self.relieve_after - now
+                    self._changed.wait(max(left, _MIN_SLEEP_S))
+                    continue
+                if now - since >= self.stall_after:
+                    if self._stall is None:
+                        self._stall = Stall(since, self._describe())
+                        self.stalls += 1
+                        next_report = now
+                    if now >= next_report:
+                        self._report(now)
+                        next_report = now + self.report_every
+                # Under the lock: pause() returns only once this wait is over.
+                woken |= self._relieve(int(_TICK_S * 1e9))
 
     def _report(self, now: float) -> None:
         stall = self._stall

@@ -24,6 +24,7 @@ from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.waitable import NumberOfEntities, Waitable
+from std_msgs.msg import Int64
 from std_srvs.srv import Trigger
 
 from container import AsyncioExecutor, ExecutorError
@@ -571,3 +572,38 @@ def test_spinning_inside_one_of_its_own_callbacks(kind: str, executor_of: Callab
         # Deliberate difference: said plainly rather than nested.
         assert len(outcome) == 1 and "already spinning" in str(outcome[0])
         assert "async def" in str(outcome[0])
+
+
+def test_spin_once_with_the_node_added_and_removed_around_each_call(
+    context: Context, executor_of: Callable[[], Executor], node: Node
+) -> None:
+    # rclpy.spin_once(node, executor=...) adds the node, spins once and
+    # removes it, on every call: nothing is lost and nothing waits.
+    got: list[int] = []
+    ticks: list[float] = []
+    def heard(msg: Int64) -> None:
+        got.append(msg.data)
+
+    node.create_subscription(Int64, "conformance_around", heard, 50)
+    node.create_timer(0.01, lambda: ticks.append(time.monotonic()))
+    talker = Node("conformance_talker", context=context)
+    try:
+        publisher = talker.create_publisher(Int64, "conformance_around", 50)
+        executor = executor_of()
+        deadline = time.monotonic() + TIMEOUT
+        while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, executor=executor, timeout_sec=0.05)
+        sent = 20
+        for data in range(sent):
+            publisher.publish(Int64(data=data))
+        calls = 0
+        started = time.monotonic()
+        while (len(got) < sent or len(ticks) < 10) and time.monotonic() < deadline:
+            rclpy.spin_once(node, executor=executor, timeout_sec=1.0)
+            calls += 1
+        elapsed = time.monotonic() - started
+        assert got == list(range(sent))
+        assert len(ticks) >= 10
+        assert elapsed < 3.0, f"{calls} calls took {elapsed:.1f} s: spin_once waited out its timeout"
+    finally:
+        talker.destroy_node()

@@ -82,3 +82,41 @@ def test_a_blocking_async_callback_is_reported_and_plain_callbacks_keep_their_ra
     assert any("free again" in r.message for r in caplog.records)
     if via == "message":
         assert expressed > 0, "the blocking callback did not run on the compiled path"
+
+
+def test_one_watchdog_thread_serves_every_spin_and_still_reports(
+    context: Context, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A ``spin_once()`` loop, rclpy's usual pattern, started and joined a
+    watchdog thread on every call (about 150 us each, most of the call)."""
+    executor = AsyncioExecutor(context=context, stall_after=0.3)
+    node = Node("watchdog_spin_once", context=context)
+    executor.add_node(node)
+
+    def watchdogs() -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name == "loop-watchdog"]
+
+    try:
+        executor.spin_once(timeout_sec=0)
+        first = watchdogs()
+        assert len(first) == 1
+        for _ in range(20):
+            executor.spin_once(timeout_sec=0)
+            assert executor.watchdog is None, "the watchdog is the executor's only while it spins"
+        assert watchdogs() == first, "a spin started a watchdog thread of its own"
+        blocked: list[float] = []
+
+        async def block() -> None:
+            if not blocked:
+                blocked.append(time.monotonic())
+                time.sleep(0.8)  # blocking code in an async def: the fault
+
+        caplog.set_level(logging.WARNING, logger="container.executor")
+        node.create_timer(0.01, block)
+        executor.spin_once(timeout_sec=10.0)
+        assert blocked, "the timer did not run"
+        assert any("event loop stuck" in r.message and "block" in r.message for r in caplog.records)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        node.destroy_node()
+    assert watchdogs() == [], "shutdown left the watchdog thread behind"

@@ -1127,10 +1127,17 @@ class Dispatcher:
         self.run(entry, execute)
 
     # -- lanes ----------------------------------------------------------------
-    def submit(self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
-        """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set)."""
+    def submit(
+        self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...], *, burst: bool | None = None
+    ) -> None:
+        """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set).
+
+        :param burst: :meth:`_dispatching_burst`, if the caller asked already.
+        """
         work = Work(entry.entity, callback, entry.is_async, entry.depth, entry.done, entry.token, args)
-        if entry.is_async and self.expressing():
+        if burst is None:
+            burst = self._dispatching_burst()
+        if entry.is_async and burst and self._permits is None:
             # Taken on the loop thread while it dispatches: the lane admits
             # it when it starts, eagerly, right after (one call, not five).
             self._eager.append((entry.lane, work, False))
@@ -1293,8 +1300,9 @@ class Dispatcher:
             if node not in self.nodes():
                 return None
             entry = self.entry(subscription, node, "subscription")
-        self.submit(entry, callback, args)
-        return self._dispatching_burst()
+        burst = self._dispatching_burst()
+        self.submit(entry, callback, args, burst=burst)
+        return burst
 
 
 def _route(first: Any, entry: _Entry) -> _Route:

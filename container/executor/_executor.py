@@ -178,7 +178,10 @@ class AsyncioExecutor(Executor):
 
     @property
     def _closed(self) -> bool:
-        return self._state in _CLOSED
+        # Identity, not set membership: an Enum's hash is Python code, and
+        # this is asked on every intra-process delivery.
+        state = self._state
+        return state is ExecutorState.STOPPING or state is ExecutorState.SHUT_DOWN
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop:

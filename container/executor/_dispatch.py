@@ -135,6 +135,9 @@ class _Table:
     express: dict[int, _Route] = field(default_factory=dict)
     #: Timers whose calls and callbacks :class:`Express` makes, by handle address.
     express_timers: dict[int, _Route] = field(default_factory=dict)
+    #: Subscription entries by the subscription object's ``id`` (intra-process
+    #: deliveries look theirs up on every message: no handle address to read).
+    subscriptions: dict[int, _Entry] = field(default_factory=dict)
 
 
 def describe(entity: object) -> str:
@@ -244,6 +247,8 @@ class _WaitSet:
                     if _hold(held, entity.handle):
                         entry = dispatcher.entry(entity, node, kind)
                         table.by_pointer[kind][entity.handle.pointer] = entry
+                        if kind == "subscription":
+                            table.subscriptions[id(entity)] = entry
                         if kind != "subscription" or not self._watch(
                             entity.handle.pointer, SUBSCRIPTION, plain=not entry.is_async
                         ):
@@ -607,7 +612,7 @@ class _WaitSet:
         """The current entry of ``subscription`` (``None``: not collected, or collecting)."""
         if self._dirty:
             return None
-        entry = self._table.by_pointer.get("subscription", {}).get(subscription.handle.pointer)
+        entry = self._table.subscriptions.get(id(subscription))
         return entry if entry is not None and entry.entity is subscription else None
 
     def _take_ready(self, table: _Table, reported: list[tuple[int, int]]) -> None:

@@ -101,8 +101,10 @@ class _Sub:
         self.call: Callable[..., Any] = self._call_async if self.is_async else self._call
 
     # -- in process ------------------------------------------------------------
-    def ready(self) -> bool:
-        return self.alive and isinstance(self.node.executor, AsyncioExecutor)
+    def executor(self) -> AsyncioExecutor | None:
+        """The executor to deliver through now (``None``: unloaded, or its node is not on one)."""
+        executor = self.node.executor
+        return executor if self.alive and isinstance(executor, AsyncioExecutor) else None
 
     def note(self, publisher: _Pub, note: _Note) -> None:
         with self._lock:
@@ -111,10 +113,9 @@ class _Sub:
                 notes = self._notes[publisher] = collections.deque(maxlen=self.max_notes)
             notes.append(note)
 
-    def deliver(self, message: Any, info: dict[str, Any]) -> bool:
-        executor = self.node.executor
-        if not self.alive or not isinstance(executor, AsyncioExecutor):
-            return False
+    def deliver(self, message: Any, info: dict[str, Any], executor: AsyncioExecutor) -> bool:
+        """Hand ``message`` to the subscription's callback through ``executor`` (what
+        :meth:`executor` just gave; unloaded meanwhile, the callback does not run)."""
         args = (message, info) if self.wants_info else (message,)
         return executor.deliver(self.node, self.subscription, self.call, args)
 
@@ -206,7 +207,7 @@ class _Pub:
     def _publish(self, message: Any, handed_over: bool) -> None:
         self._sequence += 1
         targets, served = self.targets()
-        ready = [sub for sub in targets if sub.ready()]
+        ready = [(sub, executor) for sub in targets if (executor := sub.executor()) is not None]
         # Someone beyond the subscriptions served here needs DDS if DDS has
         # matched more readers, or the graph knows more (either may learn of
         # a new reader first). The node handle's graph counts take the
@@ -235,16 +236,16 @@ class _Pub:
             now = time.time_ns()
             if dds:
                 note = _Note(self._writes + 1, now)
-                for sub in ready:
+                for sub, _ in ready:
                     sub.note(self, note)
-            for sub in ready:
+            for sub, executor in ready:
                 info = {
                     "source_timestamp": now,
                     "received_timestamp": now,
                     "publication_sequence_number": self._sequence,
                     "reception_sequence_number": None,
                 }
-                sub.deliver(shared, info)
+                sub.deliver(shared, info, executor)
         if dds:
             try:
                 self._write(message)

@@ -68,7 +68,7 @@ from .._compat import (
     waitable_futures,
 )
 from . import _fastpath
-from ._fastpath import EVENT, SUBSCRIPTION, Express, Notifier, Taker
+from ._fastpath import CLIENT, EVENT, SERVICE, SUBSCRIPTION, Express, Notifier, Taker
 from ._fastpath import WaitSet as FastWaitSet
 from ._lanes import Lane, Post, Retired, Token, Work
 
@@ -174,8 +174,14 @@ _EVENT_SKIP_MAX_NS = 50_000_000
 #: keep arriving (ns): timers and guard conditions are looked at least this often.
 _POLL_MAX_NS = 1_000_000
 
-_HOT = ("subscription", "timer", "client", "guard_condition")
-_COLD = ("service",)
+#: Entity kinds of the loop's wait set, and of the other thread's (none
+#: now: services and clients are event-driven too, so requests are taken
+#: and answered on the loop's thread without a hop).
+_HOT = ("subscription", "timer", "client", "guard_condition", "service")
+_COLD: tuple[str, ...] = ()
+
+#: What the notifier watches instead of waiting, by entity kind.
+_WATCHED = {"subscription": SUBSCRIPTION, "service": SERVICE, "client": CLIENT}
 
 
 class _WaitSet:
@@ -249,8 +255,9 @@ class _WaitSet:
                         table.by_pointer[kind][entity.handle.pointer] = entry
                         if kind == "subscription":
                             table.subscriptions[id(entity)] = entry
-                        if kind != "subscription" or not self._watch(
-                            entity.handle.pointer, SUBSCRIPTION, plain=not entry.is_async
+                        watched = _WATCHED.get(kind)
+                        if watched is None or not self._watch(
+                            entity.handle.pointer, watched, plain=kind == "subscription" and not entry.is_async
                         ):
                             # Not event-driven (an rmw without new-data callbacks): waited on.
                             table.handles[kind].append(entity.handle)
@@ -261,7 +268,7 @@ class _WaitSet:
                                 and timer_info_parameter(entity.callback) is None
                             ):
                                 table.express_timers[entity.handle.pointer] = _route(entity.handle.pointer, entry)
-                        elif not entity.raw:
+                        elif kind == "subscription" and not entity.raw:
                             entry.taker = taker = _taker(entity)
                             if taker is not None and entry.is_async and not entry.wants_info:
                                 table.express[entity.handle.pointer] = _route(taker, entry)
@@ -314,7 +321,7 @@ class _WaitSet:
         old, self._table = self._table, table
         if notifier is not None:
             # Entities gone stop calling back before their handles are let go.
-            live = table.by_pointer["subscription"].keys() | table.by_pointer["event"].keys()
+            live = set().union(*(table.by_pointer[kind].keys() for kind in (*_WATCHED, "event")))
             for pointer in self._watched - live:
                 notifier.unwatch(pointer)
             self._watched &= live
@@ -617,14 +624,20 @@ class _WaitSet:
 
     def _take_ready(self, table: _Table, reported: list[tuple[int, int]]) -> None:
         """Take what the notifier reported: every message of the subscriptions
-        that had new data, and the QoS events that fired."""
-        subscriptions = table.by_pointer["subscription"]
+        that had new data, every request and response waiting, and the QoS
+        events that fired."""
+        by_pointer = table.by_pointer
+        subscriptions = by_pointer["subscription"]
         dispatcher = self._dispatcher
         take = dispatcher.take_messages
         for pointer, count in reported:
             if (subscription := subscriptions.get(pointer)) is not None:
                 take(subscription, count)
-            elif (event := table.by_pointer["event"].get(pointer)) is not None:
+            elif (service := by_pointer["service"].get(pointer)) is not None:
+                dispatcher.take_request(service)
+            elif (client := by_pointer["client"].get(pointer)) is not None:
+                dispatcher.take_response(client)
+            elif (event := by_pointer["event"].get(pointer)) is not None:
                 mark_event_ready(event.entity)
                 dispatcher.take_waitable(event)
 

@@ -7,15 +7,16 @@ nodes call ``executor.wake()`` whenever one is created or destroyed) and
 otherwise just re-adds the cached handles before each wait, since ``rcl_wait``
 clears the slots of entities that were not ready.
 
-Entities are split over two wait sets. The *hot* one (subscriptions, timers,
-service clients, guard conditions) is waited on by the event loop's thread.
-The *cold* one (services, publishers' QoS event handlers, other waitables
-such as action servers) is waited on by a thread of its own: every node
-carries seven parameter and type-description services and a pair of QoS
-event handlers per publisher, and re-adding those before every wait was a
-quarter of a ping-pong round trip. A request the cold thread takes goes to
-its lane as directly as one the loop takes; only an ``async def`` service
-callback pays one extra hand-over to the loop.
+Entities are split over two wait sets. The *hot* one (subscriptions,
+timers, services, clients, guard conditions, QoS event handlers) is served
+by the event loop's thread; of those, subscriptions, services, clients and
+QoS events are not waited on at all but reported by rmw's new-data
+callbacks (the notifier), so that every node's seven parameter and
+type-description services cost the wait nothing (re-adding them before
+every wait was a quarter of a ping-pong round trip) and a request is taken
+and answered in the loop's own turn. The *cold* one (other waitables such
+as action servers, whose entities rclpy's Waitable API adds itself) is
+waited on by a thread of its own.
 
 Everything that becomes ready is *taken at once* and handed to its callback
 group's lane. rcl wait sets are level-triggered, so an entity left untaken

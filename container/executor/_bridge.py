@@ -103,6 +103,11 @@ def mirror(future: RclFuture, loop: asyncio.AbstractEventLoop) -> asyncio.Future
         else:
             loop.call_soon_threadsafe(copy)
 
+    if future.done() and running_loop() is loop:
+        # Done already: copied now. rclpy would hand on_done to the future's
+        # executor as a task, which one shut down (by that very task) refuses.
+        copy()
+        return settled
     # rclpy runs this at once if the future is already done, on the
     # completing thread if it has no executor, else as an executor task.
     future.add_done_callback(on_done)

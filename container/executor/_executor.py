@@ -879,12 +879,23 @@ def _same(members: tuple[object, ...] | None, now: tuple[object, ...]) -> bool:
 def _settle(result: RclFuture, task: asyncio.Task[Any]) -> None:
     if result.cancelled():
         return  # cancelled by its owner; what the coroutine did after is moot
-    if task.cancelled():
-        result.cancel()
-    elif task.exception() is not None:
-        result.set_exception(task.exception())
-    else:
-        result.set_result(task.result())
+    with _late_callbacks_dropped():
+        if task.cancelled():
+            result.cancel()
+        elif task.exception() is not None:
+            result.set_exception(task.exception())
+        else:
+            result.set_result(task.result())
+
+
+@contextlib.contextmanager
+def _late_callbacks_dropped() -> Generator[None, None, None]:
+    """Completing a task's future after its executor shut down (the task
+    shut it down): rclpy's future hands its done-callbacks to the executor,
+    which refuses new tasks now. They never run, as rclpy's tasks created
+    after shutdown never run; the future is complete all the same."""
+    with contextlib.suppress(ExecutorError):
+        yield
 
 
 def _work(run: Callable[[], None], done: Callable[[Work, BaseException | None], None]) -> Work:
@@ -897,10 +908,12 @@ def _settle_from(result: RclFuture, call: Callable[[], Any]) -> None:
         value = call()
     except BaseException as exc:  # handed to the future's owner
         if not result.cancelled():
-            result.set_exception(exc)
+            with _late_callbacks_dropped():
+                result.set_exception(exc)
     else:
         if not result.cancelled():
-            result.set_result(value)
+            with _late_callbacks_dropped():
+                result.set_result(value)
 
 
 #: Executors not yet shut down. Their waiter threads sit in ``rcl_wait``; one

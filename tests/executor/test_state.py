@@ -100,3 +100,33 @@ def test_a_concurrency_below_one_is_refused(context: Context, keyword: str) -> N
             AsyncioExecutor(context=context, num_threads=0)
         else:
             AsyncioExecutor(context=context, reentrant_limit=0)
+
+
+@pytest.mark.parametrize("kind", ["coroutine", "plain"])
+def test_a_task_that_shuts_its_executor_down_completes_quietly(
+    context: Context, kind: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Its future is done with its result; the done-callbacks that rclpy's
+    future would now hand to the shut-down executor never run (as tasks
+    created after shutdown never run), and nothing is logged for them.
+    (rclpy's SingleThreadedExecutor raises AttributeError out of the spin.)"""
+    executor = AsyncioExecutor(context=context)
+    called: list[object] = []
+
+    def stop() -> int:
+        executor.shutdown(timeout_sec=0)
+        return 42
+
+    async def stop_async() -> int:
+        return stop()
+
+    try:
+        task = executor.create_task(stop_async() if kind == "coroutine" else stop)
+        task.add_done_callback(called.append)
+        executor.spin_until_future_complete(task, timeout_sec=5.0)
+        assert task.done() and task.result() == 42
+        assert state_of(executor) is ExecutorState.SHUT_DOWN
+        assert called == []
+        assert [r.getMessage() for r in caplog.records if r.levelname in ("ERROR", "CRITICAL")] == []
+    finally:
+        executor.shutdown()

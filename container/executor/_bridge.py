@@ -130,6 +130,7 @@ def drive(
     yielded: Any = None,
     thrown: BaseException | None = None,
     started: bool = False,
+    on_suspend: Callable[[], object] | None = None,
 ) -> Generator[Any, Any, T]:
     """Run ``coro`` inside a task, turning rclpy's bare ``yield`` into a real wait.
 
@@ -139,6 +140,8 @@ def drive(
 
     :param started: ``coro`` already ran up to a suspension at ``yielded``
         (or is to receive ``thrown`` there): carry on from that point.
+    :param on_suspend: called once if ``coro``'s first step suspends (not
+        when started): where rclpy's ``spin_once`` counts a callback as run.
     """
     if not started:
         try:
@@ -146,6 +149,8 @@ def drive(
         except StopIteration as stop:
             done: T = stop.value
             return done
+        if on_suspend is not None:
+            on_suspend()
     while True:
         value: Any = None
         if thrown is None:
@@ -168,13 +173,22 @@ def drive(
 
 
 @types.coroutine
-def _adapted(coro: Coroutine[Any, Any, T], progress: Callable[[], asyncio.Future[None]]) -> Generator[Any, Any, T]:
-    return (yield from drive(coro, progress))
+def _adapted(
+    coro: Coroutine[Any, Any, T],
+    progress: Callable[[], asyncio.Future[None]],
+    on_suspend: Callable[[], object] | None,
+) -> Generator[Any, Any, T]:
+    return (yield from drive(coro, progress, on_suspend=on_suspend))
 
 
-def adapt(coro: Coroutine[Any, Any, T], progress: Callable[[], asyncio.Future[None]]) -> Coroutine[Any, Any, T]:
+def adapt(
+    coro: Coroutine[Any, Any, T],
+    progress: Callable[[], asyncio.Future[None]],
+    *,
+    on_suspend: Callable[[], object] | None = None,
+) -> Coroutine[Any, Any, T]:
     """``coro`` as an awaitable that :func:`drive` runs (see there)."""
-    adapted: Coroutine[Any, Any, T] = _adapted(coro, progress)
+    adapted: Coroutine[Any, Any, T] = _adapted(coro, progress, on_suspend)
     return adapted
 
 

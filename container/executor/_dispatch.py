@@ -1265,6 +1265,7 @@ class Dispatcher:
                 progress=self._progress,
                 defer=self._defer_eager,
                 carry=self._hot.carry,
+                on_suspend=self._on_done,
             )
             self._lanes[key] = (group, lane)
             return lane

@@ -370,7 +370,8 @@ class AsyncioExecutor(Executor):
                 coro.close()
                 self._dispatcher.refund()
                 return
-            task = loop.create_task(self.adapt(contained(coro)))
+            # Suspended after its first step, it counts as run (spin_once), as in rclpy.
+            task = loop.create_task(adapt(contained(coro), self._progress_future, on_suspend=self._callback_completed))
             task.add_done_callback(finished)
             result.stop_with(functools.partial(self._call_soon, loop, task.cancel))
 

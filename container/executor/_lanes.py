@@ -161,9 +161,13 @@ class Lane:
         progress: Callable[[], asyncio.Future[None]],
         defer: Defer | None = None,
         carry: Carry | None = None,
+        on_suspend: Callable[[], object] | None = None,
     ) -> None:
         self.name = name
         self._defer = defer
+        #: Told when an async callback's first step suspends: rclpy's
+        #: ``spin_once`` counts a coroutine callback as run at that point.
+        self._on_suspend = on_suspend
         self._carry = carry
         self._post = post
         self._progress = progress
@@ -457,6 +461,8 @@ class Lane:
             if not done:
                 assert resume is not None
                 self._finish_in(runner, resume)
+                if self._on_suspend is not None:
+                    self._on_suspend()
                 return
             item.done(item, error)
             item = self._next_pending(item)
@@ -502,7 +508,7 @@ class Lane:
                 if _retired(work) and isinstance(item, Work):
                     error = Retired()
                 elif isinstance(item, Work):
-                    yield from drive(work.call(*work.args), self._progress)
+                    yield from drive(work.call(*work.args), self._progress, on_suspend=self._on_suspend)
                 else:
                     yield from drive(item.coro, self._progress, yielded=item.yielded, thrown=thrown, started=True)
             except asyncio.CancelledError:

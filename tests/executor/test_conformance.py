@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 import rclpy
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.guard_condition import GuardCondition
@@ -147,6 +147,54 @@ def test_spin_once_returns_once_a_task_created_before_it_ran(
         executor.spin_once(timeout_sec=TIMEOUT)  # with None, it never returned when the task's end went unseen
         assert task.done() and task.result() == "ran"
         assert time.monotonic() - started < 1.0
+
+
+@pytest.mark.parametrize("source", ["timer", "task"])
+def test_spin_once_counts_a_coroutine_as_run_once_it_first_suspends(
+    source: str, executor_of: Callable[[], Executor], node: Node
+) -> None:
+    # rclpy's spin_once runs one step of a coroutine callback: awaiting
+    # something that needs more callbacks (here a service call on the same
+    # executor), it returns and the next spin_once calls deliver the rest.
+    # Waiting for the coroutine's end instead cost each such await the whole
+    # timeout of a spin_once.
+    group = ReentrantCallbackGroup()
+
+    def serve(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = True, "served"
+        return response
+
+    node.create_service(Trigger, "conformance_step", serve, callback_group=group)
+    client = node.create_client(Trigger, "conformance_step", callback_group=group)
+    answers: list[str] = []
+    firsts: list[int] = []
+
+    timers: list[Any] = []
+
+    async def three_calls() -> None:
+        for timer in timers:
+            timer.cancel()
+        firsts.append(1)
+        for _ in range(3):
+            answer = await client.call_async(Trigger.Request())
+            answers.append(answer.message)
+
+    executor = executor_of()
+    executor.add_node(node)
+    assert client.wait_for_service(timeout_sec=TIMEOUT)
+    if source == "timer":
+        timers.append(node.create_timer(0.01, three_calls, group))
+    else:
+        executor.create_task(three_calls())
+    started = time.monotonic()
+    executor.spin_once(timeout_sec=TIMEOUT)
+    assert firsts == [1], "the coroutine's first step ran"
+    assert time.monotonic() - started < 1.0, "spin_once waited for the coroutine's end"
+    deadline = time.monotonic() + TIMEOUT
+    while len(answers) < 3 and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=1.0)
+    assert answers == ["served"] * 3
+    assert time.monotonic() - started < 1.0, "a spin_once waited out its timeout"
 
 
 # -- create_task ------------------------------------------------------------------------

@@ -60,6 +60,7 @@ __all__ = [
     "running_loop",
     "runs_plain_callback",
     "set_event_index",
+    "sleeps_zero",
     "state_machine",
     "state_machine_if_built",
     "subscription_wants_info",
@@ -73,6 +74,7 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("asyncio.tasks", "_enter_task", "CPython 3.7-3.14; what Task.__step calls around each step"),
     ("asyncio.tasks", "_leave_task", "CPython 3.7-3.14"),
     ("asyncio", "_get_running_loop", "CPython 3.7-3.14; get_running_loop() without the raise"),
+    ("asyncio.tasks", "__sleep0", "CPython 3.7-3.14; what asyncio.sleep(0) yields from"),
     ("rclpy.impl.implementation_singleton", "rclpy_implementation", "rclpy 1.0-10.x: the C extension"),
     ("rclpy.event_handler.EventHandler", "_EventHandler__event", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.event_handler.EventHandler", "_event_index", "rclpy 4.0-10.x (instance attribute)"),
@@ -108,6 +110,23 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
 #: coroutine step runs outside ``Task.__step``: what 3.12's eager tasks do.
 enter_task: Callable[[asyncio.AbstractEventLoop, asyncio.Task[Any]], None] = asyncio.tasks._enter_task
 leave_task: Callable[[asyncio.AbstractEventLoop, asyncio.Task[Any]], None] = asyncio.tasks._leave_task
+
+#: The code of the generator ``asyncio.sleep(0)`` yields a bare ``None`` from.
+_SLEEP0_CODE = getattr(asyncio.tasks, "__sleep0").__code__
+
+
+def sleeps_zero(coro: object) -> bool:
+    """Whether ``coro``, which just yielded a bare ``None``, did so in
+    ``asyncio.sleep(0)`` (asyncio's "run me again at once"), not in an
+    rclpy future's ``await`` (which yields ``None`` until done)."""
+    inner = coro
+    while True:
+        nxt = getattr(inner, "cr_await", None)
+        if nxt is None:
+            nxt = getattr(inner, "gi_yieldfrom", None)
+        if nxt is None:
+            return getattr(inner, "gi_code", None) is _SLEEP0_CODE
+        inner = nxt
 
 
 def running_loop() -> asyncio.AbstractEventLoop | None:

@@ -27,7 +27,7 @@ from typing import Any, TypeVar
 
 from rclpy.task import Future as RclFuture
 
-from .._compat import running_loop
+from .._compat import running_loop, sleeps_zero
 
 __all__ = [
     "Escaped",
@@ -134,6 +134,9 @@ def drive(
 ) -> Generator[Any, Any, T]:
     """Run ``coro`` inside a task, turning rclpy's bare ``yield`` into a real wait.
 
+    (``asyncio.sleep(0)``'s bare ``yield`` stays what it is in asyncio: the
+    task runs again at once, after what else is ready.)
+
     Use with ``yield from``. ``progress()`` is a future that completes when
     something an rclpy future may be waiting for has happened (a response
     taken, a done-callback scheduled), or after a short poll interval.
@@ -155,9 +158,11 @@ def drive(
         value: Any = None
         if thrown is None:
             try:
-                if yielded is None:
+                if yielded is None and not sleeps_zero(coro):
                     yield from progress()
                 else:
+                    # asyncio.sleep(0) yields a bare None too: to the task,
+                    # "run me again at once", as asyncio does.
                     value = yield yielded
             except BaseException as exc:  # forwarded into the coroutine
                 thrown = exc

@@ -323,6 +323,42 @@ def test_async_callback_awaits_a_service_call_without_busy_waiting(
     assert float(replies[1].split("=")[1]) < 0.15, replies
 
 
+@pytest.mark.parametrize("where", ["task", "timer"])
+def test_asyncio_sleep_zero_yields_to_the_loop_and_comes_straight_back(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], where: str
+) -> None:
+    # asyncio's "let the others run": it yields a bare None, as an awaited
+    # rclpy future does while not done; parked like one (until progress or
+    # the 10 ms poll), a loop of them ran 100 times a second.
+    node = make_node(f"sleep_zero_{where}")
+    order: list[str] = []
+    took: list[float] = []
+
+    async def worker(name: str) -> None:
+        for _ in range(500):
+            order.append(name)
+            await asyncio.sleep(0)
+
+    async def both() -> None:
+        timer.cancel()
+        started = time.monotonic()
+        other = asyncio.ensure_future(worker("b"))  # a plain asyncio task beside this callback
+        await worker("a")  # in the callback's (or task's) own coroutine
+        await other
+        took.append(time.monotonic() - started)
+
+    timer = node.create_timer(0.01 if where == "timer" else 3600.0, both)
+    executor.add_node(node)
+    if where == "task":
+        executor.spin_until_future_complete(executor.create_task(both()), timeout_sec=30.0)
+    else:
+        deadline = time.monotonic() + 30.0
+        while not took and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.5)
+    assert took and took[0] < 2.0, took  # before: 10 s
+    assert order[:6] == ["a", "b", "a", "b", "a", "b"], "each sleep(0) lets the other run"
+
+
 def test_async_service_callback_can_await(
     executor: AsyncioExecutor, make_node: Callable[[str], Node]
 ) -> None:

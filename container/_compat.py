@@ -66,6 +66,7 @@ __all__ = [
     "subscription_wants_info",
     "thread_frame",
     "waitable_futures",
+    "wraps_an_awaitable",
 ]
 
 #: ``(owner, name, where known)`` of every private name used below; the test
@@ -75,6 +76,7 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("asyncio.tasks", "_leave_task", "CPython 3.7-3.14"),
     ("asyncio", "_get_running_loop", "CPython 3.7-3.14; get_running_loop() without the raise"),
     ("asyncio.tasks", "__sleep0", "CPython 3.7-3.14; what asyncio.sleep(0) yields from"),
+    ("asyncio.tasks", "_wrap_awaitable", "CPython 3.5-3.11 (a generator; an async def from 3.12, then a coroutine)"),
     ("rclpy.impl.implementation_singleton", "rclpy_implementation", "rclpy 1.0-10.x: the C extension"),
     ("rclpy.event_handler.EventHandler", "_EventHandler__event", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.event_handler.EventHandler", "_event_index", "rclpy 4.0-10.x (instance attribute)"),
@@ -113,6 +115,16 @@ leave_task: Callable[[asyncio.AbstractEventLoop, asyncio.Task[Any]], None] = asy
 
 #: The code of the generator ``asyncio.sleep(0)`` yields a bare ``None`` from.
 _SLEEP0_CODE = getattr(asyncio.tasks, "__sleep0").__code__
+
+
+#: The code of what ``asyncio.ensure_future()`` wraps a non-coroutine awaitable in (3.11: a generator).
+_WRAP_AWAITABLE_CODE = asyncio.tasks._wrap_awaitable.__code__  # type: ignore[attr-defined]
+
+
+def wraps_an_awaitable(coro: object) -> bool:
+    """Whether ``coro`` is asyncio's wrapper of an awaitable that is no
+    coroutine (``wait_for``, ``gather``, ``ensure_future`` of an rclpy future)."""
+    return getattr(coro, "gi_code", None) is _WRAP_AWAITABLE_CODE
 
 
 def sleeps_zero(coro: object) -> bool:

@@ -19,6 +19,7 @@ project that waits for an rclpy future from asyncio code goes through here:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import threading
 import time
 import types
@@ -194,6 +195,10 @@ def adapt(
 ) -> Coroutine[Any, Any, T]:
     """``coro`` as an awaitable that :func:`drive` runs (see there)."""
     adapted: Coroutine[Any, Any, T] = _adapted(coro, progress, on_suspend)
+    # Named after what it runs: task reprs and the watchdog's reports show it.
+    for name in ("__name__", "__qualname__"):
+        with contextlib.suppress(AttributeError, TypeError):
+            setattr(adapted, name, getattr(coro, name))
     return adapted
 
 

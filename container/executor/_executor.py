@@ -27,6 +27,7 @@ import enum
 import functools
 import inspect
 import threading
+import types
 import weakref
 from collections.abc import Callable, Coroutine, Generator
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -37,7 +38,7 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.executors import Executor
 from rclpy.task import Future as RclFuture
 
-from .._compat import executor_guards, loop_is_idle, running_loop, runs_plain_callback
+from .._compat import executor_guards, loop_is_idle, running_loop, runs_plain_callback, wraps_an_awaitable
 from .._errors import ExecutorError
 from ._bridge import adapt, as_exception, contained, drive_in_thread, mirror
 from ._dispatch import WOKEN, Dispatcher, describe, format_error
@@ -143,6 +144,7 @@ class AsyncioExecutor(Executor):
             collections.deque()
         )
         self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
+        self._loop.set_task_factory(self._make_task)
         self._running_loop: asyncio.AbstractEventLoop | None = None
         self._completion_waiters: list[asyncio.Future[None]] = []
         #: Nodes removed while nobody spun (and what they had then), retired
@@ -617,6 +619,22 @@ class AsyncioExecutor(Executor):
         watchdog.resume()
         self._watchdog = watchdog
         return watchdog
+
+    def _make_task(
+        self, loop: asyncio.AbstractEventLoop, coro: Coroutine[Any, Any, T] | Generator[Any, None, T], **kwargs: Any
+    ) -> asyncio.Task[T]:
+        """Every task on the owned loop may await rclpy futures without spinning a core.
+
+        An rclpy future yields a bare ``None`` until it is done: to a plain
+        asyncio task, "run me again at once". A background task of a plugin
+        (``asyncio.create_task``) awaiting a service call, or
+        ``asyncio.wait_for(client.call_async(...), timeout)``, burned a whole
+        core for as long as the call took. Coroutines, and asyncio's wrapper
+        of other awaitables, run under :func:`adapt` instead, as callbacks do.
+        """
+        if isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro):
+            coro = adapt(coro, self._progress_future)  # type: ignore[arg-type]
+        return asyncio.Task(coro, loop=loop, **kwargs)
 
     def _describe_loop_work(self) -> str:
         """What the loop thread runs now: which node's which callback, if a lane's."""

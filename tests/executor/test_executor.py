@@ -323,6 +323,56 @@ def test_async_callback_awaits_a_service_call_without_busy_waiting(
     assert float(replies[1].split("=")[1]) < 0.15, replies
 
 
+@pytest.mark.parametrize("how", ["asyncio.create_task", "asyncio.wait_for"])
+def test_an_asyncio_task_awaits_a_service_call_without_busy_waiting(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], how: str
+) -> None:
+    # A task a plugin starts itself (or that asyncio starts for wait_for,
+    # gather, ensure_future) is no callback; an rclpy future it awaits yields
+    # a bare None until done, which a plain asyncio task re-runs at once:
+    # before, such a wait burned a core for as long as the call took.
+    server_node, client_node = make_node(f"slow_server_{how[8:]}"), make_node(f"task_client_{how[8:]}")
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        time.sleep(0.3)  # keeps the task waiting on an rclpy future
+        response.message = "pong"
+        return response
+
+    server_node.create_service(Trigger, "slow_ping", answer)
+    client = client_node.create_client(Trigger, "slow_ping")
+    replies: list[tuple[str, float]] = []
+    done = threading.Event()
+
+    async def call() -> None:
+        started = time.process_time()
+        if how == "asyncio.wait_for":
+            response = await asyncio.wait_for(client.call_async(Trigger.Request()), timeout=10.0)
+        else:
+            response = await client.call_async(Trigger.Request())
+        replies.append((response.message, time.process_time() - started))
+        done.set()
+
+    async def start() -> None:
+        timer.cancel()
+        if how == "asyncio.wait_for":
+            await call()
+        else:
+            background.append(asyncio.get_running_loop().create_task(call()))
+
+    background: list[asyncio.Task[None]] = []
+    executor.add_node(server_node)
+    executor.add_node(client_node)
+    assert client.wait_for_service(timeout_sec=10.0)
+    timer = client_node.create_timer(0.01, start)
+    thread = spin_in_thread(executor)
+    assert done.wait(10.0)
+    executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    assert replies[0][0] == "pong"
+    # Awaiting 0.3 s must not spin a core: a busy loop burns ~0.3 s of CPU.
+    assert replies[0][1] < 0.15, replies
+
+
 @pytest.mark.parametrize("where", ["task", "timer"])
 def test_asyncio_sleep_zero_yields_to_the_loop_and_comes_straight_back(
     executor: AsyncioExecutor, make_node: Callable[[str], Node], where: str

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
+import functools
 import threading
 import time
 import types
@@ -132,6 +134,7 @@ def drive(
     thrown: BaseException | None = None,
     started: bool = False,
     on_suspend: Callable[[], object] | None = None,
+    context: contextvars.Context | None = None,
 ) -> Generator[Any, Any, T]:
     """Run ``coro`` inside a task, turning rclpy's bare ``yield`` into a real wait.
 
@@ -146,10 +149,18 @@ def drive(
         (or is to receive ``thrown`` there): carry on from that point.
     :param on_suspend: called once if ``coro``'s first step suspends (not
         when started): where rclpy's ``spin_once`` counts a callback as run.
+    :param context: each step of ``coro`` runs in it (a callback's own
+        copy of its runner task's context); else in the task's.
     """
+    send: Callable[[Any], Any] = coro.send
+    throw: Callable[[BaseException], Any] = coro.throw
+    if context is not None:
+        run: Callable[..., Any] = context.run
+        send = functools.partial(run, coro.send)
+        throw = functools.partial(run, coro.throw)
     if not started:
         try:
-            yielded = coro.send(None)
+            yielded = send(None)
         except StopIteration as stop:
             done: T = stop.value
             return done
@@ -169,10 +180,10 @@ def drive(
                 thrown = exc
         try:
             if thrown is None:
-                yielded = coro.send(value)
+                yielded = send(value)
             else:
                 error, thrown = thrown, None
-                yielded = coro.throw(error)
+                yielded = throw(error)
         except StopIteration as stop:
             finished: T = stop.value
             return finished

@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import contextvars
 import functools
 import inspect
 import logging
@@ -1002,8 +1003,10 @@ class Dispatcher:
         """A message the C path took whose lane cannot start it there (busy, locked, no idle runner)."""
         entry.lane.run_express(self._work(entry, message))
 
-    def _express_suspended(self, entry: _Entry, message: object, runner: Any, coro: Any, yielded: Any) -> None:
-        entry.lane.express_suspended(runner, self._work(entry, message), coro, yielded)
+    def _express_suspended(
+        self, entry: _Entry, message: object, runner: Any, coro: Any, yielded: Any, context: contextvars.Context
+    ) -> None:
+        entry.lane.express_suspended(runner, self._work(entry, message), coro, yielded, context)
 
     def _express_failed(self, entry: _Entry, message: object, error: BaseException | None) -> None:
         entry.lane.express_finished(self._work(entry, message), error)

@@ -1008,7 +1008,7 @@ typedef struct {
   PyObject * on_done;
   PyObject * done_waiters; /* on_done is called only while this is non-empty */
   PyObject * slow;        /* slow(entry, message) */
-  PyObject * suspended;   /* suspended(entry, message, runner, coro, yielded) */
+  PyObject * suspended;   /* suspended(entry, message, runner, coro, yielded, context) */
   PyObject * failed;      /* failed(entry, message, error or None) */
   PyObject * cancelled_error; /* asyncio.CancelledError: a callback's own cancellation is no error */
   PyObject * fired;       /* timer routes called by call_timers, whose callbacks run_fired runs */
@@ -1311,7 +1311,14 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
     return result == NULL ? -1 : 0;
   }
   task = PyObject_GetAttr(runner, s_task);
-  context = PyObject_GetAttr(runner, s_context);
+  /* Each callback runs in a copy of its runner's context, as each asyncio
+   * task gets a copy of the context it was created in: what one callback
+   * sets in a ContextVar is not the next one's. */
+  {
+    PyObject * shared = PyObject_GetAttr(runner, s_context);
+    context = shared != NULL ? PyContext_Copy(shared) : NULL;
+    Py_XDECREF(shared);
+  }
   callback = PyObject_GetAttr(entity, callback_attribute);
   if (task == NULL || context == NULL || callback == NULL ||
       PyObject_SetAttr(runner, s_current, marker) < 0) {
@@ -1333,7 +1340,6 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
   Py_XDECREF(result);
   PyContext_Exit(context);
   Py_DECREF(task);
-  Py_DECREF(context);
   Py_DECREF(callback);
   if (result == NULL) { /* leaving the task failed: nothing sane is left to do */
     Py_XDECREF(type);
@@ -1341,6 +1347,7 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
     Py_XDECREF(traceback);
     Py_XDECREF(coro);
     Py_XDECREF(yielded);
+    Py_DECREF(context);
     Py_DECREF(runner);
     return -1;
   }
@@ -1351,6 +1358,7 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
   if (status == PYGEN_RETURN) {
     Py_DECREF(coro);
     Py_XDECREF(yielded);
+    Py_DECREF(context);
     Py_DECREF(runner);
     waiting = PyObject_Length(self->done_waiters);
     if (waiting != 0) {
@@ -1363,16 +1371,18 @@ static int run_one(ExpressObject * self, PyObject * route, PyObject * message)
     return release(lane, is_locked, marker);
   }
   if (status == PYGEN_NEXT) {
-    PyObject * args[5] = {entry, given, runner, coro, yielded};
-    result = PyObject_Vectorcall(self->suspended, args, 5, NULL);
+    PyObject * args[6] = {entry, given, runner, coro, yielded, context};
+    result = PyObject_Vectorcall(self->suspended, args, 6, NULL);
     Py_DECREF(coro);
     Py_DECREF(yielded);
+    Py_DECREF(context);
     Py_DECREF(runner);
     Py_XDECREF(result);
     return result == NULL ? -1 : 0;
   }
   /* Failed: in creating the coroutine or in its first step. */
   Py_XDECREF(coro);
+  Py_DECREF(context);
   Py_DECREF(runner);
   PyErr_NormalizeException(&type, &value, &traceback);
   if (value != NULL && traceback != NULL) {

@@ -125,11 +125,13 @@ def _work_of(item: Work | _Resume) -> Work:
 
 @dataclass(eq=False, slots=True)
 class _Resume:
-    """Async work whose first step ran eagerly and suspended on ``yielded``."""
+    """Async work whose first step ran eagerly and suspended on ``yielded``,
+    in ``context`` (the callback's own copy of its runner's)."""
 
     work: Work
     coro: Any
     yielded: Any
+    context: contextvars.Context
 
 
 @dataclass(eq=False, slots=True)
@@ -168,6 +170,11 @@ class Lane:
         #: Told when an async callback's first step suspends: rclpy's
         #: ``spin_once`` counts a coroutine callback as run at that point.
         self._on_suspend = on_suspend
+        #: What every callback's context is a copy of: the context the lane
+        #: was made in (the spinning thread's), as asyncio tasks copy the
+        #: context they are created in. What one callback sets in a
+        #: ContextVar is not the next one's.
+        self._context = contextvars.copy_context()
         self._carry = carry
         self._post = post
         self._progress = progress
@@ -331,7 +338,7 @@ class Lane:
                 error = Retired()
             else:
                 try:
-                    work.call(*work.args)
+                    self._context.copy().run(work.call, *work.args)
                 except BaseException as exc:  # reported, never fatal: sys.exit() included
                     error = exc
             work.done(work, error)
@@ -372,7 +379,7 @@ class Lane:
         while self._idle_runners:
             if self._wake(self._idle_runners.pop(), item):
                 return
-        context = contextvars.copy_context()
+        context = self._context.copy()
         task = self._loop.create_task(self._run(item), name=f"lane:{self.name}", context=context)
         self._runners[task] = _Runner(task, context, current=_work_of(item))
         task.add_done_callback(self._forget_runner)
@@ -415,11 +422,13 @@ class Lane:
         else:
             self._hand_to_thread(nxt)
 
-    def express_suspended(self, runner: _Runner, work: Work, coro: Any, yielded: Any) -> None:
+    def express_suspended(
+        self, runner: _Runner, work: Work, coro: Any, yielded: Any, context: contextvars.Context
+    ) -> None:
         """The C path's first step of ``work`` suspended in ``runner``: that runner finishes it."""
         with self._lock:
             self._active.add(work)
-        self._finish_in(runner, _Resume(work, coro, yielded))
+        self._finish_in(runner, _Resume(work, coro, yielded, context))
 
     def _finish_in(self, runner: _Runner, resume: _Resume) -> None:
         """A first step suspended in idle ``runner``: that runner (no longer
@@ -456,7 +465,9 @@ class Lane:
                 done, error, resume = True, Retired(), None
             else:
                 runner.current = item  # what the loop runs, should it get stuck here
-                done, error, resume = runner.context.run(self._first_step, runner.task, item)
+                # Its own copy of the runner's context, as a task's (see run_one in _fastpath.c).
+                context = runner.context.copy()
+                done, error, resume = context.run(self._first_step, runner.task, item, context)
                 runner.current = None
             if not done:
                 assert resume is not None
@@ -471,7 +482,7 @@ class Lane:
                 return
 
     def _first_step(
-        self, task: asyncio.Task[None], work: Work
+        self, task: asyncio.Task[None], work: Work, context: contextvars.Context
     ) -> tuple[bool, BaseException | None, _Resume | None]:
         enter_task(self._loop, task)
         try:
@@ -480,7 +491,7 @@ class Lane:
                 yielded = coro.send(None)
             except StopIteration:
                 return True, None, None
-            return False, None, _Resume(work, coro, yielded)
+            return False, None, _Resume(work, coro, yielded, context)
         except asyncio.CancelledError:
             return True, None, None  # a callback's own cancellation ends that callback only
         except KeyboardInterrupt:
@@ -508,9 +519,18 @@ class Lane:
                 if _retired(work) and isinstance(item, Work):
                     error = Retired()
                 elif isinstance(item, Work):
-                    yield from drive(work.call(*work.args), self._progress, on_suspend=self._on_suspend)
+                    context = contextvars.copy_context()  # of the runner's, as a task's
+                    coro = context.run(work.call, *work.args)
+                    yield from drive(coro, self._progress, on_suspend=self._on_suspend, context=context)
                 else:
-                    yield from drive(item.coro, self._progress, yielded=item.yielded, thrown=thrown, started=True)
+                    yield from drive(
+                        item.coro,
+                        self._progress,
+                        yielded=item.yielded,
+                        thrown=thrown,
+                        started=True,
+                        context=item.context,
+                    )
             except asyncio.CancelledError:
                 if self._closed:
                     raise

@@ -282,6 +282,62 @@ def test_async_callback_is_a_task_with_one_context_across_its_awaits(
         assert where.startswith("tick ")
 
 
+_request: contextvars.ContextVar[str] = contextvars.ContextVar("request", default="unset")
+
+
+@pytest.mark.parametrize("style", ["async", "plain"])
+def test_each_callback_starts_in_a_copy_of_the_spinning_context(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], style: str
+) -> None:
+    """As each asyncio task runs in a copy of the context it was created
+    in: what a callback sets in a ContextVar stays its own (across its
+    awaits), and the next callback of the same group starts afresh."""
+    node = make_node(f"context_{style}")
+    pub = node.create_publisher(Int64, f"context_{style}", 10)
+    seen: list[tuple[str, str]] = []
+    done = threading.Event()
+
+    async def on_message_async(msg: Int64) -> None:
+        seen.append((f"message {msg.data}", _request.get()))
+        _request.set(f"message {msg.data}")
+        await asyncio.sleep(0.001)
+        seen.append((f"message {msg.data} after its await", _request.get()))
+
+    def on_message(msg: Int64) -> None:
+        seen.append((f"message {msg.data}", _request.get()))
+        _request.set(f"message {msg.data}")
+
+    def on_tick() -> None:
+        seen.append(("tick", _request.get()))
+        _request.set("tick")
+        if len([what for what, _ in seen if what.startswith("message")]) >= 6:
+            done.set()
+        else:
+            pub.publish(Int64(data=len(seen)))
+
+    async def on_tick_async() -> None:
+        on_tick()
+
+    node.create_subscription(Int64, f"context_{style}", on_message_async if style == "async" else on_message, 10)  # type: ignore[arg-type]
+    node.create_timer(0.02, on_tick_async if style == "async" else on_tick)  # same group as the subscription
+    executor.add_node(node)
+
+    def spin() -> None:
+        _request.set("spinner")  # what every callback's context is a copy of
+        executor.spin()
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    assert done.wait(10.0)
+    executor.shutdown(timeout_sec=5.0)
+    thread.join(5.0)
+    for what, value in seen:
+        if what.endswith("after its await"):
+            assert value == what.removesuffix(" after its await"), seen
+        else:
+            assert value == "spinner", seen
+
+
 def test_async_callback_awaits_a_service_call_without_busy_waiting(
     executor: AsyncioExecutor, make_node: Callable[[str], Node]
 ) -> None:

@@ -632,9 +632,14 @@ class AsyncioExecutor(Executor):
         core for as long as the call took. Coroutines, and asyncio's wrapper
         of other awaitables, run under :func:`adapt` instead, as callbacks do.
         """
-        if isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro):
-            coro = adapt(coro, self._progress_future)  # type: ignore[arg-type]
-        return asyncio.Task(coro, loop=loop, **kwargs)
+        if not (isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro)):
+            return asyncio.Task(coro, loop=loop, **kwargs)
+        task: asyncio.Task[T] = asyncio.Task(adapt(coro, self._progress_future), loop=loop, **kwargs)  # type: ignore[arg-type]
+        # Cancelled before its first step, the wrapper never starts ``coro``,
+        # which would then warn "coroutine ... was never awaited": closed
+        # here (a no-op once it ran).
+        task.add_done_callback(lambda _: coro.close())
+        return task
 
     def _describe_loop_work(self) -> str:
         """What the loop thread runs now: which node's which callback, if a lane's."""

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import contextvars
+import gc
 import itertools
 import subprocess
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -427,6 +430,33 @@ def test_an_asyncio_task_awaits_a_service_call_without_busy_waiting(
     assert replies[0][0] == "pong"
     # Awaiting 0.3 s must not spin a core: a busy loop burns ~0.3 s of CPU.
     assert replies[0][1] < 0.15, replies
+
+
+def test_a_task_cancelled_before_its_first_step_leaves_no_coroutine_unawaited(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    # Tasks on the executor's loop run their coroutine through a wrapper
+    # (see the test above); cancelled before the wrapper starts, the
+    # coroutine itself must still be closed, as asyncio closes it.
+    executor.add_node(make_node("cancel_unstarted"))
+    outcomes: list[bool] = []
+
+    async def never_started() -> int:
+        return 1
+
+    async def main() -> None:
+        task = asyncio.get_running_loop().create_task(never_started())
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        outcomes.append(task.cancelled())
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        executor.spin_until_future_complete(main(), timeout_sec=10.0)
+        gc.collect()
+    assert outcomes == [True]
+    assert [str(w.message) for w in caught if "never awaited" in str(w.message)] == []
 
 
 @pytest.mark.parametrize("where", ["task", "timer"])

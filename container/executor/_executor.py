@@ -294,16 +294,25 @@ class AsyncioExecutor(Executor):
         if loop is self._loop:
             await self._until_stopped()
             return
-        with self._spinning_on(loop):
-            waiter = threading.Thread(
-                target=self._wait_in_thread, name="rcl-waiter", daemon=True
-            )
-            waiter.start()
-            try:
-                await self._stopped_future()
-            finally:
-                self._signal_stopped()
-                await asyncio.to_thread(waiter.join)
+        # The loop's own tasks may await rclpy futures too (see _make_task):
+        # lent the task factory while spinning, unless the loop has one.
+        lent = loop.get_task_factory() is None
+        if lent:
+            loop.set_task_factory(self._make_task)
+        try:
+            with self._spinning_on(loop):
+                waiter = threading.Thread(
+                    target=self._wait_in_thread, name="rcl-waiter", daemon=True
+                )
+                waiter.start()
+                try:
+                    await self._stopped_future()
+                finally:
+                    self._signal_stopped()
+                    await asyncio.to_thread(waiter.join)
+        finally:
+            if lent and loop.get_task_factory() == self._make_task:
+                loop.set_task_factory(None)
 
     def create_task(  # type: ignore[override]
         self, callback: Callable[..., Any] | Coroutine[Any, Any, Any], *args: Any, **kwargs: Any

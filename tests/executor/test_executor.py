@@ -623,6 +623,47 @@ def test_spin_async_on_a_foreign_event_loop(
     assert got and got[0] == 5
 
 
+def test_spin_async_lends_a_foreign_loop_its_task_factory_while_it_spins(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    server_node, client_node = make_node("foreign_server"), make_node("foreign_client")
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        time.sleep(0.3)
+        response.message = "pong"
+        return response
+
+    server_node.create_service(Trigger, "foreign_ping", answer)
+    client = client_node.create_client(Trigger, "foreign_ping")
+    factories: list[object] = []
+
+    async def main() -> tuple[str, float]:
+        loop = asyncio.get_running_loop()
+        executor.add_node(server_node)
+        executor.add_node(client_node)
+        spinning = asyncio.ensure_future(executor.spin_async())
+        await asyncio.sleep(0)  # it starts spinning
+        while not client.service_is_ready():
+            await asyncio.sleep(0.02)
+        factories.append(loop.get_task_factory())
+
+        async def call() -> tuple[str, float]:
+            started = time.process_time()
+            response = await client.call_async(Trigger.Request())
+            return response.message, time.process_time() - started
+
+        outcome = await asyncio.wait_for(loop.create_task(call()), 10.0)
+        executor.shutdown(timeout_sec=5.0)
+        await asyncio.wait_for(spinning, 10.0)
+        factories.append(loop.get_task_factory())
+        return outcome
+
+    message, cpu = asyncio.run(main())
+    assert message == "pong"
+    assert cpu < 0.15, "the loop's own task spun a core while it waited"
+    assert factories[0] is not None and factories[1] is None, "lent while spinning, given back after"
+
+
 def test_spin_from_inside_a_running_loop_is_refused(executor: AsyncioExecutor) -> None:
     async def main() -> None:
         with pytest.raises(ExecutorError, match="spin_async"):

@@ -632,7 +632,8 @@ class AsyncioExecutor(Executor):
     def _make_task(
         self, loop: asyncio.AbstractEventLoop, coro: Coroutine[Any, Any, T] | Generator[Any, None, T], **kwargs: Any
     ) -> asyncio.Task[T]:
-        """Every task on the owned loop may await rclpy futures without spinning a core.
+        """Every task on the owned loop (and on a loop ``spin_async`` lends
+        this factory to) may await rclpy futures without spinning a core.
 
         An rclpy future yields a bare ``None`` until it is done: to a plain
         asyncio task, "run me again at once". A background task of a plugin
@@ -643,7 +644,7 @@ class AsyncioExecutor(Executor):
         """
         if not (isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro)):
             return asyncio.Task(coro, loop=loop, **kwargs)
-        task: asyncio.Task[T] = asyncio.Task(adapt(coro, self._progress_future), loop=loop, **kwargs)  # type: ignore[arg-type]
+        task: asyncio.Task[T] = asyncio.Task(self.adapt(coro), loop=loop, **kwargs)  # type: ignore[arg-type]
         # Cancelled before its first step, the wrapper never starts ``coro``,
         # which would then warn "coroutine ... was never awaited": closed
         # here (a no-op once it ran).

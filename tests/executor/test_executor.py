@@ -48,6 +48,21 @@ def spin_in_thread(executor: AsyncioExecutor) -> threading.Thread:
     return thread
 
 
+def slow_pong(server: Node, client: Node, service: str) -> Any:
+    """A ``Trigger`` service on ``server`` that answers "pong" after 0.3 s
+    (a plain callback: its caller waits on an rclpy future meanwhile), and
+    ``client``'s client of it."""
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        time.sleep(0.3)
+        response.success = True
+        response.message = "pong"
+        return response
+
+    server.create_service(Trigger, service, answer)
+    return client.create_client(Trigger, service)
+
+
 class Concurrency:
     """Track how many callbacks run at once."""
 
@@ -346,14 +361,7 @@ def test_async_callback_awaits_a_service_call_without_busy_waiting(
 ) -> None:
     server_node, client_node = make_node("trigger_server"), make_node("trigger_client")
 
-    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        time.sleep(0.3)  # keeps the caller waiting on an rclpy future
-        response.success = True
-        response.message = "pong"
-        return response
-
-    server_node.create_service(Trigger, "ping", answer)
-    client = client_node.create_client(Trigger, "ping")
+    client = slow_pong(server_node, client_node, "ping")
     replies: list[str] = []
     done = threading.Event()
     fired = threading.Event()
@@ -392,13 +400,7 @@ def test_an_asyncio_task_awaits_a_service_call_without_busy_waiting(
     # before, such a wait burned a core for as long as the call took.
     server_node, client_node = make_node(f"slow_server_{how[8:]}"), make_node(f"task_client_{how[8:]}")
 
-    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        time.sleep(0.3)  # keeps the task waiting on an rclpy future
-        response.message = "pong"
-        return response
-
-    server_node.create_service(Trigger, "slow_ping", answer)
-    client = client_node.create_client(Trigger, "slow_ping")
+    client = slow_pong(server_node, client_node, "slow_ping")
     replies: list[tuple[str, float]] = []
     done = threading.Event()
 
@@ -628,13 +630,7 @@ def test_spin_async_lends_a_foreign_loop_its_task_factory_while_it_spins(
 ) -> None:
     server_node, client_node = make_node("foreign_server"), make_node("foreign_client")
 
-    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        time.sleep(0.3)
-        response.message = "pong"
-        return response
-
-    server_node.create_service(Trigger, "foreign_ping", answer)
-    client = client_node.create_client(Trigger, "foreign_ping")
+    client = slow_pong(server_node, client_node, "foreign_ping")
     factories: list[object] = []
 
     async def main() -> tuple[str, float]:

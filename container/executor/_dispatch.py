@@ -38,6 +38,7 @@ import contextlib
 import contextvars
 import functools
 import inspect
+import itertools
 import logging
 import threading
 import time
@@ -638,7 +639,7 @@ class _WaitSet:
             elif (service := by_pointer["service"].get(pointer)) is not None:
                 dispatcher.take_request(service)
             elif (client := by_pointer["client"].get(pointer)) is not None:
-                dispatcher.take_response(client)
+                dispatcher.take_response(client, count)
             elif (event := by_pointer["event"].get(pointer)) is not None:
                 mark_event_ready(event.entity)
                 dispatcher.take_waitable(event)
@@ -1100,17 +1101,29 @@ class Dispatcher:
                     return
                 submit(entry, callback, (message,))
 
-    def take_response(self, entry: _Entry) -> None:
-        """Take every response waiting: a burst beyond the reader's depth would lose answers."""
+    def take_response(self, entry: _Entry, count: int = _fastpath.DRAIN) -> None:
+        """Take ``count`` times (what the new-response callbacks reported), or
+        every response waiting (a wait found the client ready; a fresh watch).
+
+        A client's reader receives the responses to every client of its
+        service, and a take of another client's response takes nothing
+        (rmw drops it): only a count of takes reaches this client's own
+        response behind those. Stopping at the first empty take left it in
+        the reader, with no callback to come: a caller among twenty waited
+        forever, about once in thirty runs.
+        """
         cli = entry.entity
-        while True:
+        drain = count >= _fastpath.DRAIN
+        for _ in itertools.repeat(None) if drain else range(count):
             try:
                 with cli.handle:
                     header, response = cli.handle.take_response(cli.srv_type.Response)
             except InvalidHandle:
                 return
             if header is None:
-                return
+                if drain:
+                    return
+                continue  # another client's response
             try:
                 future = cli.get_pending_request(header.request_id.sequence_number)
             except KeyError:

@@ -20,6 +20,7 @@ import pytest
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future as RclFuture
 from std_msgs.msg import Int64
@@ -495,6 +496,48 @@ def test_asyncio_sleep_zero_yields_to_the_loop_and_comes_straight_back(
             executor.spin_once(timeout_sec=0.5)
     assert took and took[0] < 2.0, took  # before: 10 s
     assert order[:6] == ["a", "b", "a", "b", "a", "b"], "each sleep(0) lets the other run"
+
+
+def test_a_client_takes_its_response_behind_another_clients(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], context: Context
+) -> None:
+    # Every client of a service reads every response on its reply topic; a
+    # take of another client's response takes nothing. Two responses that
+    # reached the second client's reader before the loop looked were
+    # reported together, and the takes stopped at the first (the other
+    # client's), leaving its own there with no callback to come.
+    server = make_node("two_clients_server")
+    sent = threading.Event()
+    answered: list[int] = []
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        answered.append(1)
+        if len(answered) == 2:
+            after.trigger()  # its callback runs once this answer is sent
+        response.message = "pong"
+        return response
+
+    server.create_service(Trigger, "two_clients", answer)
+    after = server.create_guard_condition(sent.set)
+    serving = SingleThreadedExecutor(context=context)
+    serving.add_node(server)
+    callers = make_node("two_clients_callers")
+    first, second = (callers.create_client(Trigger, "two_clients") for _ in range(2))
+    executor.add_node(callers)
+    executor.spin_once(timeout_sec=0.1)  # the clients are watched from now on
+    assert first.wait_for_service(timeout_sec=10.0) and second.wait_for_service(timeout_sec=10.0)
+    futures = [first.call_async(Trigger.Request()), second.call_async(Trigger.Request())]
+    spinner = threading.Thread(target=serving.spin, daemon=True)
+    spinner.start()
+    try:
+        # Both answered, and delivered in this process, while the loop is not spinning.
+        assert sent.wait(10.0)
+        for future in futures:
+            executor.spin_until_future_complete(future, timeout_sec=5.0)
+        assert [future.result().message if future.done() else None for future in futures] == ["pong", "pong"]
+    finally:
+        serving.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
 
 
 def test_async_service_callback_can_await(

@@ -52,6 +52,7 @@ from rclpy.event_handler import EventHandler
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.waitable import NumberOfEntities
 
 from .._compat import (
@@ -86,6 +87,9 @@ _log = logging.getLogger(__name__)
 _COALESCED = 1
 #: Pending items kept for a waitable (action goals, QoS events): never drop.
 _WAITABLE_DEPTH = 1 << 16
+#: Empty takes a keep-all client goes through before its reader counts as
+#: drained (see ``Dispatcher.take_response``).
+_KEEP_ALL_DRAINED = 1024
 
 #: What :meth:`Dispatcher.wait_and_dispatch` returns when one of the
 #: executor's own guard conditions fired.
@@ -1110,10 +1114,13 @@ class Dispatcher:
         (rmw drops it): only a count of takes reaches this client's own
         response behind those. Stopping at the first empty take left it in
         the reader, with no callback to come: a caller among twenty waited
-        forever, about once in thirty runs.
+        forever, about once in thirty runs. Without a count, an empty take
+        is either, so taking goes on until as many empty takes as the
+        reader holds responses.
         """
         cli = entry.entity
         drain = count >= _fastpath.DRAIN
+        empty_left = _held_at_most(cli.qos_profile) if drain else 0
         for _ in itertools.repeat(None) if drain else range(count):
             try:
                 with cli.handle:
@@ -1122,8 +1129,10 @@ class Dispatcher:
                 return
             if header is None:
                 if drain:
-                    return
-                continue  # another client's response
+                    empty_left -= 1
+                    if empty_left <= 0:
+                        return
+                continue  # another client's response (or, draining, none left)
             try:
                 future = cli.get_pending_request(header.request_id.sequence_number)
             except KeyError:
@@ -1339,6 +1348,13 @@ class Dispatcher:
         burst = self._dispatching_burst()
         self.submit(entry, callback, args, burst=burst)
         return burst
+
+
+def _held_at_most(qos: QoSProfile) -> int:
+    """How many samples a reader with ``qos`` holds at most (keep-all: a bound of ours)."""
+    if qos.history == HistoryPolicy.KEEP_LAST and qos.depth > 0:
+        return int(qos.depth)
+    return _KEEP_ALL_DRAINED
 
 
 def _route(first: Any, entry: _Entry) -> _Route:

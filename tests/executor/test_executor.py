@@ -498,14 +498,16 @@ def test_asyncio_sleep_zero_yields_to_the_loop_and_comes_straight_back(
     assert order[:6] == ["a", "b", "a", "b", "a", "b"], "each sleep(0) lets the other run"
 
 
+@pytest.mark.parametrize("watched", [True, False], ids=["watched", "watched-after"])
 def test_a_client_takes_its_response_behind_another_clients(
-    executor: AsyncioExecutor, make_node: Callable[[str], Node], context: Context
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], context: Context, watched: bool
 ) -> None:
     # Every client of a service reads every response on its reply topic; a
     # take of another client's response takes nothing. Two responses that
     # reached the second client's reader before the loop looked were
     # reported together, and the takes stopped at the first (the other
-    # client's), leaving its own there with no callback to come.
+    # client's), leaving its own there with no callback to come. The same,
+    # when the responses came before the executor first saw the clients.
     server = make_node("two_clients_server")
     sent = threading.Event()
     answered: list[int] = []
@@ -523,8 +525,9 @@ def test_a_client_takes_its_response_behind_another_clients(
     serving.add_node(server)
     callers = make_node("two_clients_callers")
     first, second = (callers.create_client(Trigger, "two_clients") for _ in range(2))
-    executor.add_node(callers)
-    executor.spin_once(timeout_sec=0.1)  # the clients are watched from now on
+    if watched:
+        executor.add_node(callers)
+        executor.spin_once(timeout_sec=0.1)  # the clients are watched from now on
     assert first.wait_for_service(timeout_sec=10.0) and second.wait_for_service(timeout_sec=10.0)
     futures = [first.call_async(Trigger.Request()), second.call_async(Trigger.Request())]
     spinner = threading.Thread(target=serving.spin, daemon=True)
@@ -532,6 +535,8 @@ def test_a_client_takes_its_response_behind_another_clients(
     try:
         # Both answered, and delivered in this process, while the loop is not spinning.
         assert sent.wait(10.0)
+        if not watched:
+            executor.add_node(callers)
         for future in futures:
             executor.spin_until_future_complete(future, timeout_sec=5.0)
         assert [future.result().message if future.done() else None for future in futures] == ["pong", "pong"]

@@ -206,6 +206,10 @@ manager:
 
 BOND_TIMEOUT = 1.0
 MARGIN = 1.0
+#: How long Fast DDS was seen to block a write of the container's (a service
+#: request: the watchdog reported the loop stuck in ``send_request`` for
+#: 1.4 s) right after a peer process was killed.
+FAST_DDS_STALL = 2.0
 
 
 @dataclass
@@ -230,7 +234,10 @@ def managed_system(
     """Bring the system up and spin ``executor`` for the observer until the test ends."""
     remote = run_container(TALKER.format(name="b"))
     main = run_container(manager)
-    main.wait_for_line("Managed nodes are active")
+    try:
+        main.wait_for_line("Managed nodes are active")
+    except AssertionError as failed:
+        raise AssertionError(f"{failed}\nthe container of /b:\n{remote.output()}") from None
     observer = Node("observer", context=context)
     executor.add_node(observer)
     log = TransitionLog(observer, list(watched))
@@ -254,16 +261,17 @@ def test_killed_node_in_another_process_resets_the_rest_and_respawn_restarts_the
         remote.process.send_signal(signal.SIGKILL)
         killed_at = time.time()
         remote.process.wait(10)
+        # Timed by the manager's own log lines. Transition events reach this
+        # test's observer through Fast DDS, which for a second or so after a
+        # peer process is killed can hold deliveries back (measured up to
+        # 1.3 s, the same messages late with rclpy's SingleThreadedExecutor
+        # as the receiver), and can block the container's own writes too.
+        lost = main.wait_for_line("Heartbeat of /b lost", start=mark, timeout=BOND_TIMEOUT + 10)
+        assert log_time(lost) - killed_at < BOND_TIMEOUT + MARGIN, main.output()
         for node in ("/c", "/a"):
-            # Timed by the manager's own log line, written once the node is
-            # inactive. The transition event reaches this test's observer
-            # through Fast DDS, which for a second or so after a peer process
-            # is killed can hold deliveries back (measured up to 1.3 s, with
-            # rclpy's SingleThreadedExecutor as the receiver as with ours).
-            line = main.wait_for_line(f"{node}: deactivate -> inactive", start=mark, timeout=BOND_TIMEOUT + 10)
-            assert log_time(line) - killed_at < BOND_TIMEOUT + MARGIN, line
+            line = main.wait_for_line(f"{node}: deactivate -> inactive", start=mark, timeout=10)
+            assert log_time(line) - log_time(lost) < MARGIN + FAST_DDS_STALL, main.output()
             log.wait_for(node, "inactive")
-        main.wait_for_line("Heartbeat of /b lost", start=mark)
         log.wait_for("/a", "unconfigured")
         log.wait_for("/c", "unconfigured")
         after_reset = len(log)

@@ -382,7 +382,7 @@ class AsyncioExecutor(Executor):
                 self._dispatcher.refund()
                 return
             # Suspended after its first step, it counts as run (spin_once), as in rclpy.
-            task = loop.create_task(adapt(contained(coro), self._progress_future, on_suspend=self._callback_completed))
+            task = loop.create_task(self.adapt(contained(coro), on_suspend=self._callback_completed))
             task.add_done_callback(finished)
             result.stop_with(functools.partial(self._call_soon, loop, task.cancel))
 
@@ -523,15 +523,19 @@ class AsyncioExecutor(Executor):
             tasks |= lane.tasks
         return tasks
 
-    def adapt(self, coro: Coroutine[Any, Any, T]) -> Coroutine[Any, Any, T]:
+    def adapt(
+        self, coro: Coroutine[Any, Any, T], *, on_suspend: Callable[[], object] | None = None
+    ) -> Coroutine[Any, Any, T]:
         """Make ``await rclpy_future`` inside ``coro`` sleep instead of spin.
 
         rclpy's futures ``yield`` bare ``None`` until done; to asyncio that
         means "run me again at once", a busy loop. The adapter parks such a
         coroutine until the executor next delivers a service response or
         schedules a done-callback (or a short poll interval passes).
+
+        :param on_suspend: called once if ``coro``'s first step suspends.
         """
-        return adapt(coro, self._progress_future)
+        return adapt(coro, self._progress_future, on_suspend=on_suspend)
 
     # -- running the owned loop ------------------------------------------------
     def _run_owned(self, main: Coroutine[Any, Any, None], *, permits: int | None = None) -> None:

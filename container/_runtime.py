@@ -6,25 +6,54 @@ tests start ROS the same way.
 
 from __future__ import annotations
 
+import functools
+import importlib.metadata
 import logging
 import os
 from pathlib import Path
 
-__all__ = ["DDS_PROFILE", "configure_logging", "use_fast_discovery"]
+__all__ = ["DDS_PROFILE", "PROFILE_VARIABLES", "configure_logging", "fast_dds_major", "profile_variable", "use_fast_discovery"]
 
 #: Fast DDS participant profile with quick discovery announcements.
 DDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
 
-_PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
+#: Where Fast DDS looks for an XML profile: 3.x (Kilted) reads the first, and
+#: the second too but with a deprecation warning on every process start;
+#: 2.x (Jazzy's 2.14) reads only the second.
+PROFILE_VARIABLES = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE")
+
+#: Distributions whose Fast DDS is 2.x, for installs without the wheels' metadata.
+_FAST_DDS_2 = frozenset({"humble", "iron", "jazzy"})
 
 
 def use_fast_discovery() -> None:
     """Point Fast DDS at the project's profile unless the user chose one.
 
-    Must run before the first rclpy context is initialised: Fast DDS reads
-    the variable when it creates the participant.
+    A profile named in either variable is the user's and wins: nothing is
+    set then. Otherwise the project's goes in the variable this Fast DDS
+    reads. Must run before the first rclpy context is initialised: Fast DDS
+    reads the variable when it creates the participant.
     """
-    os.environ.setdefault(_PROFILE_VARIABLE, str(DDS_PROFILE))
+    if any(os.environ.get(name) for name in PROFILE_VARIABLES):
+        return
+    os.environ[profile_variable()] = str(DDS_PROFILE)
+
+
+def profile_variable() -> str:
+    """The profile variable the installed Fast DDS reads without a warning."""
+    return PROFILE_VARIABLES[1] if fast_dds_major() < 3 else PROFILE_VARIABLES[0]
+
+
+@functools.cache
+def fast_dds_major() -> int:
+    """The major version of the Fast DDS rclpy runs on (from the ROS wheels'
+    distribution metadata; else from ``ROS_DISTRO``; else 3, the current one)."""
+    for distribution in ("ros-fastdds", "ros-fastrtps"):
+        try:
+            return int(importlib.metadata.version(distribution).split(".")[0])
+        except (importlib.metadata.PackageNotFoundError, ValueError):
+            continue
+    return 2 if os.environ.get("ROS_DISTRO") in _FAST_DDS_2 else 3
 
 
 def configure_logging(*, verbose: bool = False) -> None:

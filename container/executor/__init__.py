@@ -10,5 +10,6 @@ rest of the container.
 """
 
 from ._executor import AsyncioExecutor, CallbackErrorHandler, ExecutorState
+from ._message_info import HAS_PUBLISHER_GID, publisher_gid
 
-__all__ = ["AsyncioExecutor", "CallbackErrorHandler", "ExecutorState"]
+__all__ = ["HAS_PUBLISHER_GID", "AsyncioExecutor", "CallbackErrorHandler", "ExecutorState", "publisher_gid"]

@@ -40,6 +40,7 @@ __all__ = [
     "drive",
     "drive_in_thread",
     "in_thread",
+    "is_adapted",
     "mirror",
     "result",
 ]
@@ -126,6 +127,7 @@ async def result(future: RclFuture, *, timeout: float | None = None) -> Any:
     return await asyncio.wait_for(mirror(future, asyncio.get_running_loop()), timeout)
 
 
+@types.coroutine
 def drive(
     coro: Coroutine[Any, Any, T],
     progress: Callable[[], asyncio.Future[None]],
@@ -141,7 +143,10 @@ def drive(
     (``asyncio.sleep(0)``'s bare ``yield`` stays what it is in asyncio: the
     task runs again at once, after what else is ready.)
 
-    Use with ``yield from``. ``progress()`` is a future that completes when
+    ``await`` it from an ``async def`` (it is a generator-based awaitable,
+    as ``asyncio.sleep(0)``'s own ``__sleep0`` is: every supported asyncio
+    accepts it inside a coroutine, where from 3.12 ``Task`` itself takes
+    only coroutines). ``progress()`` is a future that completes when
     something an rclpy future may be waiting for has happened (a response
     taken, a done-callback scheduled), or after a short poll interval.
 
@@ -189,13 +194,18 @@ def drive(
             return finished
 
 
-@types.coroutine
-def _adapted(
+async def _adapted(
     coro: Coroutine[Any, Any, T],
     progress: Callable[[], asyncio.Future[None]],
     on_suspend: Callable[[], object] | None,
-) -> Generator[Any, Any, T]:
-    return (yield from drive(coro, progress, on_suspend=on_suspend))
+) -> T:
+    return await drive(coro, progress, on_suspend=on_suspend)
+
+
+def is_adapted(coro: object) -> bool:
+    """Whether ``coro`` came from :func:`adapt`: adapting it again would hide
+    its ``asyncio.sleep(0)`` from the outer driver, which would park it."""
+    return getattr(coro, "cr_code", None) is _adapted.__code__
 
 
 def adapt(
@@ -204,7 +214,7 @@ def adapt(
     *,
     on_suspend: Callable[[], object] | None = None,
 ) -> Coroutine[Any, Any, T]:
-    """``coro`` as an awaitable that :func:`drive` runs (see there)."""
+    """``coro`` as a coroutine that :func:`drive` runs (see there): what a task takes."""
     adapted: Coroutine[Any, Any, T] = _adapted(coro, progress, on_suspend)
     # Named after what it runs: task reprs and the watchdog's reports show it.
     for name in ("__name__", "__qualname__"):

@@ -43,6 +43,7 @@ import logging
 import threading
 import time
 import traceback
+import weakref
 from collections.abc import Callable, Iterable, Iterator, Sized
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -75,6 +76,7 @@ from . import _fastpath
 from ._fastpath import CLIENT, EVENT, SERVICE, SUBSCRIPTION, Express, Notifier, Taker
 from ._fastpath import WaitSet as FastWaitSet
 from ._lanes import Lane, Post, Retired, Token, Work
+from ._message_info import HAS_PUBLISHER_GID
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -280,10 +282,19 @@ class _WaitSet:
                             if taker is not None and entry.is_async and not entry.wants_info:
                                 table.express[entity.handle.pointer] = _route(taker, entry)
             for waitable in list(node.waitables):
-                if not self._takes_waitable(waitable) or not _hold(held, waitable):
+                if not self._takes_waitable(waitable) or dispatcher.is_set_aside(waitable):
+                    continue
+                event = event_handle(waitable)
+                where = "__enter__()"
+                try:
+                    if not _hold(held, waitable):
+                        continue
+                    where = "get_num_entities()"
+                    counts = waitable.get_num_entities() if event is None else None
+                except Exception as error:  # a waitable's own code: never the executor's end
+                    dispatcher.set_aside(waitable, node, where, error)
                     continue
                 entry = dispatcher.entry(waitable, node, "waitable")
-                event = event_handle(waitable)
                 if event is not None:
                     if notifier is not None and self._watch(event.pointer, EVENT):
                         table.by_pointer["event"][event.pointer] = entry
@@ -291,7 +302,7 @@ class _WaitSet:
                         table.events.append((event, entry))
                 else:
                     table.waitables.append(entry)
-                    extra += waitable.get_num_entities()
+                    extra += counts
         guards = table.handles["guard_condition"]
         own = list(self._own_guards())
         if self._notifier_guard is not None:
@@ -423,6 +434,7 @@ class _WaitSet:
             return self._wait_fast(table, table.fast, notifier, timeout_ns)
         wait_set = table.wait_set
         handles = table.handles
+        dispatcher = self._dispatcher
         wait_set.clear_entities()
         add = wait_set.add_subscription
         for handle in handles["subscription"]:
@@ -448,7 +460,11 @@ class _WaitSet:
             # Blocking without the events: the next wait (with them) comes soon.
             timeout_ns = due_in
         for entry in table.waitables:
-            entry.entity.add_to_wait_set(wait_set)
+            try:
+                entry.entity.add_to_wait_set(wait_set)
+            except Exception as error:
+                dispatcher.set_aside(entry.entity, entry.node, "add_to_wait_set()", error)
+                timeout_ns = 0  # rebuilt without it at once
         timeout_ns, poll = self._before_wait(notifier, timeout_ns)
         try:
             if poll:
@@ -460,7 +476,6 @@ class _WaitSet:
             self._waited(notifier)
         if self._closed:
             return WOKEN
-        dispatcher = self._dispatcher
 
         def ready(kind: str) -> list[int]:
             return wait_set.get_ready_entities(kind) if handles[kind] else []
@@ -484,7 +499,12 @@ class _WaitSet:
                         if entry.entity.is_ready(wait_set):
                             dispatcher.take_waitable(entry)
             for entry in table.waitables:
-                if entry.entity.is_ready(wait_set):
+                try:
+                    ready_now = entry.entity.is_ready(wait_set)
+                except Exception as error:
+                    dispatcher.set_aside(entry.entity, entry.node, "is_ready()", error)
+                    continue
+                if ready_now:
                     dispatcher.take_waitable(entry)
         return flags
 
@@ -778,6 +798,8 @@ class Dispatcher:
         #: permit given back after the spin returned must not start anything.
         self._gate_open = False
         self._gate_lock = threading.Lock()
+        #: Waitables whose own code raised (see :meth:`set_aside`), by identity.
+        self._set_aside: dict[int, weakref.ref[object] | object] = {}
 
     # -- threads ----------------------------------------------------------------
     def start(self) -> None:
@@ -978,6 +1000,45 @@ class Dispatcher:
         self._eager.append((lane, work, True))
         return True
 
+    # -- waitables whose own code fails ---------------------------------------------------
+    def set_aside(self, waitable: object, node: Node, where: str, error: BaseException) -> None:
+        """Leave ``waitable`` out of every wait set from now on: its own code raised in ``where``.
+
+        A waitable is user code run inside the wait itself (rclpy 9's
+        ``Waitable.__enter__`` raises ``NotImplementedError`` unless a
+        subclass defines it: a waitable written for Jazzy). Raising again on
+        every wait would flood the log and starve the node's other entities;
+        it is reported once, through its node's logger, and everything else
+        keeps running. rclpy's own executors raise out of ``spin`` instead.
+        """
+        key = id(waitable)
+        if self.is_set_aside(waitable):
+            return
+        try:
+            self._set_aside[key] = weakref.ref(waitable)
+        except TypeError:  # not weakly referenceable: kept alive here
+            self._set_aside[key] = waitable
+        self.invalidate()
+        message = (
+            f"waitable {type(waitable).__qualname__} raised {type(error).__name__} in {where}: {error};"
+            " it is left out of the executor's wait set from now on (the node's other callbacks keep running)"
+        )
+        try:
+            node.get_logger().error(message)
+        except Exception:  # the node is being destroyed
+            _log.error("%s of node %s", message, node)
+
+    def is_set_aside(self, waitable: object) -> bool:
+        """Whether :meth:`set_aside` took ``waitable`` out of the wait sets."""
+        kept = self._set_aside.get(id(waitable))
+        if kept is None:
+            return False
+        held = kept() if isinstance(kept, weakref.ref) else kept
+        if held is waitable:
+            return True
+        del self._set_aside[id(waitable)]  # another object at a reused address
+        return False
+
     # -- express: the C path's hand-overs (see ``_fastpath.Express``) -----------------
     def express(self, notifier: Notifier, wait_set: _WaitSet) -> Express:
         """The C path that takes and runs ``notifier``'s async subscriptions of
@@ -1161,7 +1222,11 @@ class Dispatcher:
 
     def take_waitable(self, entry: _Entry) -> None:
         waitable = entry.entity
-        data = waitable.take_data()
+        try:
+            data = waitable.take_data()
+        except Exception as error:
+            self.set_aside(waitable, entry.node, "take_data()", error)
+            return
         for future in waitable_futures(waitable):
             adopt_future(future, self._future_executor)
 
@@ -1374,7 +1439,11 @@ def _express_work(entry: _Entry, args: tuple[Any, ...]) -> Work:
 def _taker(subscription: Any) -> Taker | None:
     """A compiled take for ``subscription``; ``None`` (rclpy's take) for a type it cannot handle."""
     try:
-        return Taker(subscription=subscription.handle.pointer, message_type=subscription.msg_type)
+        return Taker(
+            subscription=subscription.handle.pointer,
+            message_type=subscription.msg_type,
+            publisher_gid=HAS_PUBLISHER_GID,
+        )
     except (AttributeError, TypeError, ValueError, MemoryError):
         return None
 

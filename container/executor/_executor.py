@@ -40,7 +40,7 @@ from rclpy.task import Future as RclFuture
 
 from .._compat import executor_guards, loop_is_idle, running_loop, runs_plain_callback, wraps_an_awaitable
 from .._errors import ExecutorError
-from ._bridge import adapt, as_exception, contained, drive_in_thread, mirror
+from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._dispatch import WOKEN, Dispatcher, describe, format_error
 from ._lanes import Lane, Work
 from ._selector import RclSelector
@@ -646,7 +646,7 @@ class AsyncioExecutor(Executor):
         core for as long as the call took. Coroutines, and asyncio's wrapper
         of other awaitables, run under :func:`adapt` instead, as callbacks do.
         """
-        if not (isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro)):
+        if is_adapted(coro) or not (isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro)):
             return asyncio.Task(coro, loop=loop, **kwargs)
         task: asyncio.Task[T] = asyncio.Task(self.adapt(coro), loop=loop, **kwargs)  # type: ignore[arg-type]
         # Cancelled before its first step, the wrapper never starts ``coro``,

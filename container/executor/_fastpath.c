@@ -50,10 +50,13 @@
 #include <rcl/error_handling.h>
 #include <rcl/event.h>
 #include <rcl/guard_condition.h>
+#include <rcl/publisher.h>
 #include <rcl/service.h>
 #include <rcl/subscription.h>
 #include <rcl/timer.h>
 #include <rcl/wait.h>
+#include <rmw/error_handling.h>
+#include <rmw/rmw.h>
 #include <rmw/types.h>
 
 enum { KIND_SUBSCRIPTION = 0, KIND_CLIENT = 1, KIND_SERVICE = 2, KIND_EVENT = 3 };
@@ -828,7 +831,16 @@ typedef struct {
   void * message;
   destroy_message_t destroy;
   convert_to_py_t to_py;
+  int with_gid; /* the message info carries publisher_gid, as rclpy 9's does */
 } TakerObject;
+
+/* A gid as rclpy 9 gives it in message info: {"implementation_identifier", "data"}. */
+static PyObject * gid_dict(const rmw_gid_t * gid)
+{
+  return Py_BuildValue(
+    "{s:s,s:y#}", "implementation_identifier", gid->implementation_identifier, "data",
+    (const char *)gid->data, (Py_ssize_t)RMW_GID_STORAGE_SIZE);
+}
 
 static void * capsule_of(PyObject * type, const char * name)
 {
@@ -844,13 +856,15 @@ static void * capsule_of(PyObject * type, const char * name)
 
 static int Taker_init(TakerObject * self, PyObject * args, PyObject * kwargs)
 {
-  static char * keywords[] = {"subscription", "message_type", NULL};
+  static char * keywords[] = {"subscription", "message_type", "publisher_gid", NULL};
   unsigned long long subscription;
   PyObject * type;
   create_message_t create;
-  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "KO", keywords, &subscription, &type)) {
+  int with_gid = 0;
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "KO|$p", keywords, &subscription, &type, &with_gid)) {
     return -1;
   }
+  self->with_gid = with_gid;
   if (subscription == 0 || self->message != NULL) {
     PyErr_SetString(PyExc_ValueError, "Taker needs an rcl subscription's address, once");
     return -1;
@@ -921,6 +935,13 @@ static PyObject * take(TakerObject * self, int with_info)
     "received_timestamp", (long long)info.received_timestamp,
     "publication_sequence_number", sequence_or_none(info.publication_sequence_number),
     "reception_sequence_number", sequence_or_none(info.reception_sequence_number));
+  if (dict != NULL && self->with_gid) {
+    PyObject * gid = gid_dict(&info.publisher_gid);
+    if (gid == NULL || PyDict_SetItemString(dict, "publisher_gid", gid) < 0) {
+      Py_CLEAR(dict);
+    }
+    Py_XDECREF(gid);
+  }
   if (dict == NULL) {
     Py_DECREF(message);
     return NULL;
@@ -1791,6 +1812,28 @@ static PyObject * mark_carrier(PyObject * Py_UNUSED(module), PyObject * Py_UNUSE
 /* poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set (its
  * ``pointer``) keeping the GIL, where rclpy's own ``wait`` would let go of it
  * even for a poll: WaitSet_wait's poll, for the wait set rclpy fills. */
+/* publisher_gid(publisher): the gid of the rcl publisher at that address, as
+ * rclpy 9's message info gives a message's publisher_gid. */
+static PyObject * publisher_gid(PyObject * Py_UNUSED(module), PyObject * arg)
+{
+  unsigned long long address = PyLong_AsUnsignedLongLong(arg);
+  rmw_publisher_t * rmw_publisher;
+  rmw_gid_t gid;
+  if (address == (unsigned long long)-1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  rmw_publisher = rcl_publisher_get_rmw_handle((const rcl_publisher_t *)(uintptr_t)address);
+  if (rmw_publisher == NULL) {
+    return rcl_failed("rcl_publisher_get_rmw_handle");
+  }
+  if (rmw_get_gid_for_publisher(rmw_publisher, &gid) != RMW_RET_OK) {
+    PyErr_Format(PyExc_RuntimeError, "rmw_get_gid_for_publisher failed: %s", rmw_get_error_string().str);
+    rmw_reset_error();
+    return NULL;
+  }
+  return gid_dict(&gid);
+}
+
 static PyObject * poll_wait_set(PyObject * Py_UNUSED(module), PyObject * const * args, Py_ssize_t nargs)
 {
   rcl_wait_set_t * ws;
@@ -1822,6 +1865,9 @@ static PyMethodDef module_methods[] = {
   {"poll", (PyCFunction)(void (*)(void))poll_wait_set, METH_FASTCALL,
    "poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set at that address, keeping the GIL "
    "(for a wait whose guard condition is already triggered)"},
+  {"publisher_gid", publisher_gid, METH_O,
+   "publisher_gid(publisher) -> dict: the gid of the rcl publisher at that address, as rclpy 9's message "
+   "info gives it ({'implementation_identifier': str, 'data': bytes})"},
   {"mark_carrier", mark_carrier, METH_NOARGS,
    "mark_carrier() -> None: this thread takes, after each plain callback, what it published to other "
    "plain callbacks (Notifier.carry); a notifier's waiter that wakes soon anyway is not woken for that"},

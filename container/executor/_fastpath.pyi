@@ -34,10 +34,15 @@ def mark_carrier() -> None:
     other plain callbacks (``Notifier.carry``): a notifier's waiter due to
     wake within 5 ms anyway is not woken for such a publish."""
 
+def publisher_gid(publisher: int, /) -> dict[str, str | bytes]:
+    """The gid of the rcl publisher at that address, as rclpy 9's message
+    info gives a message's ``publisher_gid``."""
+
 class Taker:
-    def __init__(self, *, subscription: int, message_type: type) -> None: ...
+    def __init__(self, *, subscription: int, message_type: type, publisher_gid: bool = False) -> None: ...
     def take(self) -> object | None: ...
-    def take_with_info(self) -> tuple[object, dict[str, int | None]] | None: ...
+    def take_with_info(self) -> tuple[object, dict[str, Any]] | None:
+        """With the keys rclpy's ``take_message`` gives (``publisher_gid`` when made with it)."""
 
 #: What :meth:`WaitSet.wait` gives: the ready handle addresses of each kind
 #: (subscriptions, guard conditions, timers, clients, services, events), or

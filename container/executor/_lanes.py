@@ -45,8 +45,7 @@ import contextvars
 import queue
 import threading
 import time
-import types
-from collections.abc import Callable, Generator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -380,7 +379,10 @@ class Lane:
             if self._wake(self._idle_runners.pop(), item):
                 return
         context = self._context.copy()
-        task = self._loop.create_task(self._run(item), name=f"lane:{self.name}", context=context)
+        # The Task itself, not the loop's task factory: a runner drives its
+        # callbacks' awaits (see _run), and the executor's factory would
+        # drive the runner's own in turn, hiding an asyncio.sleep(0) from it.
+        task = asyncio.Task(self._run(item), loop=self._loop, name=f"lane:{self.name}", context=context)
         self._runners[task] = _Runner(task, context, current=_work_of(item))
         task.add_done_callback(self._forget_runner)
 
@@ -501,15 +503,14 @@ class Lane:
         finally:
             leave_task(self._loop, task)
 
-    @types.coroutine
-    def _run(self, item: Work | _Resume | None) -> Generator[Any, Any, None]:
+    async def _run(self, item: Work | _Resume | None) -> None:
         """Run async work, one callback after another, inside one task.
 
-        A generator-based coroutine rather than ``async def``, so that it can
-        drive each callback's coroutine itself: rclpy's futures ``yield`` a
-        bare ``None`` until done, which to asyncio means "run me again at
-        once", a busy loop. Such a yield parks the callback on the
-        executor's progress future instead (see ``AsyncioExecutor``).
+        Each callback's coroutine is driven by :func:`drive` rather than
+        awaited: rclpy's futures ``yield`` a bare ``None`` until done, which
+        to asyncio means "run me again at once", a busy loop. Such a yield
+        parks the callback on the executor's progress future instead (see
+        ``AsyncioExecutor``).
         """
         thrown: BaseException | None = None
         while item is not None:
@@ -521,9 +522,9 @@ class Lane:
                 elif isinstance(item, Work):
                     context = contextvars.copy_context()  # of the runner's, as a task's
                     coro = context.run(work.call, *work.args)
-                    yield from drive(coro, self._progress, on_suspend=self._on_suspend, context=context)
+                    await drive(coro, self._progress, on_suspend=self._on_suspend, context=context)
                 else:
-                    yield from drive(
+                    await drive(
                         item.coro,
                         self._progress,
                         yielded=item.yielded,
@@ -560,7 +561,7 @@ class Lane:
                 runner.idle = idle
                 self._idle_runners.append(runner)
                 try:
-                    item = yield from idle
+                    item = await idle
                 except asyncio.CancelledError as exc:
                     # Cancelled (an expired asyncio.timeout) just after being
                     # handed a suspended callback: the callback gets it.

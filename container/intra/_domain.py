@@ -18,8 +18,8 @@ goes, in the publishing thread:
    late joiners get its history from DDS).
 
 A subscription served in step 1 still receives the DDS copy of a message it
-already got. rclpy's message info carries no publisher gid (Jazzy), so the
-copy is recognised otherwise: before writing, the publisher leaves the
+already got. rclpy's message info carries no publisher gid on Jazzy, so the
+copy is recognised otherwise (on every distribution alike): before writing, the publisher leaves the
 subscription a note (the DDS sequence number the write will get, and the
 time just before it); the DDS copy carries its sequence number and a source
 timestamp taken inside the write, and the note that matches both claims it.
@@ -47,7 +47,7 @@ from rclpy.qos import DurabilityPolicy, QoSCompatibility, qos_check_compatible
 from rclpy.subscription import Subscription
 
 from .._compat import subscription_wants_info
-from ..executor import AsyncioExecutor
+from ..executor import AsyncioExecutor, publisher_gid
 from ._copy import copy_message
 
 if TYPE_CHECKING:
@@ -184,6 +184,8 @@ class _Pub:
         self._write = publisher.publish
         self._lock = threading.Lock()
         self._sequence = 0
+        #: Its gid where rclpy's message info carries one (rclpy 9).
+        self._gid = publisher_gid(publisher)
         self._writes = 0
         self._targets: tuple[int, list[_Sub], int] = (-1, [], 0)
         self._dds_for_all = False
@@ -239,12 +241,14 @@ class _Pub:
                 for sub, _ in ready:
                     sub.note(self, note)
             for sub, executor in ready:
-                info = {
+                info: dict[str, Any] = {
                     "source_timestamp": now,
                     "received_timestamp": now,
                     "publication_sequence_number": self._sequence,
                     "reception_sequence_number": None,
                 }
+                if self._gid is not None:
+                    info["publisher_gid"] = dict(self._gid)
                 sub.deliver(shared, info, executor)
         if dds:
             try:

@@ -36,7 +36,6 @@ from typing import Any
 
 import lifecycle_msgs.msg
 import lifecycle_msgs.srv
-import rclpy.lifecycle
 from lifecycle_msgs.msg import State
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
@@ -51,6 +50,7 @@ from .._errors import TransitionError
 from .._text import clip
 from ..executor._bridge import Escaped, contained, in_thread
 from ..intra import enable_intra_process
+from ._base import LifecycleNodeBase
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, MIN_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
 __all__ = ["LifecycleNode"]
@@ -80,7 +80,7 @@ _FAIL_BACK_S = 1.0
 _PUBLISHING = {"activating", "active"}
 
 
-class LifecycleNode(rclpy.lifecycle.LifecycleNode):
+class LifecycleNode(LifecycleNodeBase):
     """A lifecycle node whose transition callbacks may be coroutines.
 
     Override ``on_configure``, ``on_activate``, ... as in rclpy, with

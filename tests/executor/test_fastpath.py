@@ -30,7 +30,7 @@ from std_msgs.msg import Int64
 
 from container import AsyncioExecutor
 from container._compat import WaitSet
-from container.executor import _fastpath
+from container.executor import HAS_PUBLISHER_GID, _fastpath
 from container.executor._dispatch import _WaitSet
 from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, Taker
 from container.executor._fastpath import WaitSet as FastWaitSet
@@ -156,7 +156,7 @@ def test_taker_takes_what_rclpy_takes(node: Node) -> None:
     pub = node.create_publisher(Image, "fp_take", 10)
     sub = node.create_subscription(Image, "fp_take", lambda msg: None, 10)
     _matched(pub)
-    taker = Taker(subscription=sub.handle.pointer, message_type=Image)
+    taker = Taker(subscription=sub.handle.pointer, message_type=Image, publisher_gid=HAS_PUBLISHER_GID)
     assert taker.take() is None
     images = [
         Image(height=1, width=2, encoding="rgb8", step=6, data=bytes(range(6))),
@@ -177,7 +177,8 @@ def test_taker_takes_what_rclpy_takes(node: Node) -> None:
     message, info = second
     assert message == images[1]
     assert third == images[2]
-    assert set(info) == set(first[1])
+    assert set(info) == set(first[1])  # rclpy's keys: with publisher_gid from rclpy 9
+    assert info.get("publisher_gid") == first[1].get("publisher_gid")
     assert info["publication_sequence_number"] == first[1]["publication_sequence_number"] + 1
     assert info["source_timestamp"] >= first[1]["source_timestamp"] > 0
 

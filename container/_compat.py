@@ -30,7 +30,6 @@ from rclpy.subscription import Subscription
 if TYPE_CHECKING:
     from rclpy.executors import Executor
     from rclpy.guard_condition import GuardCondition
-    from rclpy.lifecycle import LifecycleNode
     from rclpy.node import Node
     from rclpy.task import Future
     from rclpy.timer import Timer
@@ -223,12 +222,12 @@ def mark_event_ready(handler: object) -> None:
     handler._ready_to_take_data = True  # type: ignore[attr-defined]
 
 
-def subscription_wants_info(subscription: Subscription) -> bool:
+def subscription_wants_info(subscription: Subscription[Any]) -> bool:
     """Whether the callback takes ``(message, message_info)``; rclpy decides by signature."""
     return subscription._callback_type is not Subscription.CallbackType.MessageOnly
 
 
-def adopt_future(future: Future, executor: object) -> None:
+def adopt_future(future: Future[Any], executor: Executor) -> None:
     """Make ``executor`` run ``future``'s done-callbacks, as rclpy's executors do."""
     future._set_executor(executor)
 
@@ -248,9 +247,9 @@ def runs_plain_callback(function: Callable[..., Any], args: tuple[Any, ...]) -> 
     return any(callable(arg) and not inspect.iscoroutinefunction(arg) for arg in args)
 
 
-def waitable_futures(waitable: Waitable) -> list[Future]:
+def waitable_futures(waitable: Waitable[Any]) -> list[Future[Any]]:
     """The futures a waitable (an action client) completes when it executes."""
-    futures: list[Future] = waitable._futures
+    futures: list[Future[Any]] = waitable._futures
     return futures
 
 
@@ -327,27 +326,32 @@ def state_machine_if_built(node: Node) -> Any | None:
     return getattr(node, "_state_machine", None)
 
 
-def state_machine(node: Node | LifecycleNode) -> Any:
+# These take a ``Node``: container.LifecycleNode is a subclass of rclpy's
+# LifecycleNode at run time, but type checkers see it through a facade
+# (``container/lifecycle/_base.pyi``) that is a plain ``Node`` to them.
+
+
+def state_machine(node: Node) -> Any:
     """The rcl lifecycle state machine of a lifecycle node (rclpy has no accessor)."""
-    return node._state_machine  # type: ignore[union-attr]
+    return node._state_machine  # type: ignore[attr-defined]
 
 
-def managed_entities(node: Node | LifecycleNode) -> set[Any]:
+def managed_entities(node: Node) -> set[Any]:
     """The entities (lifecycle publishers) a lifecycle node activates and deactivates."""
-    entities: set[Any] = node._managed_entities  # type: ignore[union-attr]
+    entities: set[Any] = node._managed_entities  # type: ignore[attr-defined]
     return entities
 
 
-def change_state_service(node: LifecycleNode) -> Any:
+def change_state_service(node: Node) -> Any:
     """The ``change_state`` service, whose handler the node base replaces."""
-    return node._service_change_state
+    return node._service_change_state  # type: ignore[attr-defined]
 
 
-def query_services(node: LifecycleNode) -> list[Any]:
+def query_services(node: Node) -> list[Any]:
     """The lifecycle services that only read the state (``get_state`` and the like)."""
     return [
-        node._service_get_state,
-        node._service_get_available_states,
-        node._service_get_available_transitions,
-        node._service_get_transition_graph,
+        node._service_get_state,  # type: ignore[attr-defined]
+        node._service_get_available_states,  # type: ignore[attr-defined]
+        node._service_get_available_transitions,  # type: ignore[attr-defined]
+        node._service_get_transition_graph,  # type: ignore[attr-defined]
     ]

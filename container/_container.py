@@ -81,7 +81,7 @@ class LoadRequest:
     name: str | None = None
     namespace: str | None = None
     remap_rules: Sequence[str] = ()
-    parameters: Sequence[Parameter | ParameterSource] = ()
+    parameters: Sequence[Parameter[Any] | ParameterSource] = ()
     extra_arguments: Mapping[str, Any] = field(default_factory=dict)
     log_level: int = 0
     autostart: bool = False
@@ -127,7 +127,7 @@ class ComponentManager(Node):
         name: str = "ComponentManager",
         namespace: str = "/",
         context: Context | None = None,
-        parameter_overrides: Sequence[Parameter] = (),
+        parameter_overrides: Sequence[Parameter[Any]] = (),
         unload_timeout: float = 5.0,
         load_timeout: float = 10.0,
         use_intra_process_comms: bool = False,
@@ -428,8 +428,8 @@ def _default_name(node_type: NodeType) -> str:
     return re.sub(r"(?<!^)(?=[A-Z])", "_", node_type.name).lower()
 
 
-def _overrides(request: LoadRequest, full_name: str) -> list[Parameter]:
-    merged: dict[str, Parameter] = {}
+def _overrides(request: LoadRequest, full_name: str) -> list[Parameter[Any]]:
+    merged: dict[str, Parameter[Any]] = {}
     sources: list[ParameterSource] = []
 
     def flush() -> None:

@@ -26,9 +26,9 @@ __all__ = ["ParameterSource", "node_parameters", "parameters_from_mapping"]
 ParameterSource = Mapping[str, Any] | str | Path
 
 
-def parameters_from_mapping(values: Mapping[str, Any], *, source: str) -> list[Parameter]:
+def parameters_from_mapping(values: Mapping[str, Any], *, source: str) -> list[Parameter[Any]]:
     """Turn ``{"a": {"b": 1}}`` into the override ``a.b = 1``."""
-    parameters: list[Parameter] = []
+    parameters: list[Parameter[Any]] = []
     for name, value in _flatten(values, prefix=""):
         try:
             parameters.append(Parameter(name, value=value))
@@ -40,7 +40,7 @@ def parameters_from_mapping(values: Mapping[str, Any], *, source: str) -> list[P
     return parameters
 
 
-def parameters_from_file(path: Path, *, node_names: Iterable[str]) -> list[Parameter]:
+def parameters_from_file(path: Path, *, node_names: Iterable[str]) -> list[Parameter[Any]]:
     """Read the entries of a ROS parameter file that apply to a node.
 
     :param node_names: the keys that name the node (full name, with and
@@ -67,11 +67,11 @@ def node_parameters(
     full_name: str,
     base_dir: Path | None = None,
     source: str = "parameters",
-) -> list[Parameter]:
+) -> list[Parameter[Any]]:
     """Collect a node's overrides from its ``parameters`` list, later winning."""
     name = full_name.rsplit("/", 1)[-1]
     keys = [full_name, full_name.lstrip("/"), name]
-    merged: dict[str, Parameter] = {}
+    merged: dict[str, Parameter[Any]] = {}
     for index, entry in enumerate(sources):
         where = f"{source}[{index}]"
         if isinstance(entry, Mapping):

@@ -12,7 +12,14 @@ import logging
 import os
 from pathlib import Path
 
-__all__ = ["DDS_PROFILE", "PROFILE_VARIABLES", "configure_logging", "fast_dds_major", "profile_variable", "use_fast_discovery"]
+__all__ = [
+    "DDS_PROFILE",
+    "PROFILE_VARIABLES",
+    "configure_logging",
+    "fast_dds_major",
+    "profile_variable",
+    "use_fast_discovery",
+]
 
 #: Fast DDS participant profile with quick discovery announcements.
 DDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")

@@ -63,7 +63,7 @@ def load_request_from_msg(msg: LoadNode.Request) -> LoadRequest:
     )
 
 
-def _parameters(messages: Sequence[ParameterMsg], *, what: str) -> tuple[Parameter, ...]:
+def _parameters(messages: Sequence[ParameterMsg], *, what: str) -> tuple[Parameter[Any], ...]:
     parameters = []
     for message in messages:
         try:
@@ -83,7 +83,7 @@ class ContainerServices:
     def __init__(self, manager: ComponentManager) -> None:
         self._manager = manager
         changes = MutuallyExclusiveCallbackGroup()
-        self._services: list[Service] = [
+        self._services: list[Service[Any, Any]] = [
             manager.create_service(LoadNode, LOAD_NODE, self._load, callback_group=changes),
             manager.create_service(UnloadNode, UNLOAD_NODE, self._unload, callback_group=changes),
             manager.create_service(

@@ -58,7 +58,7 @@ class Talker(_Releasing):
         super().__init__(node_name, **kwargs)
         self.declare_parameter("rate", 2.0)
         self.declare_parameter("message", "Hello World")
-        self._publisher: Publisher | None = None
+        self._publisher: Publisher[Any] | None = None
         self._timer: Timer | None = None
         self._count = 0
 
@@ -119,7 +119,7 @@ class Counter(_Releasing):
     def __init__(self, node_name: str = default_node_name, **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         self.declare_parameter("step", 1.0)
-        self._server: ActionServer | None = None
+        self._server: ActionServer[Any, Any, Any] | None = None
         self._step = 1.0
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -161,7 +161,7 @@ class Counter(_Releasing):
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
-    async def _execute(self, goal_handle: ServerGoalHandle) -> Any:
+    async def _execute(self, goal_handle: ServerGoalHandle[Any, Any, Any]) -> Any:
         target = goal_handle.request.target
         feedback = CountTo.Feedback()
         for i in range(target):

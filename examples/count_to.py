@@ -30,11 +30,12 @@ STATUS = {
 }
 
 
-async def count(node: Node, client: ActionClient, target: int, cancel_after: float | None) -> bool:
+async def count(node: Node, client: ActionClient[Any, Any, Any], target: int, cancel_after: float | None) -> bool:
     def on_feedback(message: Any) -> None:
         print(f"feedback: {message.feedback.current_count}", flush=True)
 
     goal = await client.send_goal_async(CountTo.Goal(target=target), feedback_callback=on_feedback)
+    assert goal is not None
     if not goal.accepted:
         print("goal rejected", flush=True)
         return False
@@ -44,6 +45,7 @@ async def count(node: Node, client: ActionClient, target: int, cancel_after: flo
         await goal.cancel_goal_async()
         print("cancel requested", flush=True)
     outcome = await goal.get_result_async()
+    assert outcome is not None
     print(f"result: {STATUS.get(outcome.status, outcome.status)}, final_count={outcome.result.final_count}", flush=True)
     wanted = GoalStatus.STATUS_CANCELED if cancel_after is not None else GoalStatus.STATUS_SUCCEEDED
     return bool(outcome.status == wanted)
@@ -58,7 +60,7 @@ def main() -> int:
     args = parser.parse_args()
     rclpy.init()
     node = Node("count_to_client")
-    client = ActionClient(node, CountTo, args.action)
+    client: ActionClient[Any, Any, Any] = ActionClient(node, CountTo, args.action)
     executor = AsyncioExecutor()
     executor.add_node(node)
     try:

@@ -53,7 +53,8 @@ class Busy(LifecycleNode):
         BUSY_NODES.add(self)
         group = ReentrantCallbackGroup()
         self.ticks = 0
-        self.create_timer(0.01, self._tick_async, callback_group=group)
+        # rclpy 9 annotates timer callbacks as plain
+        self.create_timer(0.01, self._tick_async, callback_group=group)  # type: ignore[arg-type, unused-ignore]
         self.create_timer(0.01, self._tick)
         self.create_subscription(String, "busy_in", self._hear, 10)
         self.create_service(Trigger, "~/poke", self._poke, callback_group=group)
@@ -135,13 +136,13 @@ class ContainerClient:
     def __init__(self, node: Node, executor: AsyncioExecutor, container: str = "/ComponentManager") -> None:
         self.node = node
         self.executor = executor
-        self.load_client = node.create_client(LoadNode, f"{container}/_container/load_node")
-        self.unload_client = node.create_client(UnloadNode, f"{container}/_container/unload_node")
-        self.list_client = node.create_client(ListNodes, f"{container}/_container/list_nodes")
+        self.load_client: Client[Any, Any] = node.create_client(LoadNode, f"{container}/_container/load_node")
+        self.unload_client: Client[Any, Any] = node.create_client(UnloadNode, f"{container}/_container/unload_node")
+        self.list_client: Client[Any, Any] = node.create_client(ListNodes, f"{container}/_container/list_nodes")
         for client in (self.load_client, self.unload_client, self.list_client):
             assert client.wait_for_service(timeout_sec=20.0), f"{client.srv_name} never appeared"
 
-    def call(self, client: Client, request: Any, *, timeout: float = 30.0) -> Any:
+    def call(self, client: Client[Any, Any], request: Any, *, timeout: float = 30.0) -> Any:
         future = client.call_async(request)
         self.executor.spin_until_future_complete(future, timeout_sec=timeout)
         assert future.done(), f"no answer from {client.srv_name} within {timeout} s"

@@ -12,13 +12,17 @@ import asyncio
 import sys
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from container import LifecycleNode, RegisterNodeType, hookimpl
+
+if TYPE_CHECKING:
+    # Only in the typing facade (a .pyi): a plain result, or an awaitable of one.
+    from container.lifecycle._base import TransitionOutcome
 
 FAULTS = ("raise", "exit", "busy", "sleep", "await", "thread", "slow")
 WHERES = (
@@ -116,19 +120,19 @@ class Faulty(LifecycleNode):
             _misbehave_plainly(self.fault, label, self.forever)
         return TransitionCallbackReturn.SUCCESS
 
-    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+    def on_configure(self, state: LifecycleState) -> TransitionOutcome:
         return self._transition("configure")
 
-    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+    def on_activate(self, state: LifecycleState) -> TransitionOutcome:
         return self._transition("activate")
 
-    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+    def on_deactivate(self, state: LifecycleState) -> TransitionOutcome:
         return self._transition("deactivate")
 
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+    def on_cleanup(self, state: LifecycleState) -> TransitionOutcome:
         return self._transition("cleanup")
 
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+    def on_shutdown(self, state: LifecycleState) -> TransitionOutcome:
         return self._transition("shutdown")
 
 

@@ -36,7 +36,7 @@ class Camera(LifecycleNode):
         # Frames published before a subscriber is matched are lost, as over
         # DDS for any volatile publisher: start once this many are.
         self.declare_parameter("subscribers", 1)
-        self._publisher: Publisher | None = None
+        self._publisher: Publisher[Any] | None = None
         self._timer: Timer | None = None
         self._sent = 0
         self._buffer = array.array("B", bytes(1920 * 1080 * 3))

@@ -37,6 +37,7 @@ from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.srv import GetParameters
+from rclpy.client import Client
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -244,7 +245,7 @@ def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
     launched: LoggedProcess, client_node: Node, executor: AsyncioExecutor, tmp_path: Path
 ) -> None:
     client = ContainerClient(client_node, executor, "/launch_ns/my_container")
-    get = client_node.create_client(GetParameters, "/launch_ns/my_container/get_parameters")
+    get: Client[Any, Any] = client_node.create_client(GetParameters, "/launch_ns/my_container/get_parameters")
     assert get.wait_for_service(timeout_sec=20.0)
     values = client.call(get, GetParameters.Request(names=["use_sim_time"])).values
     assert values[0].bool_value is True, "the --params-file entry for the container's full name was not applied"
@@ -263,7 +264,7 @@ def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
         remappings=[("chatter", "/launch_chatter")],
     ))
     assert (listener.success, listener.full_node_name) == (True, "/demo/listener"), listener.error_message
-    change = client_node.create_client(ChangeState, "/demo/listener/change_state")
+    change: Client[Any, Any] = client_node.create_client(ChangeState, "/demo/listener/change_state")
     assert change.wait_for_service(timeout_sec=20.0)
     for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
         request = ChangeState.Request()
@@ -271,7 +272,7 @@ def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
         assert client.call(change, request).success
     launched.wait_for_line("I heard: [From launch:")
     assert client.list() == [(1, "/demo/talker"), (2, "/demo/listener")]
-    state = client_node.create_client(GetState, "/demo/talker/get_state")
+    state: Client[Any, Any] = client_node.create_client(GetState, "/demo/talker/get_state")
     assert state.wait_for_service(timeout_sec=20.0)
     assert client.call(state, GetState.Request()).current_state.label == "active"
     assert launched.stop() == 0
@@ -298,7 +299,7 @@ def test_nav2_style_lifecycle_manager_brings_up_the_launched_nodes(
     try:
         line = manager.wait_for_line("Managed nodes are active", timeout=30)
         assert "[lifecycle_manager_test]" in line
-        state = client_node.create_client(GetState, "/demo/talker/get_state")
+        state: Client[Any, Any] = client_node.create_client(GetState, "/demo/talker/get_state")
         assert state.wait_for_service(timeout_sec=20.0)
         assert client.call(state, GetState.Request()).current_state.label == "active"
         assert manager.stop() == 0

@@ -11,12 +11,14 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import pytest
 from composition_interfaces.srv import LoadNode
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -59,7 +61,7 @@ def faulty(fault: str, where: str, *, style: str = "plain", name: str = "faulty"
 
 
 def state_of(client: ContainerClient, name: str) -> str:
-    getter = client.node.create_client(GetState, f"{name}/get_state")
+    getter: Client[Any, Any] = client.node.create_client(GetState, f"{name}/get_state")
     try:
         assert getter.wait_for_service(timeout_sec=10.0)
         return str(client.call(getter, GetState.Request()).current_state.label)
@@ -73,7 +75,7 @@ def test_unload_during_a_transition_cancels_it_and_answers_everyone(
 ) -> None:
     loaded = client.load(faulty("await" if style == "async" else "sleep", "configure", style=style))
     assert loaded.success, loaded.error_message
-    changer = client.node.create_client(ChangeState, "/faulty/change_state")
+    changer: Client[Any, Any] = client.node.create_client(ChangeState, "/faulty/change_state")
     assert changer.wait_for_service(timeout_sec=10.0)
     pending = changer.call_async(ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
     assert wait_until(executor, lambda: state_of(client, "/faulty") == "configuring")
@@ -81,7 +83,9 @@ def test_unload_during_a_transition_cancels_it_and_answers_everyone(
     assert unloaded.success
     assert "cancelled" in unloaded.error_message
     executor.spin_until_future_complete(pending, timeout_sec=10.0)
-    assert pending.done() and not pending.result().success, "the caller was left waiting"
+    assert pending.done(), "the caller was left waiting"
+    answer = pending.result()
+    assert answer is not None and not answer.success, "the caller was left waiting"
     assert client.list() == []
     # The process lives on, and serves a new node under the same name.
     again = client.load(faulty("raise", "timer", name="faulty"))
@@ -92,7 +96,7 @@ def test_unload_during_a_transition_cancels_it_and_answers_everyone(
 def test_sigint_during_a_transition_exits_cleanly(container: ContainerProcess, client: ContainerClient) -> None:
     loaded = client.load(faulty("await", "configure", style="async"))
     assert loaded.success
-    changer = client.node.create_client(ChangeState, "/faulty/change_state")
+    changer: Client[Any, Any] = client.node.create_client(ChangeState, "/faulty/change_state")
     assert changer.wait_for_service(timeout_sec=10.0)
     changer.call_async(ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
     assert wait_until(client.executor, lambda: state_of(client, "/faulty") == "configuring")
@@ -109,7 +113,7 @@ def test_sys_exit_in_a_callback_sends_only_that_node_through_error_processing(
     healthy = client.load(load_request(name="talker"))
     loaded = client.load(faulty("exit", "timer", style=style))
     assert healthy.success and loaded.success
-    changer = client.node.create_client(ChangeState, "/faulty/change_state")
+    changer: Client[Any, Any] = client.node.create_client(ChangeState, "/faulty/change_state")
     assert changer.wait_for_service(timeout_sec=10.0)
     for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
         assert client.call(changer, ChangeState.Request(transition=Transition(id=transition))).success
@@ -151,8 +155,10 @@ def test_a_blocking_constructor_is_refused_in_time_and_blocks_no_one(
     assert client.list() == []
     executor.spin_until_future_complete(pending, timeout_sec=20.0)
     assert pending.done()
-    assert not pending.result().success
-    assert "did not return within 1 s" in pending.result().error_message
+    answer = pending.result()
+    assert answer is not None
+    assert not answer.success
+    assert "did not return within 1 s" in answer.error_message
     assert container.process.poll() is None
 
 
@@ -214,7 +220,7 @@ def test_removed_node_starts_none_of_its_queued_callbacks(
         talker.destroy_node()
 
 
-def wait_for_matches(publisher: Publisher, count: int, *, timeout: float = 10.0) -> bool:
+def wait_for_matches(publisher: Publisher[Any], count: int, *, timeout: float = 10.0) -> bool:
     deadline = time.monotonic() + timeout
     while publisher.get_subscription_count() < count:
         if time.monotonic() >= deadline:
@@ -282,7 +288,7 @@ def test_every_change_state_request_is_answered_while_a_transition_runs(
     spinner = threading.Thread(target=burst.spin, daemon=True)
     spinner.start()
     try:
-        changers = [peers.create_client(ChangeState, "/faulty/change_state") for _ in range(20)]
+        changers: list[Client[Any, Any]] = [peers.create_client(ChangeState, "/faulty/change_state") for _ in range(20)]
         assert all(changer.wait_for_service(timeout_sec=10.0) for changer in changers)
         request = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))
         answered = threading.Semaphore(0)
@@ -295,7 +301,8 @@ def test_every_change_state_request_is_answered_while_a_transition_runs(
         for _ in pending:
             answered.acquire(timeout=20.0)
         assert "".join("x" if future.done() else "." for future in pending) == "x" * 20
-        assert sum(future.result().success for future in pending) == 1
+        answers = [future.result() for future in pending]
+        assert sum(answer is not None and answer.success for answer in answers) == 1
     finally:
         burst.shutdown(timeout_sec=5.0)
         spinner.join(5.0)

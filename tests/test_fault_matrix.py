@@ -28,6 +28,7 @@ import pytest
 import rclpy
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -136,7 +137,8 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
         with lock:
             stamps.append(info["source_timestamp"] / 1e9)
 
-    node.create_subscription(String, "/chatter", heard, QoSProfile(depth=1000))  # type: ignore[arg-type]
+    # rclpy 7 types subscription callbacks as one-argument; rclpy hands this one the message info too.
+    node.create_subscription(String, "/chatter", heard, QoSProfile(depth=1000))  # type: ignore[arg-type, unused-ignore]
     try:
         container.wait_for_line("ready with")
         rig = Rig(container, ContainerClient(node, executor), stamps, lock)
@@ -150,7 +152,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
 
 
 def call(rig: Rig, srv_type: Any, name: str, request: Any, *, timeout: float = 10.0) -> Any:
-    client = rig.client.node.create_client(srv_type, name)
+    client: Client[Any, Any] = rig.client.node.create_client(srv_type, name)
     try:
         assert client.wait_for_service(timeout_sec=10.0), f"{name} never appeared"
         return rig.client.call(client, request, timeout=timeout)
@@ -192,7 +194,7 @@ def trigger(rig: Rig, name: str, where: str, *, struck: str, mark: int) -> None:
             rig.client.executor.spin_once(timeout_sec=0.05)
         node.destroy_publisher(publisher)
     elif where == "service":
-        poke = node.create_client(Trigger, f"/{name}/poke")
+        poke: Client[Any, Any] = node.create_client(Trigger, f"/{name}/poke")
         assert poke.wait_for_service(timeout_sec=10.0)
         poke.call_async(Trigger.Request())  # may never be answered: the callback is the fault
 

@@ -15,6 +15,7 @@ import pytest
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -101,13 +102,13 @@ def nodes(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[...,
     made.clear()
 
 
-def subscribe(node: Node, *args: Any, **kwargs: Any) -> Subscription:
+def subscribe(node: Node, *args: Any, **kwargs: Any) -> Subscription[Any]:
     """``node.create_subscription``; rclpy's annotation knows neither message info nor coroutines."""
     callback: Any = args[2]
     return node.create_subscription(args[0], args[1], callback, *args[3:], **kwargs)
 
 
-def matched(publisher: Publisher, count: int, *, publishers: int | None = 1) -> None:
+def matched(publisher: Publisher[Any], count: int, *, publishers: int | None = 1) -> None:
     """Wait until ``count`` subscriptions matched, and the graph lists ``publishers`` on the topic.
 
     The graph may still list a publisher of an earlier test for a moment.
@@ -463,12 +464,14 @@ def test_config_takes_a_container_wide_default() -> None:
 
 
 def change_state(node: Node, executor: AsyncioExecutor, target: str, transition: int) -> None:
-    client = node.create_client(ChangeState, f"{target}/change_state")
+    client: Client[Any, Any] = node.create_client(ChangeState, f"{target}/change_state")
     try:
         assert client.wait_for_service(timeout_sec=TIMEOUT)
         future = client.call_async(ChangeState.Request(transition=Transition(id=transition)))
         executor.spin_until_future_complete(future, timeout_sec=TIMEOUT)
-        assert future.done() and future.result().success
+        assert future.done()
+        answer = future.result()
+        assert answer is not None and answer.success
     finally:
         node.destroy_client(client)
 

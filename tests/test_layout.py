@@ -91,7 +91,9 @@ def test_public_names_are_exactly_these() -> None:
         "TransitionError", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
         "hookimpl", "hookspec",
     ])  # fmt: skip
-    assert container.executor.__all__ == ["AsyncioExecutor", "CallbackErrorHandler", "ExecutorState"]
+    assert container.executor.__all__ == [
+        "HAS_PUBLISHER_GID", "AsyncioExecutor", "CallbackErrorHandler", "ExecutorState", "publisher_gid",
+    ]  # fmt: skip
     assert container.lifecycle.__all__ == ["LifecycleManager", "LifecycleNode", "ManagerSettings", "contain_fault"]
     assert container.checks.__all__ == ["boolean", "integer", "number", "string", "strings"]
     assert container.intra.__all__ == [

@@ -8,9 +8,11 @@ import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from rcl_interfaces.srv import GetParameters
+from rclpy.client import Client
 from rclpy.node import Node
 
 from container import AsyncioExecutor
@@ -138,7 +140,7 @@ def test_without_a_file_an_empty_container_takes_its_ros_arguments_like_rclcpps(
     try:
         proc.wait_for_line("Container '/ns/named' ready with 0 node(s)")
         client = ContainerClient(client_node, executor, "/ns/named")
-        get = client_node.create_client(GetParameters, "/ns/named/get_parameters")
+        get: Client[Any, Any] = client_node.create_client(GetParameters, "/ns/named/get_parameters")
         assert get.wait_for_service(timeout_sec=20.0)
         assert client.call(get, GetParameters.Request(names=["use_sim_time"])).values[0].bool_value is True
         # The container's ROS arguments are its own; a load forwards them only when asked.

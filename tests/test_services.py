@@ -7,10 +7,12 @@ the client, over DDS, exactly like ``ros2 component``.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import pytest
 from lifecycle_msgs.srv import GetState
 from rcl_interfaces.srv import GetParameters
+from rclpy.client import Client
 from rclpy.node import Node
 
 from container import AsyncioExecutor
@@ -83,7 +85,7 @@ def test_load_honours_name_namespace_remaps_parameters_and_extras(
         load_request(name="speaker", parameters=[parameter("message", "Remote"), parameter("rate", 7.5)])
     )
     assert response.success, response.error_message
-    get = client_node.create_client(GetParameters, "/speaker/get_parameters")
+    get: Client[Any, Any] = client_node.create_client(GetParameters, "/speaker/get_parameters")
     assert get.wait_for_service(timeout_sec=20.0)
     values = client.call(get, GetParameters.Request(names=["message", "rate"])).values
     assert (values[0].string_value, values[1].double_value) == ("Remote", 7.5)
@@ -184,7 +186,7 @@ def test_autostart_extra_argument_brings_the_node_to_active(
 ) -> None:
     response = client.load(load_request(name="started", extra_arguments=[parameter("autostart", True)]))
     assert (response.success, response.error_message) == (True, "")
-    get_state = client_node.create_client(GetState, "/started/get_state")
+    get_state: Client[Any, Any] = client_node.create_client(GetState, "/started/get_state")
     assert get_state.wait_for_service(timeout_sec=20.0)
     assert client.call(get_state, GetState.Request()).current_state.label == "active"
 

@@ -204,7 +204,7 @@ def _run_list(args: argparse.Namespace) -> int:
     from composition_interfaces.srv import ListNodes
 
     async def components(node: Node, container: str) -> list[str]:
-        client = node.create_client(ListNodes, f"{_full_name(container)}/_container/list_nodes")
+        client: Client[Any, Any] = node.create_client(ListNodes, f"{_full_name(container)}/_container/list_nodes")
         try:
             response = await _call(client, ListNodes.Request())
         finally:
@@ -293,7 +293,7 @@ def _containers(node: Node) -> list[str]:
 
 async def _container_client(
     node: Node, container: str, service: str, srv_type: Any, spin_time: float
-) -> Client | None:
+) -> Client[Any, Any] | None:
     """Wait for ``container`` to show up as a container and its ``service`` to be ready.
 
     :return: a client of the service, or ``None`` if ``container`` is no
@@ -303,7 +303,7 @@ async def _container_client(
     found = await _poll(lambda: True if full_name in _containers(node) else None, timeout=spin_time)
     if found is None:
         return None
-    client = node.create_client(srv_type, f"{full_name}/_container/{service}")
+    client: Client[Any, Any] = node.create_client(srv_type, f"{full_name}/_container/{service}")
     # Seen in the graph is not yet matched with our client's endpoints.
     if await _poll(lambda: True if client.service_is_ready() else None, timeout=spin_time) is None:
         node.destroy_client(client)
@@ -326,7 +326,7 @@ async def _settled_containers(node: Node, spin_time: float) -> list[str]:
     return seen
 
 
-async def _call(client: Client, request: Any) -> Any:
+async def _call(client: Client[Any, Any], request: Any) -> Any:
     """Send ``request`` once the server is matched; wait for its response.
 
     :raises _Failure: no server, or no response in time.

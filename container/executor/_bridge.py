@@ -81,7 +81,7 @@ async def contained(awaitable: Awaitable[T]) -> T:
         raise as_exception(exc) from exc
 
 
-def mirror(future: RclFuture, loop: asyncio.AbstractEventLoop) -> asyncio.Future[Any]:
+def mirror(future: RclFuture[Any], loop: asyncio.AbstractEventLoop) -> asyncio.Future[Any]:
     """An asyncio future on ``loop`` that settles as ``future`` does.
 
     Result, exception and cancellation carry over. Safe whichever thread
@@ -99,7 +99,7 @@ def mirror(future: RclFuture, loop: asyncio.AbstractEventLoop) -> asyncio.Future
         else:
             settled.set_result(future.result())
 
-    def on_done(_: RclFuture) -> None:
+    def on_done(_: RclFuture[Any]) -> None:
         if loop.is_closed():
             return
         if running_loop() is loop:
@@ -118,7 +118,7 @@ def mirror(future: RclFuture, loop: asyncio.AbstractEventLoop) -> asyncio.Future
     return settled
 
 
-async def result(future: RclFuture, *, timeout: float | None = None) -> Any:
+async def result(future: RclFuture[Any], *, timeout: float | None = None) -> Any:
     """Wait for ``future`` on the running loop and return its result (or raise its error).
 
     :raises TimeoutError: not done within ``timeout`` seconds; ``future`` is

@@ -80,6 +80,7 @@ from ._message_info import HAS_PUBLISHER_GID
 
 if TYPE_CHECKING:
     from rclpy.context import Context
+    from rclpy.executors import Executor
 
 __all__: list[str] = []
 
@@ -301,6 +302,7 @@ class _WaitSet:
                     else:
                         table.events.append((event, entry))
                 else:
+                    assert counts is not None  # get_num_entities() ran: no event handle
                     table.waitables.append(entry)
                     extra += counts
         guards = table.handles["guard_condition"]
@@ -740,7 +742,7 @@ class Dispatcher:
         loop: asyncio.AbstractEventLoop,
         post: Post,
         reentrant_limit: int,
-        future_executor: object,
+        future_executor: Executor,
         on_error: ErrorHandler,
         on_done: Callable[[], None],
         done_waiters: Sized,

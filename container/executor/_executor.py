@@ -26,11 +26,12 @@ import contextlib
 import enum
 import functools
 import inspect
+import sys
 import threading
 import types
 import weakref
 from collections.abc import Callable, Coroutine, Generator
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeAlias, TypeVar
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.context import Context
@@ -52,6 +53,15 @@ if TYPE_CHECKING:
 __all__ = ["AsyncioExecutor", "CallbackErrorHandler", "ExecutorState"]
 
 T = TypeVar("T")
+
+if TYPE_CHECKING:
+    # What asyncio hands a task factory: a coroutine; before 3.12 also the
+    # generator it wraps another awaitable in (see wraps_an_awaitable).
+    if sys.version_info >= (3, 12):
+        _TaskCoro: TypeAlias = Coroutine[Any, Any, T]
+    else:
+        _TaskCoro: TypeAlias = Coroutine[Any, Any, T] | Generator[Any, None, T]
+
 
 class ExecutorState(enum.Enum):
     """The life of an :class:`AsyncioExecutor`; each refuses what it cannot do.
@@ -266,7 +276,7 @@ class AsyncioExecutor(Executor):
 
     def spin_until_future_complete(
         self,
-        future: RclFuture | asyncio.Future[Any] | Coroutine[Any, Any, Any],
+        future: RclFuture[Any] | asyncio.Future[Any] | Coroutine[Any, Any, Any],
         timeout_sec: float | None = None,
     ) -> None:
         """Run callbacks until ``future`` is done or ``timeout_sec`` passes.
@@ -278,7 +288,7 @@ class AsyncioExecutor(Executor):
 
     def spin_once_until_future_complete(
         self,
-        future: RclFuture,
+        future: RclFuture[Any],
         timeout_sec: float | None = None,  # type: ignore[override]
     ) -> None:
         self._run_owned(self._until_done(future, timeout_sec))
@@ -316,7 +326,7 @@ class AsyncioExecutor(Executor):
 
     def create_task(  # type: ignore[override]
         self, callback: Callable[..., Any] | Coroutine[Any, Any, Any], *args: Any, **kwargs: Any
-    ) -> RclFuture:
+    ) -> RclFuture[Any]:
         """Run ``callback`` while the executor spins; return an rclpy future of its result.
 
         As in rclpy, nothing runs before the executor spins, and under
@@ -634,7 +644,7 @@ class AsyncioExecutor(Executor):
         return watchdog
 
     def _make_task(
-        self, loop: asyncio.AbstractEventLoop, coro: Coroutine[Any, Any, T] | Generator[Any, None, T], **kwargs: Any
+        self, loop: asyncio.AbstractEventLoop, coro: _TaskCoro[T], **kwargs: Any
     ) -> asyncio.Task[T]:
         """Every task on the owned loop (and on a loop ``spin_async`` lends
         this factory to) may await rclpy futures without spinning a core.
@@ -648,7 +658,8 @@ class AsyncioExecutor(Executor):
         """
         if is_adapted(coro) or not (isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro)):
             return asyncio.Task(coro, loop=loop, **kwargs)
-        task: asyncio.Task[T] = asyncio.Task(self.adapt(coro), loop=loop, **kwargs)  # type: ignore[arg-type]
+        # Before 3.12 ``coro`` may be asyncio's wrapper generator, which adapt drives alike.
+        task: asyncio.Task[T] = asyncio.Task(self.adapt(coro), loop=loop, **kwargs)  # type: ignore[arg-type, unused-ignore]
         # Cancelled before its first step, the wrapper never starts ``coro``,
         # which would then warn "coroutine ... was never awaited": closed
         # here (a no-op once it ran).
@@ -722,7 +733,7 @@ class AsyncioExecutor(Executor):
 
     async def _until_done(
         self,
-        future: RclFuture | asyncio.Future[Any] | Coroutine[Any, Any, Any],
+        future: RclFuture[Any] | asyncio.Future[Any] | Coroutine[Any, Any, Any],
         timeout_sec: float | None,
     ) -> None:
         if isinstance(future, RclFuture):
@@ -883,7 +894,13 @@ def _resolve(future: asyncio.Future[None]) -> None:
         future.set_result(None)
 
 
-class _TaskFuture(RclFuture):
+if TYPE_CHECKING:
+    _AnyRclFuture = RclFuture[Any]
+else:  # rclpy 7 (Jazzy): Future is not subscriptable
+    _AnyRclFuture = RclFuture
+
+
+class _TaskFuture(_AnyRclFuture):
     """What :meth:`AsyncioExecutor.create_task` returns: cancelling it stops the task.
 
     As with rclpy's ``Task``: a task cancelled before it starts never runs,
@@ -894,11 +911,11 @@ class _TaskFuture(RclFuture):
     """
 
     def __init__(self, *, executor: Executor) -> None:
-        super().__init__(executor=executor)  # type: ignore[no-untyped-call]  # rclpy's is untyped
+        super().__init__(executor=executor)  # type: ignore[no-untyped-call, unused-ignore]  # rclpy 7's is untyped
         self._on_cancel: Callable[[], None] | None = None
 
     def cancel(self) -> None:
-        super().cancel()  # type: ignore[no-untyped-call]
+        super().cancel()  # type: ignore[no-untyped-call, unused-ignore]  # rclpy 7's is untyped
         on_cancel = self._on_cancel
         if on_cancel is not None and self.cancelled():
             on_cancel()
@@ -914,14 +931,15 @@ def _same(members: tuple[object, ...] | None, now: tuple[object, ...]) -> bool:
     return members is not None and len(members) == len(now) and all(a is b for a, b in zip(members, now, strict=True))
 
 
-def _settle(result: RclFuture, task: asyncio.Task[Any]) -> None:
+def _settle(result: RclFuture[Any], task: asyncio.Task[Any]) -> None:
     if result.cancelled():
         return  # cancelled by its owner; what the coroutine did after is moot
     with _late_callbacks_dropped():
         if task.cancelled():
             result.cancel()
-        elif task.exception() is not None:
-            result.set_exception(task.exception())
+        elif (error := task.exception()) is not None:
+            # rclpy 9 annotates Exception; a task's other BaseException is handed on as it is.
+            result.set_exception(error)  # type: ignore[arg-type, unused-ignore]
         else:
             result.set_result(task.result())
 
@@ -940,14 +958,15 @@ def _work(run: Callable[[], None], done: Callable[[Work, BaseException | None], 
     return Work(entity=run, call=run, is_async=False, depth=1 << 16, done=done)
 
 
-def _settle_from(result: RclFuture, call: Callable[[], Any]) -> None:
+def _settle_from(result: RclFuture[Any], call: Callable[[], Any]) -> None:
     """Complete ``result`` with what ``call()`` returns or raises (unless cancelled meanwhile)."""
     try:
         value = call()
     except BaseException as exc:  # handed to the future's owner
         if not result.cancelled():
             with _late_callbacks_dropped():
-                result.set_exception(exc)
+                # rclpy 9 annotates Exception; a SystemExit is handed on as it is.
+                result.set_exception(exc)  # type: ignore[arg-type, unused-ignore]
     else:
         if not result.cancelled():
             with _late_callbacks_dropped():

@@ -38,7 +38,7 @@ import threading
 import time
 import weakref
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from rclpy.lifecycle import LifecyclePublisher
 from rclpy.node import Node
@@ -82,7 +82,7 @@ class _Note:
 class _Sub:
     """A subscription of an intra-process node."""
 
-    def __init__(self, node: Node, subscription: Subscription) -> None:
+    def __init__(self, node: Node, subscription: Subscription[Any]) -> None:
         self.node = node
         self.subscription = subscription
         self.topic: str = subscription.topic_name
@@ -97,7 +97,9 @@ class _Sub:
         self._lock = threading.Lock()
         self._notes: dict[_Pub, collections.deque[_Note]] = {}
         # The DDS path: every message taken from rcl passes the check first.
-        subscription.callback = self._from_dds_async if self.is_async else self._from_dds
+        from_dds = self._from_dds_async if self.is_async else self._from_dds
+        # rclpy 9 annotates subscription callbacks as plain; its executors and ours await an async one.
+        subscription.callback = cast("Callable[[Any, Any], None]", from_dds)
         self.call: Callable[..., Any] = self._call_async if self.is_async else self._call
 
     # -- in process ------------------------------------------------------------
@@ -170,12 +172,12 @@ class _Sub:
 class _Pub:
     """A publisher of an intra-process node."""
 
-    def __init__(self, domain: _Domain, node: Node, publisher: Publisher) -> None:
+    def __init__(self, domain: _Domain, node: Node, publisher: Publisher[Any]) -> None:
         self.domain = domain
         self.node = node
         self.publisher = publisher
         self.topic: str = publisher.topic_name
-        self.msg_type: type = publisher.msg_type  # type: ignore[assignment]
+        self.msg_type: type = publisher.msg_type  # type: ignore[assignment, unused-ignore]  # rclpy 7 annotates it as a message
         self.qos = publisher.qos_profile
         # Late joiners get a transient_local publisher's history from DDS;
         # in process it would arrive out of order with the new messages.
@@ -324,7 +326,7 @@ class _Domain:
     def publisher_count(self, topic: str) -> int:
         return self._pub_counts.get(topic, 0)
 
-    def add_publisher(self, node: Node, publisher: Publisher) -> _Pub:
+    def add_publisher(self, node: Node, publisher: Publisher[Any]) -> _Pub:
         with self._lock:
             found = self._by_entity.get(id(publisher))
             if isinstance(found, _Pub) and found.publisher is publisher:
@@ -335,7 +337,7 @@ class _Domain:
         setattr(publisher, "publish", record.publish)  # noqa: B010 (an instance attribute)
         return record
 
-    def add_subscription(self, node: Node, subscription: Subscription) -> _Sub | None:
+    def add_subscription(self, node: Node, subscription: Subscription[Any]) -> _Sub | None:
         if subscription.raw:
             return None  # wants serialized bytes: DDS only
         with self._lock:
@@ -408,21 +410,21 @@ def enable_intra_process(node: Node) -> None:
     domain = domain_of(node.context)
     cls = type(node)
 
-    def create_publisher(*args: Any, **kwargs: Any) -> Publisher:
-        publisher: Publisher = cls.create_publisher(node, *args, **kwargs)
+    def create_publisher(*args: Any, **kwargs: Any) -> Publisher[Any]:
+        publisher: Publisher[Any] = cls.create_publisher(node, *args, **kwargs)
         domain.add_publisher(node, publisher)
         return publisher
 
-    def create_subscription(*args: Any, **kwargs: Any) -> Subscription:
-        subscription: Subscription = cls.create_subscription(node, *args, **kwargs)
+    def create_subscription(*args: Any, **kwargs: Any) -> Subscription[Any]:
+        subscription: Subscription[Any] = cls.create_subscription(node, *args, **kwargs)
         domain.add_subscription(node, subscription)
         return subscription
 
-    def destroy_publisher(publisher: Publisher) -> bool:
+    def destroy_publisher(publisher: Publisher[Any]) -> bool:
         domain.remove(publisher)
         return bool(cls.destroy_publisher(node, publisher))
 
-    def destroy_subscription(subscription: Subscription) -> bool:
+    def destroy_subscription(subscription: Subscription[Any]) -> bool:
         domain.remove(subscription)
         return bool(cls.destroy_subscription(node, subscription))
 
@@ -440,7 +442,7 @@ def enable_intra_process(node: Node) -> None:
         domain.add_subscription(node, subscription)
 
 
-def hand_over(publisher: Publisher, message: Any) -> None:
+def hand_over(publisher: Publisher[Any], message: Any) -> None:
     """Publish ``message`` and give it up: subscribers in process get the object itself.
 
     The zero-copy publish, like rclcpp's ``publish(std::unique_ptr<T>)``:

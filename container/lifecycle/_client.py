@@ -72,18 +72,18 @@ class LifecycleClient:
         self.target = target
         self.service_timeout = service_timeout
         base = target.rstrip("/")
-        self._change: Client = node.create_client(
+        self._change: Client[Any, Any] = node.create_client(
             ChangeState, f"{base}/change_state", callback_group=callback_group
         )
-        self._get: Client = node.create_client(
+        self._get: Client[Any, Any] = node.create_client(
             GetState, f"{base}/get_state", callback_group=callback_group
         )
-        self._transitions: Client = node.create_client(
+        self._transitions: Client[Any, Any] = node.create_client(
             GetAvailableTransitions,
             f"{base}/get_available_transitions",
             callback_group=callback_group,
         )
-        self._graph: Client = node.create_client(
+        self._graph: Client[Any, Any] = node.create_client(
             GetAvailableTransitions, f"{base}/get_transition_graph", callback_group=callback_group
         )
 
@@ -101,7 +101,7 @@ class LifecycleClient:
 
     async def _call(
         self,
-        client: Client,
+        client: Client[Any, Any],
         request: Any,
         *,
         what: str,

@@ -108,7 +108,7 @@ class HeartbeatPublisher:
         # Node.create_* directly: a lifecycle base would otherwise make these
         # follow the node's state, and heartbeats must flow in every state.
         # The matched event runs in the timer's group (the node's default).
-        self._publisher: Publisher | None = Node.create_publisher(
+        self._publisher: Publisher[Any] | None = Node.create_publisher(
             node, status, topic, _QOS, event_callbacks=PublisherEventCallbacks(matched=self._matched)
         )
         self._timer: Timer | None = Node.create_timer(node, period, self._beat, autostart=False)
@@ -189,7 +189,7 @@ class HeartbeatWatch:
         self._seen: dict[str, dict[str, Heartbeat]] = {}
         self._changed: asyncio.Event | None = None
         # rclpy's annotation knows no async callbacks; AsyncioExecutor runs them.
-        self._subscription: Subscription | None = node.create_subscription(
+        self._subscription: Subscription[Any] | None = node.create_subscription(
             status,
             topic,
             self._receive,  # type: ignore[arg-type]

@@ -24,9 +24,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Awaitable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from lifecycle_msgs.msg import Transition
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
@@ -225,9 +225,9 @@ class LifecycleManager(Node):
         self.create_service(ManageLifecycleNodes, "~/manage_nodes", self._serve_manage, callback_group=commands)
         self.create_service(Trigger, "~/is_active", self._serve_is_active, callback_group=ReentrantCallbackGroup())
         if self._watch is not None:
-            self.create_timer(
-                self.heartbeat_period, self._check_heartbeats, callback_group=MutuallyExclusiveCallbackGroup()
-            )
+            # rclpy 9 annotates timer callbacks as plain; its executors and ours run an async one.
+            check = cast("Callable[[], None]", self._check_heartbeats)
+            self.create_timer(self.heartbeat_period, check, callback_group=MutuallyExclusiveCallbackGroup())
 
     def _param(self, name: str) -> Any:
         return self.get_parameter(name).value
@@ -500,4 +500,4 @@ class LifecycleManager(Node):
             self._watch.close()
         for client in self._lifecycle.values():
             client.close()
-        super().destroy_node()  # type: ignore[no-untyped-call]
+        super().destroy_node()  # type: ignore[no-untyped-call, unused-ignore]  # rclpy 7's is untyped

@@ -164,7 +164,7 @@ class LifecycleNode(LifecycleNodeBase):
     def _declare_seconds(self, name: str, default: float, description: str) -> float:
         # dynamic_typing: a YAML ``5`` (an integer) must be accepted for seconds.
         descriptor = ParameterDescriptor(description=description, dynamic_typing=True)
-        value = self.declare_parameter(name, float(default), descriptor).value
+        value: Any = self.declare_parameter(name, float(default), descriptor).value
         try:
             return float(value)
         except (TypeError, ValueError):
@@ -513,33 +513,33 @@ class LifecycleNode(LifecycleNodeBase):
         *,
         managed: bool = True,
         **kwargs: Any,
-    ) -> Publisher:
+    ) -> Publisher[Any]:
         """Create a publisher that publishes only while the node is active.
 
         :param managed: ``False`` for an ordinary, always-on publisher.
         """
         if managed and self._entities_follow_state and "publisher_class" not in kwargs:
-            publisher: Publisher = self.create_lifecycle_publisher(
+            publisher: Publisher[Any] = self.create_lifecycle_publisher(
                 msg_type, topic, qos_profile, **kwargs
             )
             return publisher
         return super().create_publisher(msg_type, topic, qos_profile, **kwargs)
 
-    def create_lifecycle_publisher(self, *args: Any, **kwargs: Any) -> LifecyclePublisher:
-        publisher: LifecyclePublisher = super().create_lifecycle_publisher(*args, **kwargs)  # type: ignore[no-untyped-call]
+    def create_lifecycle_publisher(self, *args: Any, **kwargs: Any) -> LifecyclePublisher[Any]:
+        publisher: LifecyclePublisher[Any] = super().create_lifecycle_publisher(*args, **kwargs)
         state = self.lifecycle_state
         if state.label in _PUBLISHING:
             publisher.on_activate(state)
         return publisher
 
-    def destroy_publisher(self, publisher: Publisher) -> bool:
+    def destroy_publisher(self, publisher: Publisher[Any]) -> bool:
         managed_entities(self).discard(publisher)
         return super().destroy_publisher(publisher)
 
     def create_timer(
         self,
         timer_period_sec: float,
-        callback: Callable[..., Any],
+        callback: Callable[..., Any] | None,
         callback_group: CallbackGroup | None = None,
         clock: Clock | None = None,
         autostart: bool = True,
@@ -550,10 +550,12 @@ class LifecycleNode(LifecycleNodeBase):
 
         :param managed: ``False`` for an ordinary timer that runs in every state.
         """
+        # ``callback`` may be None as in rclpy 9, whose signature this overrides;
+        # rclpy 7 annotates it as not optional.
         if not (managed and self._entities_follow_state):
-            return super().create_timer(timer_period_sec, callback, callback_group, clock, autostart)
+            return super().create_timer(timer_period_sec, callback, callback_group, clock, autostart)  # type: ignore[arg-type, unused-ignore]
         running = autostart and self.lifecycle_state.label == "active"
-        timer = super().create_timer(timer_period_sec, callback, callback_group, clock, running)
+        timer = super().create_timer(timer_period_sec, callback, callback_group, clock, running)  # type: ignore[arg-type, unused-ignore]
         self._managed_timers.add(timer)
         if autostart and not running:
             self._paused_timers.add(timer)
@@ -587,7 +589,7 @@ class LifecycleNode(LifecycleNodeBase):
         if self._heartbeat is not None:
             self._heartbeat.close()
             self._heartbeat = None
-        super().destroy_node()  # type: ignore[no-untyped-call]
+        super().destroy_node()  # type: ignore[no-untyped-call, unused-ignore]  # rclpy 7's is untyped
 
 
 def _discard(awaitable: Any) -> None:

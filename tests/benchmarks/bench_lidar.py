@@ -190,15 +190,15 @@ class Listener:
         self.records: list[tuple[int, int, float, float]] = []
         self.window: list[tuple[int, int, float, float]] = []
         # rclpy hands (message, message info) to a two-argument callback;
-        # its annotation only knows the one-argument kind.
+        # rclpy 7's annotation only knows the one-argument kind.
         if kind == "scan":
             from sensor_msgs.msg import LaserScan
 
-            self.node.create_subscription(LaserScan, topic, self._scan, 10)  # type: ignore[arg-type]
+            self.node.create_subscription(LaserScan, topic, self._scan, 10)  # type: ignore[arg-type, unused-ignore]
         else:
             from std_msgs.msg import String
 
-            self.node.create_subscription(String, topic, self._other, 10)  # type: ignore[arg-type]
+            self.node.create_subscription(String, topic, self._other, 10)  # type: ignore[arg-type, unused-ignore]
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, daemon=True)

@@ -25,6 +25,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random().randint(120, 200)))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -39,6 +40,7 @@ use_fast_discovery()
 import rclpy  # noqa: E402
 from lifecycle_msgs.msg import State  # noqa: E402
 from lifecycle_msgs.srv import GetState  # noqa: E402
+from rclpy.client import Client  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
@@ -105,7 +107,7 @@ def smaps_rollup(pid: int) -> tuple[int, int]:
 
 async def wait_all_active(node: Node, names: list[str], *, timeout: float) -> None:
     """Ask every ``/name/get_state`` until all answer ``active``."""
-    clients = {name: node.create_client(GetState, f"/{name}/get_state") for name in names}
+    clients: dict[str, Client[Any, Any]] = {name: node.create_client(GetState, f"/{name}/get_state") for name in names}
     pending = set(names)
     deadline = time.monotonic() + timeout
     try:
@@ -120,6 +122,7 @@ async def wait_all_active(node: Node, names: list[str], *, timeout: float) -> No
             for name, future in asked.items():
                 # The executor runs this coroutine adapted to rclpy futures.
                 response = await future
+                assert response is not None
                 if response.current_state.id == State.PRIMARY_STATE_ACTIVE:
                     pending.discard(name)
             if pending:

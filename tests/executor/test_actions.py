@@ -114,7 +114,7 @@ def spinning(executor: AsyncioExecutor) -> Iterator[AsyncioExecutor]:
         # destroy_node() leaves action servers and clients alive until collected.
         for waitable in list(node.waitables):
             if isinstance(waitable, ActionServer | ActionClient):
-                waitable.destroy()  # type: ignore[no-untyped-call]
+                waitable.destroy()  # type: ignore[no-untyped-call, unused-ignore]  # rclpy 7's is untyped
         node.destroy_node()
 
 
@@ -150,13 +150,13 @@ class Feedback(list[int]):
             assert self._grew.wait_for(lambda: len(self) >= count, TIMEOUT), f"only {list(self)}"
 
 
-def _client(node: Node, action: str) -> ActionClient:
-    client = ActionClient(node, CountTo, action)
+def _client(node: Node, action: str) -> ActionClient[Any, Any, Any]:
+    client: ActionClient[Any, Any, Any] = ActionClient(node, CountTo, action)
     assert client.wait_for_server(timeout_sec=TIMEOUT)
     return client
 
 
-def _send(client: ActionClient, target: int, feedback: Feedback) -> Any:
+def _send(client: ActionClient[Any, Any, Any], target: int, feedback: Feedback) -> Any:
     return client.send_goal_async(CountTo.Goal(target=target), feedback_callback=feedback)
 
 
@@ -223,12 +223,13 @@ def test_counter_lifecycle_node_takes_goals_only_while_active(
 
     async def scenario() -> tuple[bool, bool, Any]:
         assert await counter.transition("configure")
-        client = ActionClient(client_node, CountTo, "count_to")
+        client: ActionClient[Any, Any, Any] = ActionClient(client_node, CountTo, "count_to")
         await asyncio.wait_for(_server_ready(client), TIMEOUT)
         inactive = await client.send_goal_async(CountTo.Goal(target=2))
         assert await counter.transition("activate")
         negative = await client.send_goal_async(CountTo.Goal(target=-1))
         active = await client.send_goal_async(CountTo.Goal(target=3), feedback_callback=feedback)
+        assert inactive is not None and negative is not None and active is not None
         outcome = await active.get_result_async()
         client.destroy()
         return inactive.accepted or negative.accepted, active.accepted, outcome
@@ -239,7 +240,7 @@ def test_counter_lifecycle_node_takes_goals_only_while_active(
     assert list(feedback) == [0, 1, 2]
 
 
-async def _server_ready(client: ActionClient) -> None:
+async def _server_ready(client: ActionClient[Any, Any, Any]) -> None:
     while not client.server_is_ready():
         await asyncio.sleep(0.02)
 

@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -184,7 +185,8 @@ def test_mutually_exclusive_group_never_overlaps(
             done.set()
 
     for _ in range(4):
-        node.create_timer(0.005, plain if kind == "plain" else coro, callback_group=group)
+        # rclpy 9 annotates timer callbacks as plain
+        node.create_timer(0.005, plain if kind == "plain" else coro, callback_group=group)  # type: ignore[arg-type, unused-ignore]
     executor.add_node(node)
     thread = spin_in_thread(executor)
     assert done.wait(10.0)
@@ -216,7 +218,8 @@ def test_reentrant_group_runs_callbacks_concurrently_within_its_bound(
             done.set()
 
     for _ in range(6):
-        node.create_timer(0.01, plain if kind == "plain" else coro, callback_group=group)
+        # rclpy 9 annotates timer callbacks as plain
+        node.create_timer(0.01, plain if kind == "plain" else coro, callback_group=group)  # type: ignore[arg-type, unused-ignore]
     executor.add_node(node)
     thread = spin_in_thread(executor)
     try:
@@ -338,7 +341,8 @@ def test_each_callback_starts_in_a_copy_of_the_spinning_context(
         on_tick()
 
     node.create_subscription(Int64, f"context_{style}", on_message_async if style == "async" else on_message, 10)  # type: ignore[arg-type]
-    node.create_timer(0.02, on_tick_async if style == "async" else on_tick)  # same group as the subscription
+    # Same group as the subscription. rclpy 9 annotates timer callbacks as plain.
+    node.create_timer(0.02, on_tick_async if style == "async" else on_tick)  # type: ignore[arg-type, unused-ignore]
     executor.add_node(node)
 
     def spin() -> None:
@@ -379,7 +383,8 @@ def test_async_callback_awaits_a_service_call_without_busy_waiting(
         replies.append(f"cpu={time.process_time() - started:.3f}")
         done.set()
 
-    client_node.create_timer(0.01, call_once)
+    # rclpy 9 annotates timer callbacks as plain
+    client_node.create_timer(0.01, call_once)  # type: ignore[arg-type, unused-ignore]
     executor.add_node(server_node)
     executor.add_node(client_node)
     thread = spin_in_thread(executor)
@@ -425,7 +430,8 @@ def test_an_asyncio_task_awaits_a_service_call_without_busy_waiting(
     executor.add_node(server_node)
     executor.add_node(client_node)
     assert client.wait_for_service(timeout_sec=10.0)
-    timer = client_node.create_timer(0.01, start)
+    # rclpy 9 annotates timer callbacks as plain
+    timer = client_node.create_timer(0.01, start)  # type: ignore[arg-type, unused-ignore]
     thread = spin_in_thread(executor)
     assert done.wait(10.0)
     executor.shutdown(timeout_sec=5.0)
@@ -486,7 +492,8 @@ def test_asyncio_sleep_zero_yields_to_the_loop_and_comes_straight_back(
         await other
         took.append(time.monotonic() - started)
 
-    timer = node.create_timer(0.01 if where == "timer" else 3600.0, both)
+    # rclpy 9 annotates timer callbacks as plain
+    timer = node.create_timer(0.01 if where == "timer" else 3600.0, both)  # type: ignore[arg-type, unused-ignore]
     executor.add_node(node)
     if where == "task":
         executor.spin_until_future_complete(executor.create_task(both()), timeout_sec=30.0)
@@ -524,12 +531,14 @@ def test_a_client_takes_its_response_behind_another_clients(
     serving = SingleThreadedExecutor(context=context)
     serving.add_node(server)
     callers = make_node("two_clients_callers")
+    first: Client[Any, Any]
+    second: Client[Any, Any]
     first, second = (callers.create_client(Trigger, "two_clients") for _ in range(2))
     if watched:
         executor.add_node(callers)
         executor.spin_once(timeout_sec=0.1)  # the clients are watched from now on
     assert first.wait_for_service(timeout_sec=10.0) and second.wait_for_service(timeout_sec=10.0)
-    futures = [first.call_async(Trigger.Request()), second.call_async(Trigger.Request())]
+    futures: list[RclFuture[Any]] = [first.call_async(Trigger.Request()), second.call_async(Trigger.Request())]
     spinner = threading.Thread(target=serving.spin, daemon=True)
     spinner.start()
     try:
@@ -539,7 +548,8 @@ def test_a_client_takes_its_response_behind_another_clients(
             executor.add_node(callers)
         for future in futures:
             executor.spin_until_future_complete(future, timeout_sec=5.0)
-        assert [future.result().message if future.done() else None for future in futures] == ["pong", "pong"]
+        results = [future.result() if future.done() else None for future in futures]
+        assert [result.message if result is not None else None for result in results] == ["pong", "pong"]
     finally:
         serving.shutdown(timeout_sec=5.0)
         spinner.join(5.0)
@@ -557,7 +567,7 @@ def test_async_service_callback_can_await(
         return response
 
     server_node.create_service(Trigger, "nap", answer)
-    client = client_node.create_client(Trigger, "nap")
+    client: Client[Any, Any] = client_node.create_client(Trigger, "nap")
     executor.add_node(server_node)
     executor.add_node(client_node)
     thread = spin_in_thread(executor)
@@ -597,7 +607,8 @@ def test_exception_in_callback_is_reported_and_executor_survives(
         if count[0] >= 10 and len(reports) >= 3:
             ticks.set()
 
-    faulty.create_timer(0.02, explode if kind == "plain" else explode_async)
+    # rclpy 9 annotates timer callbacks as plain
+    faulty.create_timer(0.02, explode if kind == "plain" else explode_async)  # type: ignore[arg-type, unused-ignore]
     healthy.create_timer(0.02, tick)
     executor.add_node(faulty)
     executor.add_node(healthy)
@@ -614,7 +625,7 @@ def test_spin_until_future_complete_with_rclpy_future(
     executor: AsyncioExecutor, make_node: Callable[[str], Node]
 ) -> None:
     node = make_node("future_setter")
-    future = RclFuture()
+    future: RclFuture[Any] = RclFuture()
     node.create_timer(0.05, lambda: future.set_result("done") if not future.done() else None)
     executor.add_node(node)
     executor.spin_until_future_complete(future, timeout_sec=10.0)
@@ -635,7 +646,7 @@ def test_spin_once_runs_one_callback(
 def test_rclpy_spin_helpers_accept_it(context: Context, make_node: Callable[[str], Node]) -> None:
     executor = AsyncioExecutor(context=context)
     node = make_node("drop_in")
-    future = RclFuture()
+    future: RclFuture[Any] = RclFuture()
     node.create_timer(0.02, lambda: future.set_result(7) if not future.done() else None)
     rclpy.spin_until_future_complete(node, future, executor=executor, timeout_sec=10.0)
     assert future.result() == 7

@@ -10,7 +10,7 @@ callbacks), and intra-process delivery.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import pytest
@@ -25,7 +25,7 @@ from container.executor import HAS_PUBLISHER_GID, publisher_gid
 TIMEOUT = 10.0
 COUNT = 3
 
-Info = dict[str, Any]
+Info = Mapping[str, Any]
 
 
 class Inbox:
@@ -89,9 +89,10 @@ def test_message_info_has_rclpy_s_keys_and_values(
     theirs = Node("info_rclpy", context=context)
     ours = Node("info_ours", context=context)
     source = Node("info_source", context=context)
-    theirs.create_subscription(String, "info_topic", reference.plain(), 10)
-    ours.create_subscription(String, "info_topic", plain.plain(), 10)
-    ours.create_subscription(String, "info_topic", coroutine.coroutine(), 10)
+    # rclpy 7 types subscription callbacks as one-argument (as rclpy, ours take two).
+    theirs.create_subscription(String, "info_topic", reference.plain(), 10)  # type: ignore[arg-type, unused-ignore]
+    ours.create_subscription(String, "info_topic", plain.plain(), 10)  # type: ignore[arg-type, unused-ignore]
+    ours.create_subscription(String, "info_topic", coroutine.coroutine(), 10)  # type: ignore[arg-type, unused-ignore]
     publisher = source.create_publisher(String, "info_topic", 10)
     single = SingleThreadedExecutor(context=context)
     single.add_node(theirs)
@@ -127,8 +128,9 @@ def test_intra_process_info_has_rclpy_s_keys_and_the_publisher_s_gid(
     theirs = Node("intra_info_rclpy", context=context)
     sink = LifecycleNode("intra_info_sink", context=context, use_intra_process_comms=True)
     source = LifecycleNode("intra_info_source", context=context, use_intra_process_comms=True)
-    theirs.create_subscription(String, "intra_info_topic", reference.plain(), 10)
-    sink.create_subscription(String, "intra_info_topic", intra.plain(), 10)
+    # rclpy 7 types subscription callbacks as one-argument (as rclpy, ours take two).
+    theirs.create_subscription(String, "intra_info_topic", reference.plain(), 10)  # type: ignore[arg-type, unused-ignore]
+    sink.create_subscription(String, "intra_info_topic", intra.plain(), 10)  # type: ignore[arg-type, unused-ignore]
     publisher = source.create_publisher(String, "intra_info_topic", 10, managed=False)
     single = SingleThreadedExecutor(context=context)
     single.add_node(theirs)
@@ -141,8 +143,8 @@ def test_intra_process_info_has_rclpy_s_keys_and_the_publisher_s_gid(
         _publish_until(lambda: publisher.publish(String(data="x")), [reference, intra])
         gid = publisher_gid(publisher)
     finally:
-        for node in (theirs, sink, source):
-            node.destroy_node()
+        for each in (theirs, sink, source):
+            each.destroy_node()
     rclpys, mine = reference.infos[-1], intra.infos[-1]
     assert mine["received_timestamp"] == mine["source_timestamp"]  # delivered in process, not by DDS
     assert sorted(mine) == sorted(rclpys)

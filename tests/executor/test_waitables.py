@@ -31,7 +31,8 @@ class GuardWaitable(Waitable):  # type: ignore[type-arg, unused-ignore]  # gener
     (no ``__enter__``/``__exit__``: what a waitable written for Jazzy looks like)."""
 
     def __init__(self, node: Node, *, failing: str | None = None) -> None:
-        super().__init__(MutuallyExclusiveCallbackGroup())
+        # rclpy 7's is untyped.
+        super().__init__(MutuallyExclusiveCallbackGroup())  # type: ignore[no-untyped-call, unused-ignore]
         self.guard = GuardCondition(None, None, context=node.context)
         self.failing = failing
         self.calls: collections.Counter[str] = collections.Counter()

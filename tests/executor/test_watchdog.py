@@ -40,7 +40,8 @@ def test_a_blocking_async_callback_is_reported_and_plain_callbacks_keep_their_ra
             unblock.wait(10.0)  # blocking code in an async def: the fault
 
     if via == "timer":
-        stuck.create_timer(0.05, block)
+        # rclpy 9 annotates timer callbacks as plain
+        stuck.create_timer(0.05, block)  # type: ignore[arg-type, unused-ignore]
     else:
         chain = stuck.create_publisher(Int64, "watchdog_chain", 10)
         stuck.create_subscription(Int64, "watchdog_chain", block, 10)  # type: ignore[arg-type]  # rclpy types only plain callbacks
@@ -48,7 +49,8 @@ def test_a_blocking_async_callback_is_reported_and_plain_callbacks_keep_their_ra
         async def kick() -> None:
             chain.publish(Int64())
 
-        stuck.create_timer(0.05, kick)
+        # rclpy 9 annotates timer callbacks as plain
+        stuck.create_timer(0.05, kick)  # type: ignore[arg-type, unused-ignore]
     steady.create_timer(0.1, lambda: ticks.append(time.monotonic()))
     executor.add_node(stuck)
     executor.add_node(steady)
@@ -112,7 +114,8 @@ def test_one_watchdog_thread_serves_every_spin_and_still_reports(
                 time.sleep(0.8)  # blocking code in an async def: the fault
 
         caplog.set_level(logging.WARNING, logger="container.executor")
-        node.create_timer(0.01, block)
+        # rclpy 9 annotates timer callbacks as plain
+        node.create_timer(0.01, block)  # type: ignore[arg-type, unused-ignore]
         executor.spin_once(timeout_sec=10.0)
         assert blocked, "the timer did not run"
         assert any("event loop stuck" in r.message and "block" in r.message for r in caplog.records)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from ldlidar import (
+    Packet,
     PacketGenerator,
     ScanAssembler,
     StreamParser,
@@ -21,7 +22,7 @@ from ldlidar import (
 from tests.ldlidar.ldlidar_support import corrupted_stream, decode_command_modules
 
 
-def streaming(data: bytes) -> tuple[list, StreamParser]:  # type: ignore[type-arg]
+def streaming(data: bytes) -> tuple[list[Packet], StreamParser]:
     parser = StreamParser()
     packets = parser.feed(data) + parser.flush()
     return packets, parser

@@ -39,7 +39,7 @@ ROSOUT_QOS = QoSProfile(
 
 # -- helpers ---------------------------------------------------------------------------
 
-def lidar_parameters(port: str, **more: Any) -> list[Parameter]:
+def lidar_parameters(port: str, **more: Any) -> list[Parameter[Any]]:
     """Overrides for an LD06 on ``port``; keyword names use ``__`` for ``.``."""
     values = {"comm.serial_port": port, **{k.replace("__", "."): v for k, v in more.items()}}
     return [Parameter(name, value=value) for name, value in values.items()]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -486,7 +487,7 @@ def test_long_host_gap_restarts_the_clock_and_the_turn() -> None:
     "kwargs",
     [{"bins": -1}, {"direction": "left"}, {"range_min": 2.0, "range_max": 1.0}, {"crop": (0, 400)}],
 )
-def test_bad_parameters_are_rejected(kwargs: dict) -> None:  # type: ignore[type-arg]
+def test_bad_parameters_are_rejected(kwargs: dict[str, Any]) -> None:
     with pytest.raises(ValueError):
         ScanAssembler(**kwargs)
 

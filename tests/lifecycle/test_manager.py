@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
@@ -79,11 +80,12 @@ def system(
 
 
 async def call_manager(observer: Node, command: int) -> tuple[bool, Trigger.Response]:
-    manage = observer.create_client(ManageLifecycleNodes, "/lifecycle_manager/manage_nodes")
-    is_active = observer.create_client(Trigger, "/lifecycle_manager/is_active")
+    manage: Client[Any, Any] = observer.create_client(ManageLifecycleNodes, "/lifecycle_manager/manage_nodes")
+    is_active: Client[Any, Any] = observer.create_client(Trigger, "/lifecycle_manager/is_active")
     while not (manage.service_is_ready() and is_active.service_is_ready()):
         await asyncio.sleep(0.01)
     answer = await manage.call_async(Command(command=command))
+    assert answer is not None
     state = await is_active.call_async(Trigger.Request())
     observer.destroy_client(manage)
     observer.destroy_client(is_active)

@@ -29,7 +29,7 @@ class Greeter(LifecycleNode):
         # ROS arguments as keyword arguments: hand them all to the base class.
         super().__init__(node_name, **kwargs)
         self.declare_parameter("name", "world")
-        self._publisher: LifecyclePublisher | None = None
+        self._publisher: LifecyclePublisher[Any] | None = None
         self._timer: Timer | None = None
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:

@@ -99,7 +99,7 @@ class LdLidarNode(LifecycleNode):
     def __init__(self, node_name: str = default_node_name, **kwargs: Any) -> None:
         # Other drivers' names become ours before rclpy sees the overrides:
         # rclpy would keep them unread, and say nothing.
-        given: Sequence[Parameter] = kwargs.get("parameter_overrides") or ()
+        given: Sequence[Parameter[Any]] = kwargs.get("parameter_overrides") or ()
         migration = migrate((p.name, p.value) for p in given)
         kwargs["parameter_overrides"] = [Parameter(name, value=value) for name, value in migration.values.items()]
         self._overridden = tuple(migration.values)
@@ -119,8 +119,8 @@ class LdLidarNode(LifecycleNode):
         self._reader: asyncio.Task[None] | None = None
         self._reader_error: BaseException | None = None
         self._failing: asyncio.Task[str] | None = None
-        self._scan_publisher: LifecyclePublisher | None = None
-        self._diagnostics_publisher: Publisher | None = None
+        self._scan_publisher: LifecyclePublisher[Any] | None = None
+        self._diagnostics_publisher: Publisher[Any] | None = None
         self._diagnostics_timer: Timer | None = None
         self._diagnostics: Diagnostics | None = None
         self._scans = 0
@@ -282,7 +282,7 @@ class LdLidarNode(LifecycleNode):
             self._read(lidar), name=f"ldlidar-reader:{self.get_fully_qualified_name()}"
         )
 
-    def _create_scan_publisher(self) -> LifecyclePublisher:
+    def _create_scan_publisher(self) -> LifecyclePublisher[Any]:
         """``~/scan`` with :data:`SCAN_QOS`, its policies overridable by ``qos_overrides.*`` parameters.
 
         :raises ConfigError: an override names an impossible policy value.

@@ -2,6 +2,11 @@
 
 Run: ``.venv/bin/python tests/benchmarks/bench_executor.py [--rounds 3] [--seconds 2]``
 
+``--pythons .venvs/jazzy-3.11/bin/python .venv/bin/python`` runs every
+measurement under each interpreter (each a set-up virtualenv), the
+interpreters taking turns too: Python against Python, side by side, each
+with its own rclpy peers.
+
 Three measurements, each executor in a fresh process, the executors taking
 turns round after round so that drift on a shared machine hits all alike:
 
@@ -363,12 +368,12 @@ def _child(measure: str, kind: str, seconds: float) -> None:
     os._exit(0)  # rclpy's MultiThreadedExecutor may leave threads behind
 
 
-def _run_child(measure: str, kind: str, seconds: float) -> tuple[float, str]:
-    """Run one measurement in a fresh process: its value and its note (stderr's last line)."""
+def _run_child(measure: str, kind: str, seconds: float, python: str) -> tuple[float, str]:
+    """Run one measurement in a fresh process of ``python``: its value and its note (stderr's last line)."""
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(random.randint(1, 200))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    cmd = [sys.executable, __file__, "--child", measure, kind, str(seconds)]
+    cmd = [python, __file__, "--child", measure, kind, str(seconds)]
     try:
         out = subprocess.run(
             cmd, env=env, capture_output=True, text=True, timeout=seconds + 90, check=False
@@ -408,31 +413,60 @@ def _x(ratio: float) -> str:
     return f"{ratio:.2f}x" if not ratio >= 100 else f"{ratio:.0f}x"
 
 
+def _python_label(python: str) -> str:
+    """``3.12``: the version of the interpreter at ``python``."""
+    out = subprocess.run(
+        [python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
+        capture_output=True, text=True, check=True,
+    )
+    return out.stdout.strip()
+
+
+Results = dict[tuple[str, str], list[float]]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=2.0)
     parser.add_argument("--only", choices=sorted(MEASURES), help="run one measurement")
     parser.add_argument("--kinds", nargs="+", choices=sorted(KINDS), default=list(KINDS))
+    parser.add_argument(
+        "--pythons", nargs="+", default=[sys.executable], metavar="PYTHON",
+        help="interpreters to measure under, side by side (each a set-up virtualenv's)",
+    )
     parser.add_argument("--child", nargs=3, metavar=("MEASURE", "KIND", "SECONDS"))
     args = parser.parse_args()
     if args.child:
         _child(args.child[0], args.child[1], float(args.child[2]))
     kinds = [kind for kind in KINDS if kind in args.kinds]
-    results: dict[tuple[str, str], list[float]] = {}
+    pythons = {_python_label(python): python for python in args.pythons}
+    results: dict[str, Results] = {label: {} for label in pythons}
     for round_index in range(args.rounds):
         for measure in [args.only] if args.only else MEASURES:
-            for kind in _running_order(kinds, round_index):
-                if (
-                    (measure in TIMED and kind in TIMERLESS)
-                    or (measure in FLOORLESS and kind == "floor")
-                    or (measure in EVENTLESS and kind == "events")
-                ):
-                    continue
-                seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)
-                value, note = _run_child(measure, kind, seconds)
-                results.setdefault((measure, kind), []).append(value)
-                print(f"round {round_index + 1} {measure:8} {kind:14} {value:10.1f}  {note}", flush=True)
+            labels = list(pythons) if round_index % 2 == 0 else list(pythons)[::-1]
+            for label in labels:
+                for kind in _running_order(kinds, round_index):
+                    if (
+                        (measure in TIMED and kind in TIMERLESS)
+                        or (measure in FLOORLESS and kind == "floor")
+                        or (measure in EVENTLESS and kind == "events")
+                    ):
+                        continue
+                    seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)
+                    value, note = _run_child(measure, kind, seconds, pythons[label])
+                    results[label].setdefault((measure, kind), []).append(value)
+                    where = f"python {label} " if len(pythons) > 1 else ""
+                    print(f"round {round_index + 1} {where}{measure:8} {kind:14} {value:10.1f}  {note}", flush=True)
+    for label in pythons:
+        if len(pythons) > 1:
+            print(f"\n===== Python {label} ({pythons[label]})")
+        _report(results[label], kinds)
+    if len(pythons) > 1:
+        _compare(results, kinds)
+
+
+def _report(results: Results, kinds: list[str]) -> None:
     print()
     rt = {kind: results.get(("pingpong", kind), []) for kind in kinds}
     print(
@@ -472,6 +506,30 @@ def main() -> None:
                 f"{KINDS[kind]:38} vs {peer:6} {listed}"
                 f"   (median {_x(_median(ratios))}, min {_x(min(ratios))})"
             )
+
+
+def _compare(results: dict[str, Results], kinds: list[str]) -> None:
+    """Each Python's ratios to its own peers, side by side, and one Python's rates over another's."""
+    labels = list(results)
+    print("\n===== Pythons side by side: ping-pong ratio to the same Python's peer (median of rounds)")
+    print(f"{'executor':38} " + " ".join(f"{label + ' vs ' + peer:>16}" for peer in ("single", "events")
+                                          for label in labels))
+    for kind in kinds:
+        cells = []
+        for peer in ("single", "events"):
+            for label in labels:
+                mine = results[label].get(("pingpong", kind), [])
+                other = results[label].get(("pingpong", peer), [])
+                ratios = [_ratio(a, b) for a, b in zip(mine, other, strict=False)]
+                cells.append(f"{_x(_median(ratios)) if ratios else '-':>16}")
+        print(f"{KINDS[kind]:38} " + " ".join(cells))
+    base = labels[0]
+    for label in labels[1:]:
+        print(f"\nrates under Python {label} over {base} (medians):")
+        for (measure, kind), values in sorted(results[label].items()):
+            before = results[base].get((measure, kind), [])
+            if before and values:
+                print(f"  {measure:8} {KINDS[kind]:38} {_x(_ratio(_median(values), _median(before)))}")
 
 
 if __name__ == "__main__":

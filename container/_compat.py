@@ -39,6 +39,7 @@ __all__ = [
     "PRIVATE_NAMES",
     "TIMER_INFO",
     "InvalidROSArgsError",
+    "RCLError",
     "SubParsers",
     "UnknownROSArgsError",
     "WaitSet",
@@ -183,6 +184,8 @@ WaitSet: Any = rclpy_implementation.WaitSet
 InvalidROSArgsError: type[Exception] = rclpy_implementation.RCLInvalidROSArgsError
 #: What rcl raises for ``--ros-args`` it does not know (``--bogus``); ``args[0]`` lists them.
 UnknownROSArgsError: type[Exception] = rclpy_implementation.UnknownROSArgsError
+#: What rclpy raises when an rcl call fails (``send_response`` among them).
+RCLError: type[Exception] = rclpy_implementation.RCLError
 
 # -- executors, entities, futures -------------------------------------------------
 

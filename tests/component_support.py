@@ -12,7 +12,7 @@ import time
 import weakref
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rcl_interfaces.msg import Parameter as ParameterMsg
@@ -26,6 +26,9 @@ from std_srvs.srv import Trigger
 
 from container import AsyncioExecutor
 from container._hookspecs import RegisterNodeType, hookimpl
+
+if TYPE_CHECKING:
+    from tests.process_support import LoggedProcess
 
 #: The directory that makes ``tests.component_support`` importable in a child process.
 IMPORT_ROOT = Path(__file__).resolve().parents[1]
@@ -131,11 +134,23 @@ def load_request(
 
 
 class ContainerClient:
-    """Synchronous calls to a container's services, served by ``executor``."""
+    """Synchronous calls to a container's services, served by ``executor``.
 
-    def __init__(self, node: Node, executor: AsyncioExecutor, container: str = "/ComponentManager") -> None:
+    :param process: the container's process, whose last lines a call that
+        gets no answer prints (what the container made of the request).
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        executor: AsyncioExecutor,
+        container: str = "/ComponentManager",
+        *,
+        process: LoggedProcess | None = None,
+    ) -> None:
         self.node = node
         self.executor = executor
+        self.process = process
         self.load_client: Client[Any, Any] = node.create_client(LoadNode, f"{container}/_container/load_node")
         self.unload_client: Client[Any, Any] = node.create_client(UnloadNode, f"{container}/_container/unload_node")
         self.list_client: Client[Any, Any] = node.create_client(ListNodes, f"{container}/_container/list_nodes")
@@ -145,7 +160,9 @@ class ContainerClient:
     def call(self, client: Client[Any, Any], request: Any, *, timeout: float = 30.0) -> Any:
         future = client.call_async(request)
         self.executor.spin_until_future_complete(future, timeout_sec=timeout)
-        assert future.done(), f"no answer from {client.srv_name} within {timeout} s"
+        if not future.done():
+            log = f"\n{self.process.output()}" if self.process is not None else ""
+            raise AssertionError(f"no answer from {client.srv_name} within {timeout} s{log}")
         return future.result()
 
     def load(self, request: LoadNode.Request) -> LoadNode.Response:

@@ -47,7 +47,7 @@ def container(run_container: Callable[..., ContainerProcess], see_plugin: Callab
 
 @pytest.fixture
 def client(container: ContainerProcess, client_node: Node, executor: AsyncioExecutor) -> ContainerClient:
-    return ContainerClient(client_node, executor)
+    return ContainerClient(client_node, executor, process=container)
 
 
 def faulty(fault: str, where: str, *, style: str = "plain", name: str = "faulty") -> LoadNode.Request:

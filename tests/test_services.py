@@ -37,7 +37,7 @@ def container(run_container: Callable[..., ContainerProcess], see_plugin: Callab
 
 @pytest.fixture
 def client(container: ContainerProcess, client_node: Node, executor: AsyncioExecutor) -> ContainerClient:
-    return ContainerClient(client_node, executor)
+    return ContainerClient(client_node, executor, process=container)
 
 
 def test_load_list_unload_round_trip(

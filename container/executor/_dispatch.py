@@ -57,6 +57,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.waitable import NumberOfEntities
 
 from .._compat import (
+    RCLError,
     WaitSet,
     adopt_future,
     callback_attribute,
@@ -73,7 +74,7 @@ from .._compat import (
     waitable_futures,
 )
 from . import _fastpath
-from ._fastpath import CLIENT, EVENT, SERVICE, SUBSCRIPTION, Express, Notifier, Taker
+from ._fastpath import CLIENT, EVENT, SERVICE, SUBSCRIPTION, Express, Lock, Notifier, Taker
 from ._fastpath import WaitSet as FastWaitSet
 from ._lanes import Lane, Post, Retired, Token, Work
 from ._message_info import HAS_PUBLISHER_GID
@@ -121,7 +122,7 @@ class _Entry:
 #: What :class:`Express` reads per callback, resolved once per table: (taker
 #: or timer address, entry, lane, the lane lock's ``locked``, the marker work
 #: a runner carries, the entity, its token, the attribute holding its callback).
-_Route = tuple[Any, _Entry, Lane, Callable[[], bool], Work, Any, Token, str]
+_Route = tuple[Any, _Entry, Lane, Lock, Work, Any, Token, str]
 
 
 @dataclass(slots=True)
@@ -215,7 +216,7 @@ class _WaitSet:
         self._lock = threading.Lock()
         #: Held while taking and while the table changes: a lane's worker
         #: thread takes (``carry``) while the loop thread sleeps in rcl.
-        self._take_lock = threading.Lock()
+        self._take_lock = Lock()
         self._closed = False
         #: When the next wait must include the QoS events (monotonic ns).
         self._events_next = 0
@@ -243,7 +244,7 @@ class _WaitSet:
         self._dirty = True
 
     @property
-    def take_lock(self) -> threading.Lock:
+    def take_lock(self) -> Lock:
         return self._take_lock
 
     def _rebuild(self) -> None:
@@ -1429,7 +1430,7 @@ def _route(first: Any, entry: _Entry) -> _Route:
     entity = entry.entity
     # The marker is what the runner carries, for the watchdog's report.
     marker = _express_work(entry, ())
-    return (first, entry, entry.lane, entry.lane.lock.locked, marker, entity, entry.token, callback_attribute(entity))
+    return (first, entry, entry.lane, entry.lane.lock, marker, entity, entry.token, callback_attribute(entity))
 
 
 def _express_work(entry: _Entry, args: tuple[Any, ...]) -> Work:
@@ -1457,14 +1458,55 @@ def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable
     if is_async:
 
         async def serve_async() -> None:
-            srv.send_response(await callback(request, response_type()), header)
+            _respond(srv, await callback(request, response_type()), header)
 
         return serve_async
 
     def serve() -> None:
-        srv.send_response(callback(request, response_type()), header)
+        _respond(srv, callback(request, response_type()), header)
 
     return serve
+
+
+#: How long an answer whose client the service has not matched yet is sent again.
+_RESPOND_RETRY_S = 3.0
+_RESPOND_RETRY_EVERY_S = 0.05
+
+
+def _respond(srv: Any, response: Any, header: Any) -> None:
+    """Send ``response``; if its client is not matched yet, again from a thread of its own.
+
+    A client that has just discovered the service (``wait_for_service``
+    returned) may call before the service has matched the client's
+    response reader: Fast DDS's rmw then waits up to the writer's blocking
+    time (100 ms) and fails with "client will not receive response", and
+    the caller would wait forever (``ros2 component load`` right after a
+    container starts, seen once in some 2,900 tests here). The answer is
+    sent again until matched, for a few seconds, off the event loop.
+    """
+    try:
+        srv.send_response(response, header)
+    except RCLError as error:
+        if "will not receive response" not in str(error):
+            raise
+        threading.Thread(
+            target=_respond_later, args=(srv, response, header), name="respond-again", daemon=True
+        ).start()
+
+
+def _respond_later(srv: Any, response: Any, header: Any) -> None:
+    deadline = time.monotonic() + _RESPOND_RETRY_S
+    while True:
+        time.sleep(_RESPOND_RETRY_EVERY_S)
+        try:
+            srv.send_response(response, header)
+            return
+        except InvalidHandle:
+            return  # the service is gone, and its client's wait with it
+        except RCLError as error:
+            if "will not receive response" not in str(error) or time.monotonic() >= deadline:
+                _log.warning("service %s: an answer was not sent (%s)", getattr(srv, "srv_name", srv), error)
+                return
 
 
 def _entities_of(node: Node, kind: str) -> list[Any]:

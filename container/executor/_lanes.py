@@ -51,7 +51,7 @@ from typing import Any
 
 from .._compat import enter_task, leave_task
 from ._bridge import drive
-from ._fastpath import mark_carrier
+from ._fastpath import Lock, mark_carrier
 
 __all__: list[str] = []
 
@@ -180,7 +180,8 @@ class Lane:
         self.limit = limit
         self._loop = loop
         self._on_loop_thread = on_loop_thread
-        self._lock = threading.Lock()
+        #: Guards the slot state below; the compiled path checks it without a call.
+        self._lock = Lock()
         self._running = 0
         #: Work started and not yet done (under ``_lock``).
         self._active: set[Work] = set()
@@ -408,7 +409,7 @@ class Lane:
             self.run_eager(work)
 
     @property
-    def lock(self) -> threading.Lock:
+    def lock(self) -> Lock:
         """Held while the lane's state changes: the C path (``Express``) only
         touches that state while nobody holds it."""
         return self._lock

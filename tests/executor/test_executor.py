@@ -27,7 +27,7 @@ from rclpy.task import Future as RclFuture
 from std_msgs.msg import Int64
 from std_srvs.srv import Trigger
 
-from container import AsyncioExecutor, ExecutorError
+from container import AsyncioExecutor, ExecutorError, _compat
 
 
 @pytest.fixture
@@ -840,3 +840,38 @@ def test_program_that_forgets_shutdown_still_exits_cleanly(tmp_path: Path) -> No
         [sys.executable, str(script)], capture_output=True, text=True, timeout=60, check=False
     )
     assert (result.returncode, result.stdout) == (0, "done\n"), result.stderr[-2000:]
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_an_answer_the_client_cannot_receive_yet_is_sent_again(
+    style: str, host: Callable[..., Any], executor: AsyncioExecutor
+) -> None:
+    """Fast DDS fails a response to a client the service has not matched yet
+    ("client will not receive response"): the caller got no answer, ever."""
+    server, caller = host(Node, f"respond_server_{style}"), host(Node, f"respond_caller_{style}")
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = True, "late but there"
+        return response
+
+    async def answer_async(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return answer(request, response)
+
+    service = server.create_service(Trigger, f"respond_{style}", answer_async if style == "async" else answer)
+    refusals = [2]
+    send = service.send_response
+
+    def not_matched_yet(response: Any, header: Any) -> None:
+        if refusals[0] > 0:
+            refusals[0] -= 1
+            raise _compat.RCLError("Failed to send response: client will not receive response")
+        send(response, header)
+
+    service.send_response = not_matched_yet  # type: ignore[method-assign, unused-ignore]  # rclpy 9 types it
+    client: Client[Any, Any] = caller.create_client(Trigger, f"respond_{style}")
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    executor.spin_until_future_complete(future, timeout_sec=10.0)
+    assert future.done() and refusals == [0]
+    result = future.result()
+    assert result is not None and result.message == "late but there"

@@ -799,3 +799,24 @@ def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
     gaps = [later - earlier for earlier, later in itertools.pairwise(ticks)]
     assert max(gaps) < 0.5, f"largest gap {max(gaps):.3f} s"  # 50-60 ms here; starved: seconds
     assert chained > 5 * wanted, chained  # the chain ran on all along, dozens of round trips per tick
+
+
+def test_the_compiled_lock_behaves_as_threading_lock() -> None:
+    """The take lock and the lanes' locks: what Python code does with them, from two threads."""
+    lock = _fastpath.Lock()
+    assert not lock.locked()
+    with lock:
+        assert lock.locked()
+        assert lock.acquire(blocking=False) is False
+        assert lock.acquire(timeout=0.01) is False
+        got: list[bool] = []
+        waiter = threading.Thread(target=lambda: got.append(lock.acquire(timeout=5.0)))
+        waiter.start()
+    waiter.join(5.0)
+    assert got == [True] and lock.locked()  # the other thread waited (GIL let go) and took it
+    lock.release()
+    assert not lock.locked()
+    with pytest.raises(RuntimeError, match="release unlocked lock"):
+        lock.release()
+    with pytest.raises(ValueError):
+        lock.acquire(blocking=False, timeout=1.0)

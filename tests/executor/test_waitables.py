@@ -83,19 +83,29 @@ def _rclpy_asks_for_enter() -> bool:
     return False
 
 
-def _spin(executor: AsyncioExecutor, node: Node, waitable: GuardWaitable, seconds: float) -> int:
-    """Spin for ``seconds``, triggering the waitable's guard all along; the node's timer ticks."""
+def _host(executor: AsyncioExecutor, node: Node, waitable: GuardWaitable, seconds: float) -> int:
+    """Spin ``node`` with ``waitable`` for ``seconds``, triggering the waitable's guard
+    all along from the node's own 100 Hz timer; how many times the timer ran.
+    Everything is taken down afterwards."""
     ticks = [0]
 
     def tick() -> None:
         ticks[0] += 1
         waitable.guard.trigger()
 
+    node.add_waitable(waitable)
+    executor.add_node(node)
     timer = node.create_timer(0.01, tick)
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
-    node.destroy_timer(timer)
+    try:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        node.destroy_timer(timer)
+        executor.remove_node(node)
+        node.remove_waitable(waitable)
+        waitable.guard.destroy()
+        node.destroy_node()
     return ticks[0]
 
 
@@ -105,15 +115,7 @@ def test_a_waitable_that_raises_is_reported_once_and_set_aside(
 ) -> None:
     node = Node("waitable_host", context=context)
     waitable = EnteringWaitable(node, failing=failing)
-    node.add_waitable(waitable)
-    executor.add_node(node)
-    try:
-        ticks = _spin(executor, node, waitable, 1.0)
-    finally:
-        executor.remove_node(node)
-        node.remove_waitable(waitable)
-        waitable.guard.destroy()
-        node.destroy_node()
+    ticks = _host(executor, node, waitable, 1.0)
     err = capfd.readouterr().err
     reports = [line for line in err.splitlines() if "EnteringWaitable raised RuntimeError" in line]
     assert len(reports) == 1, err[-3000:]
@@ -129,15 +131,7 @@ def test_a_waitable_written_for_jazzy_runs_or_is_set_aside_as_its_rclpy_asks(
     """No ``__enter__``: rclpy 7 (Jazzy) needs none, rclpy 9 raises NotImplementedError."""
     node = Node("jazzy_waitable_host", context=context)
     waitable = GuardWaitable(node)
-    node.add_waitable(waitable)
-    executor.add_node(node)
-    try:
-        ticks = _spin(executor, node, waitable, 1.0)
-    finally:
-        executor.remove_node(node)
-        node.remove_waitable(waitable)
-        waitable.guard.destroy()
-        node.destroy_node()
+    ticks = _host(executor, node, waitable, 1.0)
     reports = [line for line in capfd.readouterr().err.splitlines() if "GuardWaitable raised" in line]
     assert ticks >= 40, ticks
     if _rclpy_asks_for_enter():

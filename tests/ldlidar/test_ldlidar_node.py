@@ -678,9 +678,13 @@ def test_container_run_example_streams_scans_to_another_process(
         await until(lambda: len(scans) >= 21, "21 scans from the container process", timeout=20)
 
     run(executor, scenario(), timeout=30)
-    received = scans.since(0)
-    check_scan_fields([r.msg for r in received[-21:]])
-    assert 20 / (received[-1].at - received[-21].at) == pytest.approx(10.0, rel=0.15)
+    received = [r.msg for r in scans.since(0)][-21:]
+    check_scan_fields(received)
+    # The scans' own stamps: receipt times in this process carry DDS's
+    # delivery (the first scans after discovery can arrive together: 12.5 Hz
+    # measured once that way in CI).
+    stamps = [s.header.stamp.sec + s.header.stamp.nanosec * 1e-9 for s in received]
+    assert 20 / (stamps[-1] - stamps[0]) == pytest.approx(10.0, rel=0.15)
     code = proc.stop()
     output = "\n".join(proc.lines)
     assert code == 0, output

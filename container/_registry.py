@@ -9,6 +9,13 @@ distribution never takes the container down with it.
 A request names a node type by ``package_name`` and ``plugin_name`` strings;
 they are only ever looked up in this table. Nothing imports a module path that
 came from a request.
+
+The table follows what is installed while the container runs, as far as that
+can be done without restarting Python: a request for a type the table does
+not know makes the registry look at the installed entry points again (a
+distribution installed after start loads), and a type whose distribution was
+uninstalled or replaced since it was imported is refused (its code may be
+gone or changed; only a restart imports the new code).
 """
 
 from __future__ import annotations
@@ -198,8 +205,18 @@ class PluginRegistry:
         if trace or _flag_from_env(_TRACE_ENV):
             self._pm.trace.root.setwriter(_write_trace)
             self._pm.enable_tracing()
+        self._group = group
         self._types: dict[str, NodeType] = {}
         self._failures: list[PluginError] = []
+        # What discovery has looked at: (distribution, entry point, version)
+        # triples, so a rescan loads only entry points it has not tried.
+        self._seen: set[tuple[str, str, str]] = set()
+        # Distributions that registered types through entry points, with the
+        # metadata they were loaded from: a type is only handed out while that
+        # metadata is still installed.
+        self._sources: dict[str, tuple[importlib.metadata.Distribution, str]] = {}
+        # Distributions dropped because their files changed, with the reason.
+        self._stale: dict[str, str] = {}
         env_block = _names_from_env(_BLOCK_ENV) or set()
         self._block = {ros_package_name(name) for name in (*block, *env_block)}
         self._allow: list[set[str]] = [
@@ -233,19 +250,99 @@ class PluginRegistry:
     def resolve(self, package_name: str, plugin_name: str) -> NodeType:
         """Return the registered type a LoadNode request names.
 
+        A name the table does not know makes the registry look for plugins
+        installed since (:meth:`rescan`) before it refuses.
+
         :param plugin_name: ``package::Type`` as ``ros2 component load`` sends
             it, or the bare ``Type``.
         :raises LoadError: with rclcpp's messages, for an unknown package or an
-            unknown type in a known package.
+            unknown type in a known package; with the plugin's own failure when
+            the package is that of a plugin that could not be loaded; and when
+            the type's distribution was uninstalled or replaced since start.
         """
-        if not any(t.package == package_name for t in self._types.values()):
-            raise LoadError(_NO_PACKAGE)
         if "::" not in plugin_name:
             plugin_name = f"{package_name}::{plugin_name}"
-        node_type = self._types.get(plugin_name)
+        node_type = self._lookup(package_name, plugin_name)
+        if node_type is not None:
+            self._check_installed(node_type)
+            return node_type
+        self.rescan()
+        node_type = self._lookup(package_name, plugin_name)
+        if node_type is not None:
+            return node_type
+        for distribution, reason in self._stale.items():
+            if ros_package_name(distribution) == package_name:
+                raise LoadError(f"Cannot load {plugin_name}: {reason}")
+        for failure in reversed(self._failures):
+            if failure.distribution and ros_package_name(failure.distribution) == package_name:
+                raise LoadError(f"Plugin failed to load: {failure}")
+        if not any(t.package == package_name for t in self._types.values()):
+            raise LoadError(_NO_PACKAGE)
+        raise LoadError(_NO_CLASS)
+
+    def rescan(self) -> list[str]:
+        """Load the plugins of entry points installed since the last look.
+
+        Entry points already tried (the same distribution, name and version)
+        are not imported again, whether they loaded or failed; a distribution
+        installed again in another version is tried anew, unless its old
+        version was imported (Python keeps the old modules: that needs a
+        restart).
+
+        :returns: the full names of the node types that were added.
+        """
+        importlib.invalidate_caches()
+        before = set(self._types)
+        self._load_entry_points(self._group)
+        added = sorted(set(self._types) - before)
+        if added:
+            logger.info("Plugins installed since start: %s", ", ".join(added))
+        return added
+
+    def _lookup(self, package_name: str, full_name: str) -> NodeType | None:
+        node_type = self._types.get(full_name)
         if node_type is None or node_type.package != package_name:
-            raise LoadError(_NO_CLASS)
+            return None
         return node_type
+
+    def _check_installed(self, node_type: NodeType) -> None:
+        """Refuse a type whose distribution's files are not what was imported."""
+        reason = self._check_stale(node_type.distribution)
+        if reason is not None:
+            raise LoadError(f"Cannot load {node_type.full_name}: {reason}")
+
+    def _check_stale(self, distribution: str) -> str | None:
+        """Forget ``distribution`` if what was imported is no longer installed.
+
+        :returns: why it was forgotten, or None if it is still installed.
+        """
+        source = self._sources.get(distribution)
+        if source is None or _still_installed(source[0]):
+            return None
+        importlib.invalidate_caches()
+        try:
+            now = importlib.metadata.distribution(distribution).version
+        except importlib.metadata.PackageNotFoundError:
+            reason = f"distribution {distribution!r} was uninstalled since the container started"
+        else:
+            reason = (
+                f"distribution {distribution!r} was replaced since the container started "
+                f"(version {source[1]} was imported, {now} is installed): restart the "
+                "container to load the new code"
+            )
+        self._forget(distribution, reason)
+        return reason
+
+    def _forget(self, distribution: str, reason: str) -> None:
+        """Drop a distribution's types and hook implementations for good."""
+        for full_name in [name for name, t in self._types.items() if t.distribution == distribution]:
+            del self._types[full_name]
+        for name, plugin in list(self._pm.list_name_plugin()):
+            if name.startswith(f"{distribution}:"):
+                self._pm.unregister(plugin)
+        del self._sources[distribution]
+        self._stale[distribution] = reason
+        logger.warning("Node types of %s: %s", distribution, reason)
 
     def add_plugin(self, plugin: object, *, distribution: str) -> None:
         """Load an in-process plugin object as if ``distribution`` shipped it.
@@ -259,7 +356,12 @@ class PluginRegistry:
 
     def _load_entry_points(self, group: str) -> None:
         for entry_point in importlib.metadata.entry_points(group=group):
-            distribution = entry_point.dist.name if entry_point.dist else None
+            dist = entry_point.dist
+            distribution = dist.name if dist else None
+            seen = (distribution or "", entry_point.name, dist.version if dist else "")
+            if seen in self._seen:
+                continue
+            self._seen.add(seen)
             if distribution is None:
                 self._fail(
                     PluginError(
@@ -276,11 +378,22 @@ class PluginRegistry:
                     distribution,
                 )
                 continue
+            if distribution in self._stale:
+                continue
+            source = self._sources.get(distribution)
+            if source is not None and dist is not None and dist.version != source[1]:
+                # A version other than the one imported: Python keeps the old
+                # modules, so only a restart can load the new code.
+                self._check_stale(distribution)
+                continue
             try:
                 plugin = self._import(entry_point, distribution)
                 self._add(plugin, distribution=distribution, entry_point=entry_point.name)
             except PluginError as exc:
                 self._fail(exc)
+            else:
+                assert dist is not None
+                self._sources[distribution] = (dist, dist.version)
 
     def _permitted(self, distribution: str) -> bool:
         name = ros_package_name(distribution)
@@ -354,6 +467,13 @@ class PluginRegistry:
         self._failures.append(error)
         logger.warning("Skipping plugin: %s", error)
         logger.debug("Plugin failure detail", exc_info=error)
+
+
+def _still_installed(dist: importlib.metadata.Distribution) -> bool:
+    # The metadata file goes with its distribution: pip removes it on
+    # uninstall, and an upgrade installs another version's directory.
+    # (METADATA in a .dist-info, PKG-INFO in an .egg-info.)
+    return any(dist.read_text(name) is not None for name in ("METADATA", "PKG-INFO"))
 
 
 def _write_trace(message: str) -> None:

@@ -1,26 +1,26 @@
 """Shared test set-up: an isolated ROS domain, contexts, executors, processes.
 
 Every test session picks a random ``ROS_DOMAIN_ID`` and keeps discovery on
-this host, so concurrent runs never see each other. Child processes inherit
-the same environment.
+this host (one already exported wins), so concurrent runs never see each
+other: ``container.testing``'s isolation, which its pytest plugin would do
+too, done here first because this module imports rclpy. Child processes
+inherit the same environment.
 """
 
 from __future__ import annotations
 
 import os
-import random
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-os.environ["ROS_DOMAIN_ID"] = str(random.Random().randint(1, 200))
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+from container.testing import isolate_ros
 
-from container._runtime import use_fast_discovery
-
-use_fast_discovery()
+isolate_ros()
 
 import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -96,6 +96,23 @@ def see_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[...,
         monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
 
     return see
+
+
+@pytest.fixture(scope="session")
+def thirdparty_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """examples/thirdparty_plugin, installed with pip into a directory of its own
+    (put it on ``PYTHONPATH`` to see it: the test environment stays as set up)."""
+    site = tmp_path_factory.mktemp("thirdparty-site")
+    subprocess.run(
+        [
+            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
+            "--target", str(site), str(REPO / "examples" / "thirdparty_plugin"),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    return site
 
 
 @pytest.fixture

@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import logging
 import re
+import shutil
 import sys
 import textwrap
 from collections.abc import Callable, Iterator
@@ -44,7 +45,7 @@ def register_node_types(register):
     register(FastListener, name="Listener")
 """
 
-MakeDist = Callable[..., None]
+MakeDist = Callable[..., Path]
 
 
 @pytest.fixture(autouse=True)
@@ -65,6 +66,8 @@ def make_dist(
 ) -> Iterator[MakeDist]:
     """Install a distribution: ``make_dist(name, entry_points, **modules)``.
 
+    Returns its ``.dist-info`` directory.
+
     ``entry_points`` maps entry point names to ``module`` or ``module:attr``;
     ``modules`` maps module names to their source. Each distribution gets a
     ``sys.path`` entry of its own, after the previous ones, so discovery order
@@ -78,9 +81,11 @@ def make_dist(
         *,
         ep_group: str | None = None,
         **modules: str,
-    ) -> None:
+    ) -> Path:
         site = tmp_path / f"site{len(list(tmp_path.iterdir()))}"
-        info = site / f"{name}-1.0.dist-info"
+        # Named as pip names it (PEP 427): importlib.metadata finds a
+        # distribution by name only under that spelling.
+        info = site / f"{re.sub(r'[-_.]+', '_', name)}-1.0.dist-info"
         info.mkdir(parents=True)
         (info / "METADATA").write_text(
             f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n"
@@ -92,6 +97,7 @@ def make_dist(
             (site / f"{module}.py").write_text(textwrap.dedent(source))
         sys.path.append(str(site))
         importlib.invalidate_caches()
+        return info
 
     yield make
     for module_name, module in list(sys.modules.items()):
@@ -624,6 +630,84 @@ def test_resolve_unknown_type_uses_rclcpp_wording(
         registry.resolve("demo_nodes", plugin_name)
 
     assert str(caught.value) == "Failed to find class with the requested plugin name."
+
+
+# -- following what is installed ----------------------------------------------
+
+
+def test_a_plugin_installed_after_start_loads_on_request(registry: PluginRegistry, make_dist: MakeDist) -> None:
+    make_dist("late-nodes", {"nodes": "late_nodes"}, late_nodes=GOOD)
+
+    node_type = registry.resolve("late_nodes", "Talker")
+
+    assert node_type.full_name == "late_nodes::Talker"
+    assert node_type.distribution == "late-nodes"
+    assert "late_nodes::Listener" in registry.types
+
+
+def test_a_plugin_uninstalled_after_start_is_refused(registry: PluginRegistry) -> None:
+    site = Path(sys.modules["demo_nodes"].__file__ or "").parent
+    shutil.rmtree(site / "demo_nodes-1.0.dist-info")
+
+    for _ in range(2):  # the first refusal forgets the types; the second still says why
+        with pytest.raises(LoadError) as caught:
+            registry.resolve("demo_nodes", "Talker")
+        assert str(caught.value) == (
+            "Cannot load demo_nodes::Talker: distribution 'demo-nodes' was uninstalled since the container started"
+        )
+    assert not any(name.startswith("demo_nodes::") for name in registry.types)
+    assert registry.resolve("other", "Talker").full_name == "other::Talker"
+
+
+def test_a_plugin_replaced_after_start_asks_for_a_restart(registry: PluginRegistry) -> None:
+    site = Path(sys.modules["demo_nodes"].__file__ or "").parent
+    old = site / "demo_nodes-1.0.dist-info"
+    new = old.rename(site / "demo_nodes-2.0.dist-info")
+    (new / "METADATA").write_text("Metadata-Version: 2.1\nName: demo-nodes\nVersion: 2.0\n")
+
+    with pytest.raises(LoadError, match=r"replaced .*version 1\.0 was imported, 2\.0 is installed.*restart"):
+        registry.resolve("demo_nodes", "Talker")
+    # Not imported again under the new version: Python would hand back the old modules.
+    with pytest.raises(LoadError, match="replaced"):
+        registry.resolve("demo_nodes", "Listener")
+    assert not any(name.startswith("demo_nodes::") for name in registry.types)
+
+
+def test_a_load_of_a_plugin_that_failed_answers_with_its_failure(make_dist: MakeDist, group: str) -> None:
+    make_dist("broken-plugin", {"nodes": "broken_nodes"}, broken_nodes="import no_such_module_xyz\n")
+    registry = PluginRegistry(group=group)
+
+    with pytest.raises(LoadError) as caught:
+        registry.resolve("broken_plugin", "Anything")
+
+    assert str(caught.value) == (
+        "Plugin failed to load: distribution 'broken-plugin' entry point 'nodes': cannot import "
+        "'broken_nodes': ModuleNotFoundError: No module named 'no_such_module_xyz'"
+    )
+
+
+def test_a_rescan_tries_each_entry_point_once(make_dist: MakeDist, group: str, tmp_path: Path) -> None:
+    imports = tmp_path / "imports"
+    imports.mkdir()
+    make_dist(
+        "broken-plugin",
+        {"nodes": "counted_nodes"},
+        counted_nodes=f"""
+        import tempfile
+        tempfile.mkstemp(dir={str(imports)!r})  # one file per import
+        raise RuntimeError('broken')
+        """,
+    )
+    registry = PluginRegistry(group=group)
+
+    for _ in range(3):
+        with pytest.raises(LoadError, match="RuntimeError: broken"):
+            registry.resolve("broken_plugin", "Talker")
+        with pytest.raises(LoadError, match="Could not find requested resource"):
+            registry.resolve("nothing_here", "Talker")
+
+    assert len(list(imports.iterdir())) == 1
+    assert len(registry.failures) == 1
 
 
 # -- in-process plugins -------------------------------------------------------

@@ -750,8 +750,12 @@ class Dispatcher:
         on_response: Callable[[], None],
         progress: Callable[[], asyncio.Future[None]],
         wake: Callable[[], None],
+        loop_waits: bool = True,
     ) -> None:
         self.context = context
+        #: Whether the loop's own thread waits in rcl (the executor's loop);
+        #: on a loop of the user's (``spin_async``) a waiter thread does.
+        self._loop_waits = loop_waits
         #: Triggers one of the executor's guard conditions in the hot wait set.
         self._wake = wake
         self._nodes = nodes
@@ -998,7 +1002,8 @@ class Dispatcher:
         a task) it starts at the loop's next select, which does not block
         while such work waits (see :meth:`wait_and_dispatch`).
         """
-        if self.relieving:
+        if self.relieving or not self._loop_waits:
+            # Nobody drains the queue on this loop's thread: start it now.
             return False
         self._eager.append((lane, work, True))
         return True

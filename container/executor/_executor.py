@@ -692,6 +692,7 @@ class AsyncioExecutor(Executor):
             on_response=self._notify_progress,
             progress=self._progress_future,
             wake=self._guard_trigger,
+            loop_waits=loop is self._loop,
         )
 
     def _own_guards(self) -> list[tuple[Any, int]]:

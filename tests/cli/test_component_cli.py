@@ -7,6 +7,7 @@ as a user would type it.
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -17,7 +18,6 @@ import pytest
 from tests.container_support import REPO, ContainerProcess
 
 EMPTY = "container:\n  name: ComponentManager\n"
-PLUGIN_SOURCE = REPO / "examples" / "thirdparty_plugin"
 
 
 def container_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
@@ -164,29 +164,13 @@ def test_types_lists_the_installed_plugins() -> None:
     ) in result.stdout
 
 
-@pytest.fixture(scope="module")
-def plugin_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """examples/thirdparty_plugin, installed with pip into a directory of its own."""
-    site = tmp_path_factory.mktemp("thirdparty-site")
-    subprocess.run(
-        [
-            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
-            "--target", str(site), str(PLUGIN_SOURCE),
-        ],
-        check=True,
-        capture_output=True,
-        timeout=300,
-    )
-    return site
-
-
 def test_pip_installed_plugin_appears_in_types_and_loads_from_the_command_line(
-    plugin_site: Path,
+    thirdparty_site: Path,
     run_container: Callable[..., ContainerProcess],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setenv(
-        "PYTHONPATH", os.pathsep.join(filter(None, [str(plugin_site), os.environ.get("PYTHONPATH")]))
+        "PYTHONPATH", os.pathsep.join(filter(None, [str(thirdparty_site), os.environ.get("PYTHONPATH")]))
     )
     result = container_cli("types")
     assert result.returncode == 0, result.stderr
@@ -201,3 +185,52 @@ def test_pip_installed_plugin_appears_in_types_and_loads_from_the_command_line(
     result = container_cli("unload", "/ComponentManager", "1")
     assert result.returncode == 0, result.stderr
     proc.wait_for_line("Unloaded '/greeter'")
+
+
+def test_a_running_container_follows_installs_and_uninstalls(
+    thirdparty_site: Path,
+    run_container: Callable[..., ContainerProcess],
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+) -> None:
+    site = tmp_path / "site"
+    site.mkdir()
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
+    proc = run_container(EMPTY)
+
+    def load(package: str, plugin: str) -> subprocess.CompletedProcess[str]:
+        return container_cli("load", "/ComponentManager", package, plugin)
+
+    result = load("greeter_nodes", "greeter_nodes::Greeter")
+    assert result.stderr == "Failed to load component: Could not find requested resource in ament index\n"
+
+    # Installed after start (the files pip install puts there): the next request finds it.
+    shutil.copytree(thirdparty_site, site, dirs_exist_ok=True)
+    result = load("greeter_nodes", "greeter_nodes::Greeter")
+    assert result.stdout == "Loaded component 1 into '/ComponentManager' container node as '/greeter'\n", result.stderr
+    proc.wait_for_line("Plugins installed since start: greeter_nodes::Greeter")
+
+    # Uninstalled (what pip uninstall removes): refused, though its module is still imported.
+    for path in site.iterdir():
+        shutil.rmtree(path)
+    result = load("greeter_nodes", "greeter_nodes::Greeter")
+    assert result.returncode == 1
+    assert result.stderr == (
+        "Failed to load component: Cannot load greeter_nodes::Greeter: distribution 'greeter-nodes' "
+        "was uninstalled since the container started\n"
+    )
+
+    # A plugin that fails to import: the load answer says why, not just "not found".
+    info = site / "broken_nodes-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken-nodes\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[container.plugins]\nbroken = broken_nodes_module\n")
+    (site / "broken_nodes_module.py").write_text("import numpy_but_misspelled\n")
+    result = load("broken_nodes", "broken_nodes::Anything")
+    assert result.stderr == (
+        "Failed to load component: Plugin failed to load: distribution 'broken-nodes' entry point 'broken': "
+        "cannot import 'broken_nodes_module': ModuleNotFoundError: No module named 'numpy_but_misspelled'\n"
+    )
+    # The container is still whole: the installed demo types load.
+    result = load("lifecycle_container", "lifecycle_container::Talker")
+    assert result.returncode == 0, result.stderr

@@ -168,17 +168,24 @@ class ContainerHost:
 
         :raises TimeoutError: the service did not appear or answer within ``timeout`` seconds.
         """
-        loop = asyncio.get_running_loop()
         client = self.client.create_client(srv_type, service)
         try:
             deadline = time.monotonic() + timeout
             await self.wait_until(client.service_is_ready, timeout=timeout, what=f"service {service!r} available")
-            answered: asyncio.Future[Any] = loop.create_future()
-            future = client.call_async(request)
-            future.add_done_callback(lambda done: loop.call_soon_threadsafe(_settle, answered, done.result()))
-            return await _within(answered, max(deadline - time.monotonic(), 0.0), f"no answer from {service!r}")
+            left = max(deadline - time.monotonic(), 0.0)
+            return await self.wait_for_future(client.call_async(request), timeout=left, what=f"answer from {service!r}")
         finally:
             self.client.destroy_client(client)
+
+    async def wait_for_future(self, future: Any, *, timeout: float = 5.0, what: str = "result") -> Any:
+        """The result of an rclpy future (a service call, an action goal or result), awaited on this loop.
+
+        :raises TimeoutError: it was not done within ``timeout`` seconds.
+        """
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[Any] = loop.create_future()
+        future.add_done_callback(lambda finished: loop.call_soon_threadsafe(_settle, done, finished.result()))
+        return await _within(done, timeout, f"no {what}")
 
     async def wait_until(self, condition: Callable[[], bool], *, timeout: float = 5.0, what: str = "condition") -> None:
         """Poll ``condition`` on the loop (every 10 ms) until it holds.

@@ -8,8 +8,12 @@
 # calls made deep inside rosidl_generate_interfaces(), so the fix runs deferred,
 # at the end of configuring the calling directory: drop the foreign paths and
 # add this interpreter's Python and NumPy include directories instead.
-# Needs CMake 3.21 (IMPORTED_TARGETS, cmake_language(DEFER)); the including
-# projects require it.
+# Needs CMake 3.21 (IMPORTED_TARGETS, cmake_language(DEFER)). Included into an
+# interface package's build by lifecycle_container_add_interfaces through
+# CMAKE_PROJECT_INCLUDE (after its project() call), so the package itself
+# stays an ordinary ament_cmake package; harmless where the targets are sound
+# (a ROS install from source or Debian packages).
+include_guard(GLOBAL)
 
 function(_ros_wheels_fix_dir dir)
   find_package(Python3 REQUIRED COMPONENTS Interpreter Development.Module NumPy)

@@ -125,6 +125,7 @@ def write_index(
     *,
     python: str = sys.executable,
     distribution: str = "lifecycle-container",
+    prune: bool = True,
 ) -> IndexReport:
     """Register every package of ``types`` in the ament index of ``prefix``.
 
@@ -134,6 +135,9 @@ def write_index(
     :param python: the interpreter the executables run with (this environment's).
     :param distribution: the distribution of :data:`PROJECT_PACKAGE`, which
         is registered with its executables even if it has no node types.
+    :param prune: remove the entries this function wrote earlier for packages
+        not in ``types`` (their distribution is gone); off when ``types`` is
+        only some of the installed plugins' on purpose.
     """
     report = IndexReport()
     index = resource_index(prefix)
@@ -168,7 +172,7 @@ def write_index(
         report.registered[package] = sorted(t.full_name for t in node_types)
         report.executables[package] = executables
 
-    for package in sorted(set(records) - set(wanted)):
+    for package in sorted(set(records) - set(wanted) if prune else ()):
         record = records[package]
         for name in record.executables:
             _remove(report, prefix / "lib" / package / name)

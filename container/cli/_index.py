@@ -35,20 +35,32 @@ def add_parser(subparsers: SubParsers) -> None:
         "--prefix", type=Path, default=Path(sys.prefix),
         help="the install prefix to register in (default: this environment, %(default)s)",
     )
+    parser.add_argument(
+        "--distribution", action="append", metavar="NAME",
+        help="register only this plugin distribution's package (repeatable); entries of others are kept",
+    )
     parser.add_argument("-q", "--quiet", action="store_true", help="print only problems")
     parser.set_defaults(handler=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     from .._ament import write_index
-    from .._registry import PluginRegistry
+    from .._registry import PluginRegistry, ros_package_name
 
     registry = PluginRegistry()
     for failure in registry.failures:
         print(f"container index: plugin skipped: {failure}", file=sys.stderr)
     prefix: Path = args.prefix.absolute()
+    types = list(registry.types.values())
+    if args.distribution:
+        wanted = {ros_package_name(name) for name in args.distribution}
+        missing = wanted - {ros_package_name(t.distribution) for t in types}
+        if missing:
+            print(f"container index: no node types from {', '.join(sorted(missing))}", file=sys.stderr)
+            return 1
+        types = [t for t in types if ros_package_name(t.distribution) in wanted]
     try:
-        report = write_index(prefix, registry.types.values())
+        report = write_index(prefix, types, prune=not args.distribution)
     except OSError as exc:
         print(f"container index: cannot write the index in {prefix}: {exc}", file=sys.stderr)
         return 1

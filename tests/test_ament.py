@@ -179,6 +179,26 @@ def test_an_existing_ros_package_of_the_same_name_is_left_alone(tmp_path: Path) 
     assert PROJECT_PACKAGE in report.registered
 
 
+def test_index_of_named_distributions_registers_only_them_and_keeps_the_rest(tmp_path: Path) -> None:
+    # What a colcon install of the repository runs for its own two distributions.
+    site = install_test_plugin(tmp_path / "site", distribution="test-nodes")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(IMPORT_ROOT)]))
+    index_dir = tmp_path / "prefix" / "share" / "ament_index" / "resource_index"
+
+    def index(*names: str) -> subprocess.CompletedProcess[str]:
+        options = [option for name in names for option in ("--distribution", name)]
+        return subprocess.run(
+            [sys.executable, "-m", "container", "index", "--prefix", str(tmp_path / "prefix"), *options],
+            capture_output=True, text=True, timeout=60, env=env, cwd=REPO,
+        )
+
+    assert index("test-nodes").returncode == 0
+    assert index("lifecycle-container").returncode == 0
+    assert sorted(p.name for p in (index_dir / "rclcpp_components").iterdir()) == ["lifecycle_container", "test_nodes"]
+    refused = index("no-such-plugin")
+    assert (refused.returncode, refused.stderr) == (1, "container index: no node types from no_such_plugin\n")
+
+
 # -- a launch file's ComposableNodeContainer, as launch_ros runs it ---------------------------------
 
 

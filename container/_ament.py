@@ -22,6 +22,7 @@ touches a package some other installation registered.
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import sys
 import tempfile
@@ -85,6 +86,8 @@ class IndexReport:
     :ivar removed: packages whose entries were removed (their distribution is gone).
     :ivar skipped: packages left alone, with the reason.
     :ivar changed: files written or removed; none when the index was up to date.
+    :ivar with_wheel: packages whose entries their distribution's wheel installed
+        (``container.build_backend``): left to pip.
     """
 
     registered: dict[str, list[str]] = field(default_factory=dict)
@@ -92,6 +95,7 @@ class IndexReport:
     removed: list[str] = field(default_factory=list)
     skipped: list[tuple[str, str]] = field(default_factory=list)
     changed: list[Path] = field(default_factory=list)
+    with_wheel: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -150,6 +154,13 @@ def write_index(
         dist, node_types = wanted[package]
         record = records.get(package)
         marker = index / _PACKAGES / package
+        if marker.exists() and _installed_by(dist, marker):
+            # The distribution's wheel carries its entries, and pip removes
+            # them with it: they are pip's (an earlier run's record goes).
+            report.with_wheel.append(package)
+            if record is not None:
+                _remove(report, index / RECORD_TYPE / package)
+            continue
         if record is None and marker.exists():
             # Some other installation's package (a ROS wheel of the same name).
             report.skipped.append((package, f"a ROS package named {package!r} is already installed in {prefix}"))
@@ -183,6 +194,16 @@ def write_index(
         _remove(report, index / RECORD_TYPE / package)
         report.removed.append(package)
     return report
+
+
+def _installed_by(distribution: str, marker: Path) -> bool:
+    """Whether pip installed ``marker`` as a file of ``distribution``."""
+    try:
+        files = importlib.metadata.distribution(distribution).files or []
+    except importlib.metadata.PackageNotFoundError:
+        return False
+    target = marker.resolve()
+    return any(f.name == marker.name and Path(str(f.locate())).resolve() == target for f in files)
 
 
 def _records(index: Path) -> dict[str, _Record]:

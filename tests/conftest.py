@@ -105,7 +105,7 @@ def thirdparty_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
     site = tmp_path_factory.mktemp("thirdparty-site")
     subprocess.run(
         [
-            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
+            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
             "--target", str(site), str(REPO / "examples" / "thirdparty_plugin"),
         ],
         check=True,

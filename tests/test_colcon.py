@@ -75,7 +75,10 @@ def underlay(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _environment(underlay: Path) -> dict[str, str]:
     """What sourcing the underlay gives: its executables first, its prefix on AMENT_PREFIX_PATH."""
-    env = {k: v for k, v in os.environ.items() if k not in {"VIRTUAL_ENV", "PYTHONPATH", "AMENT_PREFIX_PATH"}}
+    # Not this process's ROS libraries either: the wheels' bootstrapper skips
+    # itself when its guard variable is inherited (see tests/test_wheels.py).
+    drop = {"VIRTUAL_ENV", "PYTHONPATH", "AMENT_PREFIX_PATH", "LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
+    env = {k: v for k, v in os.environ.items() if k not in drop}
     env["PATH"] = f"{underlay / 'bin'}{os.pathsep}{env.get('PATH', '')}"
     env["AMENT_PREFIX_PATH"] = str(underlay)
     env["ROS_DISTRO"] = _distro()

@@ -73,6 +73,8 @@ def _run(args: argparse.Namespace) -> int:
     for package, type_names in report.registered.items():
         executables = report.executables.get(package) or []
         print(f"  {package}: {len(type_names)} node type(s)" + (f"; {', '.join(executables)}" if executables else ""))
+    for package in report.with_wheel:
+        print(f"  {package}: installed with its wheel")
     for package in report.removed:
         print(f"  {package}: removed (no longer installed)")
     return 0

@@ -1,0 +1,162 @@
+"""The project's wheels, installed with pip into a fresh virtualenv and nothing else run.
+
+The container, the LiDAR plugin and the third-party example are each built
+into a wheel (as ``pip wheel`` or ``python -m build`` would, without build
+isolation: lifecycle-container is not on PyPI for an isolated build of the
+plugins to fetch), installed into a new virtualenv with their dependencies
+from PyPI, used, and uninstalled: what pip installed, pip removes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from container._ament import EXECUTABLES
+from container._registry import PluginRegistry
+from tests.container_support import REPO
+
+pytestmark = pytest.mark.timeout(900)
+
+INDEX = Path("share") / "ament_index" / "resource_index"
+
+
+def _run(*args: str | Path, env: dict[str, str] | None = None, timeout: float = 600) -> str:
+    result = subprocess.run([str(a) for a in args], capture_output=True, text=True, env=env, timeout=timeout)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result.stdout
+
+
+@pytest.fixture(scope="module")
+def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    out = tmp_path_factory.mktemp("wheels")
+    _run(
+        sys.executable, "-m", "pip", "wheel", "--quiet", "--no-build-isolation", "--no-deps", "--wheel-dir", out,
+        REPO, REPO / "plugins" / "ldlidar", REPO / "examples" / "thirdparty_plugin",
+    )
+    found = {path.name.split("-")[0]: path for path in out.glob("*.whl")}
+    assert sorted(found) == ["greeter_nodes", "ldlidar", "lifecycle_container"]
+    return found
+
+
+@pytest.fixture(scope="module")
+def venv(wheels: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A new virtualenv with the container and LiDAR wheels installed by pip, their dependencies from PyPI."""
+    prefix = tmp_path_factory.mktemp("fresh") / "venv"
+    _run(sys.executable, "-m", "venv", prefix)
+    _run(prefix / "bin" / "python", "-m", "pip", "install", "--quiet", wheels["lifecycle_container"], wheels["ldlidar"])
+    yield prefix
+
+
+def _plain_env() -> dict[str, str]:
+    # Nothing activated: no AMENT_PREFIX_PATH, no ROS_DISTRO, no PYTHONPATH. And
+    # not this process's ROS libraries: the wheels' bootstrapper (a .pth that
+    # re-executes Python with LD_LIBRARY_PATH set) skips itself when its guard
+    # variable is inherited, so a child in another environment would run on
+    # this environment's libraries.
+    drop = {
+        "VIRTUAL_ENV", "PYTHONPATH", "AMENT_PREFIX_PATH", "ROS_DISTRO", "LD_LIBRARY_PATH",
+        "_ROS_WHEELS_BOOTSTRAP_COMPLETE",
+    }
+    return {k: v for k, v in os.environ.items() if k not in drop}
+
+
+def _index_files(prefix: Path, package: str) -> list[Path]:
+    return [
+        path
+        for path in (
+            prefix / INDEX / "packages" / package,
+            prefix / INDEX / "rclcpp_components" / package,
+            *(prefix / "lib" / package / name for name in EXECUTABLES),
+        )
+        if path.exists()
+    ]
+
+
+def test_the_wheels_carry_the_ament_index_and_executables(venv: Path) -> None:
+    components = {
+        package: (venv / INDEX / "rclcpp_components" / package).read_text().splitlines()
+        for package in ("lifecycle_container", "ldlidar")
+    }
+    # As the container's own registry lists them (the container wheel's list is written at build).
+    registry = PluginRegistry()
+    for package, lines in components.items():
+        assert lines == sorted(
+            f"{t.full_name};{t.node_class.__module__}:{t.node_class.__qualname__}"
+            for t in registry.types.values()
+            if t.package == package
+        )
+    for package in ("lifecycle_container", "ldlidar"):
+        assert (venv / INDEX / "packages" / package).is_file()
+    for name in EXECUTABLES:
+        assert os.access(venv / "lib" / "lifecycle_container" / name, os.X_OK)
+    found = _run(
+        venv / "bin" / "python", "-c",
+        "from ament_index_python import get_resources; import json;"
+        "print(json.dumps(sorted(get_resources('rclcpp_components'))))",
+        env={**_plain_env(), "AMENT_PREFIX_PATH": str(venv)},
+    )
+    assert json.loads(found) == ["ldlidar", "lifecycle_container"]
+    # `container index` is for what was installed some other way: it leaves pip's entries alone.
+    indexed = _run(venv / "bin" / "container", "index", env=_plain_env())
+    assert indexed.splitlines() == [
+        f"ament index of {venv}: up to date",
+        "  ldlidar: installed with its wheel",
+        "  lifecycle_container: installed with its wheel",
+    ]
+
+
+def test_the_lidar_example_runs_from_the_wheels(venv: Path) -> None:
+    env = {**_plain_env(), "PYTHONUNBUFFERED": "1"}
+    config = venv / "share" / "lifecycle_container" / "examples" / "lidar.yaml"
+    proc = subprocess.Popen(
+        [str(venv / "bin" / "container"), "run", str(config), "--ros-args", "-r", "__node:=wheel_container"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        lines: list[str] = []
+        deadline = time.monotonic() + 60
+        while not any("ready with 1 node(s)" in line for line in lines):
+            assert time.monotonic() < deadline and proc.poll() is None, "".join(lines)
+            lines.append(proc.stdout.readline())
+        scan = _run(
+            venv / "bin" / "python", "-c",
+            "import rclpy; from rclpy.node import Node; from sensor_msgs.msg import LaserScan\n"
+            "rclpy.init(); node = Node('scan_reader'); got = []\n"
+            "node.create_subscription(LaserScan, '/ldlidar/scan', got.append, 10)\n"
+            "while not got: rclpy.spin_once(node, timeout_sec=1.0)\n"
+            "print(len(got[0].ranges))",
+            env=env, timeout=60,
+        )
+        assert int(scan) == 455
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, rest
+    assert "Unloaded '/ldlidar'" in rest
+
+
+def test_pip_uninstall_takes_everything_the_wheels_installed(wheels: dict[str, Path], venv: Path) -> None:
+    python = venv / "bin" / "python"
+    _run(python, "-m", "pip", "install", "--quiet", "--no-deps", wheels["greeter_nodes"])
+    assert len(_index_files(venv, "greeter_nodes")) == 2  # a third-party plugin: marker and component types
+    listed = _run(python, "-m", "pip", "show", "--files", "lifecycle-container", "ldlidar")
+    assert "share/composition_interfaces/package.xml" in listed
+    assert "lifecycle_container/component_container\n" in listed
+
+    _run(python, "-m", "pip", "uninstall", "--yes", "--quiet", "greeter-nodes", "ldlidar", "lifecycle-container")
+
+    for package in ("lifecycle_container", "ldlidar", "greeter_nodes"):
+        assert _index_files(venv, package) == []
+    for leftover in ("share/composition_interfaces", "share/lifecycle_container", "lib/lifecycle_container"):
+        assert not any(path.is_file() for path in (venv / leftover).rglob("*")), leftover
+    assert not (venv / "bin" / "container").exists()

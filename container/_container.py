@@ -12,7 +12,7 @@ import asyncio
 import contextlib
 import itertools
 import re
-from collections.abc import Coroutine, Iterable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,6 +24,8 @@ from rclpy.exceptions import (
 from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.validate_namespace import validate_namespace
+from rclpy.validate_node_name import validate_node_name
 
 from ._compat import InvalidROSArgsError, is_built, state_machine, state_machine_if_built
 from ._errors import ConfigError, LoadError, TransitionError
@@ -181,6 +183,8 @@ class ComponentManager(Node):
         remaps = [_check_remap(rule) for rule in request.remap_rules]
         name = request.name or _default_name(node_type)
         namespace = _absolute(request.namespace or "/")
+        _check_name("node name", name, validate_node_name)
+        _check_name("namespace", namespace, validate_namespace)
         # The name the node will have: rcl applies the request's remap rules
         # (__node:=, __ns:=) over the name it is constructed with.
         full_name = _remapped_name(name, namespace, remaps)
@@ -411,7 +415,38 @@ def _remapped_name(name: str, namespace: str, rules: Sequence[str]) -> str:
 _REMAP = re.compile(r"^(?:[^:=\s]+:)?[^:=\s]+:=[^:=\s]+$")
 
 
+def _check_name(what: str, value: str, validate: Callable[[str], object]) -> None:
+    """Refuse a node name or namespace rcl would refuse, or would cut short.
+
+    A NUL passes rcl's validation (it reads C strings) and would name the
+    node after what comes before it: ``a\x00b`` would load as ``/a``.
+    """
+    if "\x00" in value:
+        raise LoadError(f"Invalid {what} {clip(repr(value))}: must not contain a NUL character")
+    try:
+        validate(value)
+    except (InvalidNodeNameException, InvalidNamespaceException) as exc:
+        # rclpy's message spans lines (the name, a caret under the fault).
+        reason = str(exc).splitlines()[0].split(": ", 1)[-1].rstrip(":")
+        raise LoadError(f"Invalid {what} {clip(repr(value))}: {reason}") from None
+
+
+#: A parameter name as rcl's ``-p`` parser takes one: tokens of letters,
+#: digits and underscores, separated by ``.`` or ``/`` (``qos_overrides./chatter.depth``).
+_PARAMETER_NAME = re.compile(r"^[A-Za-z0-9_]+(?:(?:\.|/|\./)[A-Za-z0-9_]+)*$")
+
+
+def _check_parameter_name(name: str) -> None:
+    if not _PARAMETER_NAME.match(name):
+        problem = "must not be empty" if not name else (
+            "must be words of letters, digits and '_' joined by '.' or '/' (no '..', '//', NUL, or '.'/'/' at an end)"
+        )
+        raise LoadError(f"Invalid parameters: parameter name {clip(repr(name))} {problem}")
+
+
 def _check_remap(rule: str) -> str:
+    if "\x00" in rule:
+        raise LoadError(f"Invalid remap rule {clip(repr(rule))}: must not contain a NUL character")
     if not _REMAP.match(rule):
         raise LoadError(f"Invalid remap rule '{clip(rule)}': expected 'from:=to'")
     return rule
@@ -444,6 +479,8 @@ def _overrides(request: LoadRequest, full_name: str) -> list[Parameter[Any]]:
         else:
             sources.append(entry)
     flush()
+    for name in merged:
+        _check_parameter_name(name)
     return list(merged.values())
 
 

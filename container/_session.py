@@ -29,6 +29,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
@@ -39,10 +40,20 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import try_shutdown
 
+from ._compat import RCLError
 from ._runtime import use_fast_discovery
 from .executor import AsyncioExecutor
 
-__all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "Session", "exit_code_for", "exit_now", "run_session"]
+__all__ = [
+    "EXIT_FAILURE",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "Session",
+    "exit_code_for",
+    "exit_now",
+    "ros_failure",
+    "run_session",
+]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -103,6 +114,20 @@ def exit_now(code: int) -> NoReturn:
     os._exit(code)
 
 
+def ros_failure(error: BaseException) -> str:
+    """One line for an error rcl raised, naming the cause a user can act on."""
+    text = str(error)
+    if "doesn't have the security libraries" in text:
+        return (
+            "ROS_SECURITY_ENABLE is true, but this Fast DDS is built without its security plugins "
+            "(the PyPI wheels' Fast DDS is): use a ROS 2 whose Fast DDS was built with -DSECURITY=ON, "
+            "or unset ROS_SECURITY_ENABLE"
+        )
+    first = text.strip().splitlines()[0] if text.strip() else type(error).__name__
+    # rcl appends ", at <file>:<line>" locations of its own sources.
+    return f"ROS error: {first.split(', at /')[0]}"
+
+
 def exit_code_for(signum: int) -> int:
     """The exit code shells report for a process ended by ``signum`` (130 for SIGINT)."""
     return 128 + signum
@@ -157,6 +182,9 @@ def run_session(
         configures logging (``--log-level``) from them.
     """
     use_fast_discovery()
+    # rclpy warns about the half-made node it cleans up after a failed
+    # creation; the failure itself is reported (ros_failure), once.
+    warnings.filterwarnings("ignore", message="Failed to fini rosout publisher", category=RuntimeWarning)
     before = set(threading.enumerate())
     context = Context()
     try:
@@ -224,6 +252,11 @@ async def _guarded(
         if session.signal is None:
             raise
         task.uncancel()
+    except RCLError as exc:
+        # ROS itself refused (a node could not be created, most often): a
+        # user's environment problem, said in one line, not a traceback.
+        print(f"container: {ros_failure(exc)}", file=sys.stderr, flush=True)
+        codes.append(EXIT_FAILURE)
     finally:
         if not server or session.signal is None:
             for signum in _SIGNALS:

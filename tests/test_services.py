@@ -128,7 +128,12 @@ BAD_LOADS = [
     ("duplicate through a node-specific remap",
      load_request(name="talker", remap_rules=["talker:__node:=first"]), "'/first' is already loaded"),
     ("invalid node name", load_request(name="not a name!"), "Invalid node name"),
-    ("invalid namespace", load_request(name="ok", namespace="/bad//ns"), "Invalid node name or namespace"),
+    ("invalid namespace", load_request(name="ok", namespace="/bad//ns"),
+     "Invalid namespace '/bad//ns': namespace must not contain repeated '/'"),
+    ("empty parameter name", load_request(name="p1", parameters=[parameter("", 1)]),
+     "Invalid parameters: parameter name '' must not be empty"),
+    ("parameter name with '..' and '//'", load_request(name="p2", parameters=[parameter("a..b//c", 1)]),
+     "Invalid parameters: parameter name 'a..b//c' must be words"),
     ("invalid remap rule", load_request(name="remapped", remap_rules=["nonsense"]), "Invalid remap rule"),
     ("invalid log level", load_request(name="logged", log_level=7), "Invalid log_level 7"),
 ]

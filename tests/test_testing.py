@@ -20,7 +20,7 @@ from lifecycle_msgs.srv import GetState
 from rclpy.lifecycle import TransitionCallbackReturn
 from std_msgs.msg import String
 
-from container import ComponentManager, LifecycleNode, LoadRequest, PluginRegistry, hookimpl
+from container import ComponentManager, LifecycleNode, LoadError, LoadRequest, PluginRegistry, hookimpl
 from container.executor import AsyncioExecutor
 from container.lifecycle._transitions import state_of
 from container.testing import ContainerHost, open_container_host
@@ -175,3 +175,33 @@ def test_the_example_plugins_own_suite_passes(thirdparty_site: Path) -> None:
     )
     assert result.returncode == 0, result.stdout + result.stderr
     assert "4 passed" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("request_fields", "message"),
+    [
+        ({"name": "a\x00b"}, r"Invalid node name 'a\\x00b': must not contain a NUL character"),
+        ({"namespace": "/ns\x00x"}, r"Invalid namespace '/ns\\x00x': must not contain a NUL character"),
+        ({"remap_rules": ["chatter:=a\x00b"]}, r"Invalid remap rule 'chatter:=a\\x00b': must not contain a NUL"),
+        ({"parameters": [{"": 1}]}, r"parameter name '' must not be empty"),
+        ({"parameters": [{"a..b//c": 1}]}, r"parameter name 'a\.\.b//c' must be words"),
+        ({"parameters": [{"a": {"": 1}}]}, r"parameter name 'a\.' must be words"),
+    ],
+    ids=["nul-name", "nul-namespace", "nul-remap", "empty-parameter", "dots-and-slashes", "empty-part"],
+)
+async def test_names_rcl_would_refuse_or_cut_short_are_refused(
+    container_host: ContainerHost, request_fields: dict[str, object], message: str
+) -> None:
+    # A NUL never arrives through a service (rclpy's message conversion cuts
+    # a string at it, on the sender's side); a container file or the Python
+    # API can still carry one.
+    with pytest.raises(LoadError, match=message):
+        await container_host.manager.load(
+            LoadRequest("lifecycle_container", "Talker", **request_fields)  # type: ignore[arg-type]
+        )
+    assert container_host.manager.loaded() == []
+    # What rcl takes: '/' after '.' (rclcpp's QoS overrides name topics so).
+    ok = await container_host.load(
+        "lifecycle_container::Talker", parameters={"qos_overrides./chatter.publisher.depth": 5}
+    )
+    assert container_host.state_of(ok) == "active"

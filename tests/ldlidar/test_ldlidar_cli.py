@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ldlidar import PacketGenerator, ScanAssembler, StreamParser, encode_png, render_scan
+from ldlidar import PacketGenerator, ScanAssembler, StreamParser, encode_packet, encode_png, render_scan
 from ldlidar._cli import main
 from tests.ldlidar.ldlidar_support import PLUGIN
 
@@ -169,3 +169,24 @@ def test_render_asks_for_a_revolution_that_is_not_there(tmp_path: Path, capture:
     result = run_cli("render", str(capture), "-o", str(tmp_path / "x.png"), "--revolution", "99")
     assert result.returncode == 2
     assert "22 complete revolutions" in result.stderr
+
+
+def test_decode_tells_impossible_packets_from_crc_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # A valid CRC over a packet that spans 200 degrees: no device sends that,
+    # and no line noise makes it (it would fail its CRC).
+    impossible = encode_packet(
+        speed=3600, start_angle=0, end_angle=20000, timestamp=0, distances=[1000] * 12, intensities=[100] * 12
+    )
+    path = tmp_path / "impossible.bin"
+    path.write_bytes(impossible * 2000)
+
+    assert main(["decode", "--json", str(path)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary["packets"], summary["crc_errors"], summary["implausible"]) == (0, 0, 2000)
+    # The streaming parser counts the same, chunk by chunk.
+    parser = StreamParser()
+    data = impossible * 2000
+    for offset in range(0, len(data), 1000):
+        parser.feed_rows(data[offset : offset + 1000])
+    parser.flush()
+    assert (parser.stats.packets, parser.stats.crc_errors, parser.stats.implausible) == (0, 0, 2000)

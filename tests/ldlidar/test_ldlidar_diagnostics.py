@@ -111,3 +111,11 @@ def test_recovery_clears_the_last_error() -> None:
     [status] = diagnostics.report(stamp=Time(sec=8), node_state="active", scans=10, published=10).status
     values = {v.key: v.value for v in status.values}
     assert status.level == OK and values["last error"] == "none" and values["reconnects"] == "1"
+
+
+def test_packets_with_a_valid_crc_but_impossible_angles_are_a_device_fault_not_line_noise() -> None:
+    faulty = _Counts(when=11.0, packets=1375, scans=40, implausible=5, skipped_bytes=235)
+    level, message = _health(lidar(), LAST, faulty, stopped=None, failed=False)
+    assert (level, message) == (
+        WARN, "device fault: 5 packet(s) with a valid CRC but impossible angles in the last 1.0 s"
+    )

@@ -809,7 +809,7 @@ def _stats(b: NDArray[np.uint8], frames: _Frames) -> ParserStats:
     if not len(packets) and not len(extras):
         stats.skipped_bytes = n
         stats.resyncs = int(n > 0)
-        stats.crc_errors = len(bad)
+        _count_rejected(b, bad, stats)
         return stats
     ends = extras + sizes
     first = min(int(packets[0]) if len(packets) else n, int(extras[0]) if len(extras) else n)
@@ -817,8 +817,15 @@ def _stats(b: NDArray[np.uint8], frames: _Frames) -> ParserStats:
     stats.skipped_bytes = n - PACKET_SIZE * len(packets) - int(sizes.sum(dtype=np.int64))
     stats.resyncs = gaps + int(first > 0) + int(last_end < n)
     covered = _covered(bad, packets, PACKET_SIZE) | _covered(bad, extras, sizes)
-    stats.crc_errors = int(len(bad) - np.count_nonzero(covered))
+    _count_rejected(b, bad[~covered], stats)
     return stats
+
+
+def _count_rejected(b: NDArray[np.uint8], rejected: NDArray[np.int64], stats: ParserStats) -> None:
+    """Split rejected data-packet windows into CRC errors and implausible packets (CRC passed)."""
+    implausible = int(np.count_nonzero(crc_ok(_rows(b, rejected)))) if len(rejected) else 0
+    stats.crc_errors = len(rejected) - implausible
+    stats.implausible = implausible
 
 
 class _Columns(NamedTuple):

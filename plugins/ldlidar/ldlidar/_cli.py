@@ -66,6 +66,7 @@ def _decode(args: argparse.Namespace) -> int:
         ("bytes", summary["bytes"]),
         ("packets", summary["packets"]),
         ("crc errors", summary["crc_errors"]),
+        ("implausible", summary["implausible"]),
         ("resyncs", summary["resyncs"]),
         ("skipped bytes", summary["skipped_bytes"]),
         ("health frames", summary["health_frames"]),

@@ -30,6 +30,7 @@ class _Counts:
     packets: int = 0
     scans: int = 0
     crc_errors: int = 0
+    implausible: int = 0
     skipped_bytes: int = 0
     health_frames: int = 0
 
@@ -41,6 +42,7 @@ class _Counts:
             packets=stats.packets,
             scans=scans,
             crc_errors=stats.crc_errors,
+            implausible=stats.implausible,
             skipped_bytes=stats.skipped_bytes,
             health_frames=stats.health_frames,
         )
@@ -102,6 +104,7 @@ class Diagnostics:
             "scans": str(scans),
             "scans published": str(published),
             "crc errors": str(stats.crc_errors),
+            "implausible packets": str(stats.implausible),
             "resyncs": str(stats.resyncs),
             "skipped bytes": str(stats.skipped_bytes),
             "health frames": str(stats.health_frames),
@@ -137,6 +140,13 @@ def _health(lidar: Lidar, last: _Counts, now: _Counts, *, stopped: str | None, f
     code = lidar.stats.last_health_code
     if now.health_frames > last.health_frames and code:
         return DiagnosticStatus.WARN, f"device reports health error code {code}"
+    implausible = now.implausible - last.implausible
+    if implausible:
+        # A valid CRC over impossible content is the device's doing, not the line's.
+        return DiagnosticStatus.WARN, (
+            f"device fault: {implausible} packet(s) with a valid CRC but impossible angles "
+            f"in the last {elapsed:.1f} s"
+        )
     crc_errors = now.crc_errors - last.crc_errors
     skipped = now.skipped_bytes - last.skipped_bytes
     if crc_errors or skipped:

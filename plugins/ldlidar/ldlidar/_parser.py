@@ -102,9 +102,12 @@ class ParserStats:
     """What a parser has seen so far.
 
     :param packets: CRC-valid data packets delivered.
-    :param crc_errors: 47-byte data-packet windows rejected, because their
-        CRC failed or their angles are impossible (see :data:`MAX_SPAN`);
-        each costs one byte of resync, not the window.
+    :param crc_errors: 47-byte data-packet windows rejected because their
+        CRC failed (line noise, a wrong baud rate); each costs one byte of
+        resync, not the window.
+    :param implausible: data-packet windows whose CRC passed but whose angles
+        are impossible (see :data:`MAX_SPAN`), rejected alike: a device
+        fault, or one false CRC match in 256 of noise; not line noise.
     :param resyncs: times the parser lost and regained framing: each maximal
         run of discarded bytes counts once (so a capture that starts
         mid-packet counts one).
@@ -117,6 +120,7 @@ class ParserStats:
 
     packets: int = 0
     crc_errors: int = 0
+    implausible: int = 0
     resyncs: int = 0
     skipped_bytes: int = 0
     health_frames: int = 0
@@ -250,7 +254,10 @@ class StreamParser:
                 crc = table[crc ^ byte]
             if crc != buf[end - 1] or (kind == PACKET_TYPE and not _plausible(buf, pos)):
                 if kind == PACKET_TYPE:
-                    stats.crc_errors += 1
+                    if crc != buf[end - 1]:
+                        stats.crc_errors += 1
+                    else:
+                        stats.implausible += 1
                 skipped += 1
                 pos += 1
                 continue

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from composition_interfaces.srv import LoadNode
 from lifecycle_msgs.srv import GetState
 from rcl_interfaces.srv import GetParameters
 from rclpy.client import Client
@@ -204,3 +205,39 @@ def test_autostart_extra_argument_brings_the_node_to_active(
     assert failed.error_message.startswith("Loaded as unique_id 2 but autostart failed: "), failed.error_message
     assert client.list() == [(1, "/started"), (2, "/failing")]
     assert client.unload(2).success
+
+
+def test_a_burst_of_requests_is_answered_to_the_last(
+    container: ContainerProcess, client_node: Node, executor: AsyncioExecutor
+) -> None:
+    # Five callers with 100 LoadNode requests each in flight at once, as the
+    # rclpy clients of ros2 component or launch_ros make them (default QoS):
+    # every one gets its answer. Nine in ten name no plugin (refused at
+    # once); one in ten loads a Talker of its own name.
+    clients: list[Client[Any, Any]] = [
+        client_node.create_client(LoadNode, "/ComponentManager/_container/load_node") for _ in range(5)
+    ]
+    for caller in clients:
+        assert caller.wait_for_service(timeout_sec=20.0)
+    futures = []
+    for index in range(100):
+        for number, caller in enumerate(clients):
+            loads = index % 10 == 0
+            request = (
+                load_request(name=f"burst_{number}_{index}")
+                if loads
+                else load_request("no_such_package", "no_such_package::X")
+            )
+            futures.append((loads, caller.call_async(request)))
+
+    answered = wait_until(executor, lambda: all(f.done() for _, f in futures), timeout=120.0)
+
+    done = sum(f.done() for _, f in futures)
+    assert answered, f"{done} of {len(futures)} answered\n{container.output()}"
+    results = [(loads, f.result()) for loads, f in futures]
+    assert all(r.success for loads, r in results if loads)
+    assert all(
+        r.error_message == "Could not find requested resource in ament index" for loads, r in results if not loads
+    )
+    ids = sorted(r.unique_id for loads, r in results if loads)
+    assert ids == list(range(1, 51))

@@ -24,6 +24,7 @@ from ._params import node_parameters
 from ._registry import PluginRegistry
 from ._services import ContainerServices
 from ._session import EXIT_OK, EXIT_USAGE, Session, run_session
+from .devices import set_device_policy
 from .executor import AsyncioExecutor
 from .lifecycle import LifecycleManager, ManagerSettings, contain_fault
 
@@ -55,7 +56,12 @@ class ContainerApp:
     def create(
         cls, config: ContainerConfig, *, context: Context, executor: AsyncioExecutor | None = None
     ) -> ContainerApp:
-        """Build the container on ``executor`` (by default a new one made for ``config``)."""
+        """Build the container on ``executor`` (by default a new one made for ``config``).
+
+        Installs the file's device policy for the process (what port
+        parameters of the plugins it loads may name).
+        """
+        set_device_policy(config.devices)
         registry = PluginRegistry(
             allow=config.plugins_allow, block=config.plugins_block, trace=config.trace_hooks
         )

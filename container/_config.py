@@ -7,6 +7,11 @@
       namespace: /
       parameters: [params.yaml]     # for the container node itself
       plugins: {allow: [...], block: [...], trace: false}
+      devices:                      # what port parameters may name (container.devices)
+        serial: ["/dev/tty*", "/dev/serial/*", "/dev/ldlidar"]
+        replay_dirs: [captures]     # file:// replays only below these (default: none)
+        replay_max_bytes: 67108864
+        network: false              # socket:// and rfc2217:// ports
       reentrant_limit: 8
       unload_timeout: 5.0           # seconds each step of taking a node down may take
       load_timeout: 10.0            # seconds a node's constructor may take
@@ -44,6 +49,7 @@ from . import checks
 from ._errors import ConfigError
 from ._params import ParameterSource
 from ._yaml import read_yaml
+from .devices import DevicePolicy
 
 __all__ = ["ContainerConfig", "NodeSpec", "load_config", "parse_config", "read_yaml"]
 
@@ -73,6 +79,7 @@ class ContainerConfig:
     plugins_allow: tuple[str, ...] | None = None
     plugins_block: tuple[str, ...] = ()
     trace_hooks: bool = False
+    devices: DevicePolicy = field(default_factory=DevicePolicy)
     reentrant_limit: int = 8
     unload_timeout: float = 5.0
     load_timeout: float = 10.0
@@ -94,6 +101,7 @@ _CONTAINER_KEYS = {
     "namespace",
     "parameters",
     "plugins",
+    "devices",
     "reentrant_limit",
     "unload_timeout",
     "load_timeout",
@@ -144,6 +152,13 @@ def parse_config(
         plugins_allow=None if allow is None else _strings(allow, f"{source}: container.plugins.allow"),
         plugins_block=_strings(plugins.get("block") or [], f"{source}: container.plugins.block"),
         trace_hooks=_bool(plugins.get("trace", False), f"{source}: container.plugins.trace"),
+        devices=DevicePolicy.from_mapping(
+            _mapping(container["devices"] or {}, f"{source}: container.devices"),
+            source=f"{source}: container.devices",
+            base_dir=base_dir,
+        )
+        if "devices" in container
+        else DevicePolicy(),
         reentrant_limit=_positive_int(
             container.get("reentrant_limit", 8), f"{source}: container.reentrant_limit"
         ),

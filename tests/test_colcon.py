@@ -82,6 +82,8 @@ def _environment(underlay: Path) -> dict[str, str]:
     env["PATH"] = f"{underlay / 'bin'}{os.pathsep}{env.get('PATH', '')}"
     env["AMENT_PREFIX_PATH"] = str(underlay)
     env["ROS_DISTRO"] = _distro()
+    # Both cores for the interface packages, which build one after another otherwise.
+    env.setdefault("CMAKE_BUILD_PARALLEL_LEVEL", str(os.cpu_count() or 1))
     return env
 
 

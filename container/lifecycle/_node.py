@@ -120,6 +120,7 @@ class LifecycleNode(LifecycleNodeBase):
         self._paused_timers: set[Timer] = set()
         self._transition_lock = asyncio.Lock()
         self._transition_task: asyncio.Task[Any] | None = None
+        self._failure: str | None = None
         self._declare_seconds(
             "transition_timeout",
             transition_timeout,
@@ -180,6 +181,22 @@ class LifecycleNode(LifecycleNodeBase):
         """The node's current state (primary or transition)."""
         state_id, label = self._machine("current_state")
         return LifecycleState(label=label, state_id=state_id)
+
+    @property
+    def last_failure(self) -> str | None:
+        """Why the latest transition failed, when it did and the reason is known.
+
+        A callback that timed out or raised, or one that returned
+        :meth:`fail_transition`'s answer. The container puts it in its
+        answers (a load with autostart), which carry nothing but text.
+        """
+        return self._failure
+
+    def fail_transition(self, reason: str) -> TransitionCallbackReturn:
+        """Log ``reason`` and fail the transition with it: ``return self.fail_transition("port busy")``."""
+        self.get_logger().error(reason)
+        self._failure = reason
+        return FAILURE
 
     @property
     def heartbeat(self) -> HeartbeatPublisher | None:
@@ -322,6 +339,7 @@ class LifecycleNode(LifecycleNodeBase):
             transition then fails, whatever its callback returns late.
         """
         start = self.lifecycle_state
+        self._failure = None
         self._machine("trigger_transition_by_id", transition_id, True)
         middle = self.lifecycle_state
         if start.label == "active":
@@ -385,16 +403,16 @@ class LifecycleNode(LifecycleNodeBase):
                     in_thread(lambda: callback(previous), name=f"transition:{name}"), timeout
                 )
         except TimeoutError:
-            self.get_logger().error(
-                f"{name}() did not finish within {timeout:g} s; the transition fails"
-            )
+            self._failure = f"{name}() did not finish within {timeout:g} s"
+            self.get_logger().error(f"{self._failure}; the transition fails")
             return FAILURE
         except (KeyboardInterrupt, asyncio.CancelledError):
             raise
         except BaseException as exc:  # sys.exit() in a callback is an error, not an exit
             error = exc.error if isinstance(exc, Escaped) else exc
             details = "".join(traceback.format_exception(error)).rstrip()
-            self.get_logger().error(f"{name}() raised {type(error).__name__}: {error}\n{details}")
+            self._failure = f"{name}() raised {type(error).__name__}: {error}"
+            self.get_logger().error(f"{self._failure}\n{details}")
             return ERROR
         if not isinstance(result, TransitionCallbackReturn):
             self.get_logger().error(

@@ -95,8 +95,10 @@ async def transition(
     except BaseException as exc:
         raise TransitionError(f"{type(exc).__name__}: {exc}", node=name, transition=label) from exc
     if not ok:
+        reason = node.last_failure if isinstance(node, LifecycleNode) else None
+        because = f": {reason}" if reason else ""
         raise TransitionError(
-            f"failed; the node is now {state_of(node)}", node=name, transition=label
+            f"failed{because}; the node is now {state_of(node)}", node=name, transition=label
         )
 
 

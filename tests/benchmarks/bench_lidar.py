@@ -77,7 +77,8 @@ nodes:
     autostart: true
 """
 LIDAR = """
-container: {name: ComponentManager}
+# The emulator's port is a pseudo-terminal, which the default device policy refuses.
+container: {name: ComponentManager, devices: {serial: ["/dev/tty*", "/dev/pts/*"]}}
 nodes:
   - package: ldlidar
     plugin: ldlidar::LdLidarNode

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from container.devices import DEFAULT_SERIAL_PATTERNS, DevicePolicy, set_device_policy
+from tests.container_support import SHARED
 from tests.ldlidar.ldlidar_support import CAPTURE
 
 
@@ -15,3 +19,18 @@ def capture() -> Path:
     if not CAPTURE.is_file():
         pytest.skip(f"real capture not available at {CAPTURE}")
     return CAPTURE
+
+
+@pytest.fixture(autouse=True)
+def device_policy_for_tests() -> Iterator[DevicePolicy]:
+    """Let the LiDAR node open what the tests give it: emulators' pseudo-terminal
+    links under the temporary directory (``/dev/pts/*``) and captures there
+    and in ``../shared``; the default policy allows neither."""
+    policy = DevicePolicy(
+        serial=(*DEFAULT_SERIAL_PATTERNS, "/dev/pts/*"),
+        replay_dirs=(Path(tempfile.gettempdir()).resolve(), SHARED.resolve()),
+        origin="the tests' device policy",
+    )
+    previous = set_device_policy(policy)
+    yield policy
+    set_device_policy(previous)

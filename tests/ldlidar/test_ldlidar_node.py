@@ -185,7 +185,7 @@ def test_configure_fails_on_a_missing_port_and_can_be_retried(
 
     async def scenario() -> None:
         node: LdLidarNode = host(
-            LdLidarNode, "nowhere", parameter_overrides=lidar_parameters("/dev/does-not-exist")
+            LdLidarNode, "nowhere", parameter_overrides=lidar_parameters("/dev/ttyUSB-does-not-exist")
         )
         await until(lambda: change.service_is_ready() and get.service_is_ready(), "the lifecycle services")
         # Asked the way `ros2 lifecycle set` asks.
@@ -195,7 +195,9 @@ def test_configure_fails_on_a_missing_port_and_can_be_retried(
         assert state.current_state.label == "unconfigured"
         assert node.lidar is None and node.emulator is None  # an explicit port never falls back
         await until(
-            lambda: any("/dev/does-not-exist: cannot open" in m for m in logged(rosout, "nowhere")),
+            lambda: any(
+                "'/dev/ttyUSB-does-not-exist': cannot open: No such file" in m for m in logged(rosout, "nowhere")
+            ),
             "the logged reason",
         )
         async with Emulator() as emu:

@@ -30,6 +30,7 @@ from rclpy.timer import Timer
 from sensor_msgs.msg import LaserScan
 
 from container import ConfigError, DeviceError, LifecycleNode
+from container.devices import DevicePolicy, PortRefused, device_policy
 
 from ._diagnostics import DIAGNOSTICS_PERIOD, Diagnostics
 from ._emulator import Emulator
@@ -164,16 +165,15 @@ class LdLidarNode(LifecycleNode):
                 raise self._refused[0]
             settings = read_settings(lambda name: self.get_parameter(name).value)
         except ConfigError as exc:
-            log.error(f"Cannot configure: {exc}")
-            return FAILURE
+            return self.fail_transition(f"Cannot configure: {exc}")
         if settings.debug:
             log.set_level(_DEBUG)
         try:
             await self._start(settings)
         except (DeviceError, ConfigError) as exc:
-            log.error(f"Cannot configure: {exc}")
             await self._release()
-            return FAILURE
+            # The reason reaches whoever asked (a load with autostart answers with it).
+            return self.fail_transition(f"Cannot configure: {exc}")
         except BaseException:
             # Timed out (cancelled) or a bug: leave nothing open behind.
             await self._release()
@@ -248,6 +248,10 @@ class LdLidarNode(LifecycleNode):
         port = settings.port
         if port.lower() == "auto":
             port = await self._auto_port(settings.model)
+        else:
+            # A parameter may come from any peer that can load a node: the
+            # container's device policy (the operator's) says what it may name.
+            device_policy().check_port(port)
         lidar = Lidar(
             port,
             model=settings.model,
@@ -308,7 +312,8 @@ class LdLidarNode(LifecycleNode):
 
         :raises DeviceError: no pseudo-terminal for the emulator.
         """
-        found = find_serial_ports(self.auto_port_patterns)
+        policy = device_policy()
+        found = [port for port in find_serial_ports(self.auto_port_patterns) if _allowed(policy, port)]
         if found:
             self.get_logger().info(f"comm.serial_port 'auto': using {found[0]} (found {', '.join(found)})")
             return found[0]
@@ -412,3 +417,11 @@ class LdLidarNode(LifecycleNode):
                 failed=self._reader_error is not None,
             )
         )
+
+
+def _allowed(policy: DevicePolicy, port: str) -> bool:
+    try:
+        policy.check_port(port)
+    except PortRefused:
+        return False
+    return True

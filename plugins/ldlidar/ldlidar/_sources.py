@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import os
+import stat
 from abc import ABC, abstractmethod
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol, Self
 from urllib.parse import parse_qs, unquote, urlsplit
 
@@ -31,6 +32,13 @@ RETRY_INTERVAL = 0.002
 #: Bytes a polled source lets gather between two reads at most: three
 #: quarters of the 4 KiB the kernel's line discipline buffers.
 _LINE_BUFFER = 3072
+
+#: Seconds opening a port or reading a capture may take: done on a thread,
+#: so a port that blocks (a named pipe, a network URL) holds up only itself.
+OPEN_TIMEOUT = 5.0
+
+#: The StreamReader buffer limit serial_asyncio uses (asyncio's default).
+_STREAM_LIMIT = 2**16
 
 State = Literal["unopened", "open", "closed"]
 
@@ -157,21 +165,31 @@ class SerialSource(_Base):
         import serial
         import serial_asyncio
 
+        loop = asyncio.get_running_loop()
         try:
-            if self.poll_interval is None:
-                self._reader, self._writer = await serial_asyncio.open_serial_connection(
-                    url=self._device, baudrate=self.baudrate
-                )
-            else:
-                # timeout=0: a read returns at once with whatever is there.
-                self._serial = serial.serial_for_url(self._device, baudrate=self.baudrate, timeout=0)
-                try:
-                    self._fd = self._serial.fileno()
-                except (AttributeError, OSError, ValueError):
-                    self._fd = None  # a URL without a descriptor: retried instead of awaited
+            # Off the event loop, and bounded: opening can block (a network
+            # URL connecting, a device that does not answer its ioctls).
+            # timeout=0: a read returns at once with whatever is there.
+            opening = asyncio.to_thread(serial.serial_for_url, self._device, baudrate=self.baudrate, timeout=0)
+            instance = await asyncio.wait_for(opening, OPEN_TIMEOUT)
+        except TimeoutError:
+            self._state = "closed"
+            raise DeviceError(f"opening took over {OPEN_TIMEOUT:g} s", device=self._device) from None
         except (serial.SerialException, OSError, ValueError) as exc:
             self._state = "closed"
             raise DeviceError(f"cannot open at {self.baudrate} baud: {exc}", device=self._device) from exc
+        if self.poll_interval is None:
+            # What serial_asyncio.open_serial_connection builds, around the port opened above.
+            reader = asyncio.StreamReader(limit=_STREAM_LIMIT, loop=loop)
+            protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
+            transport = serial_asyncio.SerialTransport(loop, protocol, instance)
+            self._reader, self._writer = reader, asyncio.StreamWriter(transport, protocol, reader, loop)
+        else:
+            self._serial = instance
+            try:
+                self._fd = self._serial.fileno()
+            except (AttributeError, OSError, ValueError):
+                self._fd = None  # a URL without a descriptor: retried instead of awaited
         self._last_read = self._last_gather = asyncio.get_running_loop().time()
         self._state = "open"
 
@@ -302,8 +320,11 @@ class ReplaySource(_Base):
         rate: float | None = 1.0,
         tick: float = 0.005,
         loop: bool = False,
+        max_bytes: int | None = None,
     ) -> None:
         super().__init__(os.fspath(path))
+        #: The largest capture read; ``None``: any size.
+        self.max_bytes = max_bytes
         if rate is not None and not rate > 0:
             raise ValueError(f"rate must be positive or None, got {rate}")
         self.rate = rate
@@ -325,7 +346,12 @@ class ReplaySource(_Base):
         """
         self._require("unopened", "open")
         try:
-            self._data = Path(self._device).read_bytes()
+            self._data = await asyncio.wait_for(
+                asyncio.to_thread(_read_regular_file, self._device, self.max_bytes), OPEN_TIMEOUT
+            )
+        except TimeoutError:
+            self._state = "closed"
+            raise DeviceError(f"reading the capture took over {OPEN_TIMEOUT:g} s", device=self._device) from None
         except OSError as exc:
             self._state = "closed"
             raise DeviceError(f"cannot read capture: {exc.strerror or exc}", device=self._device) from exc
@@ -370,6 +396,31 @@ class ReplaySource(_Base):
     async def close(self) -> None:
         self._state = "closed"
         self._data = b""
+
+
+def _read_regular_file(path: str, max_bytes: int | None) -> bytes:
+    """Read ``path``, which must be a regular file of at most ``max_bytes``.
+
+    Opened without blocking and checked on the open descriptor, so a named
+    pipe or a device (``/dev/zero``) put there after any earlier check is
+    refused before a single read, and never fills memory.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise OSError(errno.EINVAL, "not a regular file (a pipe or a device?)")
+        if max_bytes is not None and info.st_size > max_bytes:
+            raise OSError(errno.EFBIG, f"the capture is {info.st_size} bytes, over the {max_bytes} allowed")
+        with os.fdopen(fd, "rb", closefd=True) as file:
+            fd = -1
+            data = file.read(info.st_size if max_bytes is None else max_bytes + 1)
+    finally:
+        if fd >= 0:
+            os.close(fd)
+    if max_bytes is not None and len(data) > max_bytes:
+        raise OSError(errno.EFBIG, f"the capture grew over the {max_bytes} bytes allowed")
+    return data
 
 
 def replay_schedule(data: bytes) -> tuple[list[int], list[float], float]:

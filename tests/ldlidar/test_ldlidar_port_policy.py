@@ -1,0 +1,169 @@
+"""What a peer may make the LiDAR node open: only what the container file allows.
+
+Each case is a ``container load`` from another process, as any participant on
+the domain could send it, against ``container run`` with a talker at 10 Hz:
+refused with the reason in the load answer, nothing opened or read, the
+talker at its rate throughout, and SIGINT still orderly.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from container import AsyncioExecutor
+from container.devices import DevicePolicy, PortRefused
+from tests.container_support import REPO, ContainerProcess
+
+TALKER = """
+container:
+  name: ComponentManager
+{devices}
+nodes:
+  - package: lifecycle_container
+    plugin: lifecycle_container::Talker
+    name: talker
+    parameters: [{{rate: 10.0}}]
+    autostart: true
+"""
+
+
+def load_lidar(name: str, port: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [
+            sys.executable, "-m", "container", "load", "/ComponentManager", "ldlidar", "ldlidar::LdLidarNode",
+            "-n", name, "-p", f"comm.serial_port:={port}", "-e", "autostart:=true",
+        ],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )
+
+
+class Gaps:
+    """The longest silence between the talker's messages, heard in this process."""
+
+    def __init__(self, node: Node) -> None:
+        self.times: list[float] = []
+        self._lock = threading.Lock()
+        node.create_subscription(String, "/chatter", self._heard, 10)
+
+    def _heard(self, _: String) -> None:
+        with self._lock:
+            self.times.append(time.monotonic())
+
+    def longest(self) -> float:
+        with self._lock:
+            times = list(self.times)
+        return max((b - a for a, b in itertools.pairwise(times)), default=float("inf"))
+
+
+@pytest.fixture
+def listener() -> Iterator[socket.socket]:
+    """A TCP listener a socket:// port would connect to."""
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    server.setblocking(False)
+    yield server
+    server.close()
+
+
+def test_a_peer_cannot_make_the_container_open_what_the_operator_did_not_allow(
+    run_container: Callable[..., ContainerProcess],
+    tmp_path: Path,
+    listener: socket.socket,
+    client_node: Node,
+    executor: AsyncioExecutor,
+) -> None:
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    private = tmp_path / "private.txt"
+    private.write_text("not for peers\n")
+    gaps = Gaps(client_node)
+    spinning = threading.Event()
+
+    def spin() -> None:
+        while not spinning.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    proc = run_container(TALKER.format(devices=""))
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    try:
+        cases = {
+            f"file://{fifo}": "replays are allowed only of files under the directories",
+            "file:///dev/zero": "replays are allowed only of files under the directories",
+            f"file://{private}": "replays are allowed only of files under the directories",
+            f"socket://127.0.0.1:{listener.getsockname()[1]}": "network ports (socket://) are not allowed",
+            "rfc2217://127.0.0.1:1": "network ports (rfc2217://) are not allowed",
+            "spy:///dev/ttyS0": "pyserial URL scheme 'spy' is not allowed",
+            "/etc/shadow": "not a serial device the default device policy allows",
+            "/dev/null": "not a serial device the default device policy allows",
+            "/dev/tty/../null": "not a serial device the default device policy allows",
+        }
+        for index, (port, reason) in enumerate(cases.items()):
+            started = time.monotonic()
+            result = load_lidar(f"hostile{index}", port)
+            assert result.returncode == 1, (port, result.stdout)
+            assert "autostart failed" in result.stderr and reason in result.stderr, (port, result.stderr)
+            assert time.monotonic() - started < 15, port
+        with pytest.raises(BlockingIOError):
+            listener.accept()  # no connection was ever made
+        assert gaps.longest() < 0.35, f"the talker stalled for {gaps.longest():.2f} s"
+    finally:
+        spinning.set()
+        spinner.join(5)
+    proc.process.send_signal(signal.SIGINT)
+    assert proc.process.wait(timeout=30) == 0, proc.output()
+    proc.wait_for_line("Unloaded '/talker'")
+
+
+def test_what_the_container_file_allows_opens(
+    run_container: Callable[..., ContainerProcess], tmp_path: Path
+) -> None:
+    from ldlidar import PacketGenerator
+
+    captures = tmp_path / "captures"
+    captures.mkdir()
+    good = captures / "good.bin"
+    good.write_bytes(PacketGenerator("LD06").packets(400))
+    big = captures / "big.bin"
+    big.write_bytes(PacketGenerator("LD06").packets(3000))
+    os.mkfifo(captures / "fifo")
+    devices = (
+        "  devices:\n"
+        f"    replay_dirs: [{captures}]\n"
+        f"    replay_max_bytes: {len(good.read_bytes()) + 1}\n"
+    )
+    run_container(TALKER.format(devices=devices))
+
+    assert load_lidar("replayed", f"file://{good}?loop=1").returncode == 0
+    too_big = load_lidar("too_big", f"file://{big}")
+    assert "over the" in too_big.stderr and "replay_max_bytes" in too_big.stderr, too_big.stderr
+    fifo = load_lidar("fifo", f"file://{captures / 'fifo'}")
+    assert "a replay must be a regular file" in fifo.stderr, fifo.stderr
+
+
+def test_the_policy_from_a_container_file(tmp_path: Path) -> None:
+    policy = DevicePolicy.from_mapping(
+        {"serial": ["/dev/ttyUSB*"], "replay_dirs": ["captures"], "network": True},
+        source="file.yaml: container.devices",
+        base_dir=tmp_path,
+    )
+    assert policy.replay_dirs == ((tmp_path / "captures").resolve(),)
+    assert policy.check_port("socket://robot:5000") == "socket://robot:5000"
+    with pytest.raises(PortRefused, match=r"not a serial device file.yaml: container.devices allows \(/dev/ttyUSB\*"):
+        policy.check_port("/dev/ttyS0")
+    with pytest.raises(PortRefused, match="must not contain a NUL"):
+        policy.check_port("/dev/ttyUSB0\x00")

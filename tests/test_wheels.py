@@ -40,10 +40,11 @@ def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     out = tmp_path_factory.mktemp("wheels")
     _run(
         sys.executable, "-m", "pip", "wheel", "--quiet", "--no-build-isolation", "--no-deps", "--wheel-dir", out,
-        REPO, REPO / "plugins" / "ldlidar", REPO / "examples" / "thirdparty_plugin",
+        REPO, REPO / "plugins" / "ldlidar",
+        REPO / "examples" / "thirdparty_plugin", REPO / "examples" / "beacon_plugin",
     )
     found = {path.name.split("-")[0]: path for path in out.glob("*.whl")}
-    assert sorted(found) == ["greeter_nodes", "ldlidar", "lifecycle_container"]
+    assert sorted(found) == ["beacon_nodes", "greeter_nodes", "ldlidar", "lifecycle_container"]
     return found
 
 
@@ -143,6 +144,29 @@ def test_the_lidar_example_runs_from_the_wheels(venv: Path) -> None:
         rest, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0, rest
     assert "Unloaded '/ldlidar'" in rest
+
+
+def test_a_plugin_with_its_own_interfaces_installs_and_uninstalls_them(wheels: dict[str, Path], venv: Path) -> None:
+    python = venv / "bin" / "python"
+    _run(python, "-m", "pip", "install", "--quiet", "--no-deps", wheels["beacon_nodes"])
+    assert len(_index_files(venv, "beacon_nodes")) == 2
+    made = _run(
+        python, "-c",
+        "from beacon_interfaces.msg import Beacon; from beacon_interfaces.action import Sweep;"
+        "print(Beacon(name='x').name, Sweep.Goal(steps=3).steps)",
+        env=_plain_env(),
+    )
+    assert made.split() == ["x", "3"]
+    site = venv / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
+    generated = [venv / "share" / "beacon_interfaces", site]
+    assert (generated[0] / "msg" / "Beacon.msg").is_file()
+
+    _run(python, "-m", "pip", "uninstall", "--yes", "--quiet", "beacon-nodes")
+
+    assert _index_files(venv, "beacon_nodes") == []
+    assert not any(path.is_file() for path in generated[0].rglob("*"))
+    assert not any((venv / "lib").glob("libbeacon_interfaces__*.so"))
+    assert not any(path.is_file() for path in (site / "beacon_interfaces").rglob("*"))
 
 
 def test_pip_uninstall_takes_everything_the_wheels_installed(wheels: dict[str, Path], venv: Path) -> None:

@@ -1,9 +1,11 @@
 """A component container for ROS 2 lifecycle nodes, on one asyncio executor.
 
 The public API is what this module exports, plus the public subpackages
-:mod:`container.executor`, :mod:`container.lifecycle` and the value checks
-:mod:`container.checks`; everything in an underscored module is private and
-may change. Plugin authors need :data:`hookimpl`, :class:`LifecycleNode` and
+:mod:`container.executor`, :mod:`container.lifecycle`, the value checks
+:mod:`container.checks`, the device policy :mod:`container.devices`, the
+pytest plugin :mod:`container.testing` and the plugins' build backend
+:mod:`container.build_backend`; everything in an underscored module is
+private and may change. Plugin authors need :data:`hookimpl`, :class:`LifecycleNode` and
 :class:`RegisterNodeType`; embedders need :class:`AsyncioExecutor`,
 :class:`ComponentManager` and :class:`LifecycleManager`.
 

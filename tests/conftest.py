@@ -31,6 +31,7 @@ from rclpy.utilities import try_shutdown  # noqa: E402
 from container import AsyncioExecutor  # noqa: E402
 from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E402
 from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
+from tests.install_support import make_ros_wheels_venv  # noqa: E402
 
 
 @pytest.fixture
@@ -96,6 +97,14 @@ def see_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[...,
         monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
 
     return see
+
+
+@pytest.fixture(scope="session")
+def underlay(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A virtualenv of the ROS wheels, the ROS build tools and colcon, nothing of this project
+    (tests/test_colcon.py builds over it; tests/test_wheels.py installs into it and
+    uninstalls again)."""
+    return make_ros_wheels_venv(tmp_path_factory.mktemp("underlay") / "venv")
 
 
 @pytest.fixture(scope="session")

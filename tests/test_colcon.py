@@ -21,20 +21,9 @@ from pathlib import Path
 import pytest
 
 from tests.container_support import REPO
+from tests.install_support import installed_ros_distro
 
 pytestmark = pytest.mark.timeout(900)
-
-
-def _distro() -> str:
-    import importlib.metadata
-
-    for distro in ("jazzy", "kilted"):
-        try:
-            importlib.metadata.distribution(f"ros-{distro}-rclpy")
-        except importlib.metadata.PackageNotFoundError:
-            continue
-        return distro
-    raise AssertionError("no ros-<distro>-rclpy installed in the test environment")
 
 
 def _snapshot(root: Path) -> dict[str, float]:
@@ -46,33 +35,6 @@ def _snapshot(root: Path) -> dict[str, float]:
     }
 
 
-@pytest.fixture(scope="session")
-def underlay(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A virtualenv holding the ROS wheels, the ROS build tools and colcon: nothing of this project."""
-    prefix = tmp_path_factory.mktemp("underlay") / "venv"
-    subprocess.run([sys.executable, "-m", "venv", str(prefix)], check=True, timeout=120)
-    ros_distro = REPO / "container" / "interfaces" / "ros_distro.py"
-    env = {**os.environ, "ROS_DISTRO": _distro()}
-    requirements = [
-        line
-        for kind in ("run-requires", "build-requires")
-        for line in subprocess.run(
-            [sys.executable, str(ros_distro), kind], env=env, check=True, capture_output=True, text=True
-        ).stdout.split()
-    ]
-    result = subprocess.run(
-        [
-            str(prefix / "bin" / "python"), "-m", "pip", "install", "--quiet", "--no-compile",
-            *requirements, "numpy", "colcon-common-extensions", "cmake>=3.21",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    return prefix
-
-
 def _environment(underlay: Path) -> dict[str, str]:
     """What sourcing the underlay gives: its executables first, its prefix on AMENT_PREFIX_PATH."""
     # Not this process's ROS libraries either: the wheels' bootstrapper skips
@@ -81,7 +43,7 @@ def _environment(underlay: Path) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in drop}
     env["PATH"] = f"{underlay / 'bin'}{os.pathsep}{env.get('PATH', '')}"
     env["AMENT_PREFIX_PATH"] = str(underlay)
-    env["ROS_DISTRO"] = _distro()
+    env["ROS_DISTRO"] = installed_ros_distro()
     # Both cores for the interface packages, which build one after another otherwise.
     env.setdefault("CMAKE_BUILD_PARALLEL_LEVEL", str(os.cpu_count() or 1))
     return env

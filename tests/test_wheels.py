@@ -38,10 +38,15 @@ def _run(*args: str | Path, env: dict[str, str] | None = None, timeout: float = 
 @pytest.fixture(scope="module")
 def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     out = tmp_path_factory.mktemp("wheels")
+    build: list[str | Path] = ["pip", "wheel", "--quiet", "--no-build-isolation", "--no-deps", "--wheel-dir", out]
+    # The project in the build directory .ci/setup left in the environment,
+    # if there is one: its compiled parts are up to date there.
+    kept = Path(sys.prefix) / "skbuild"
+    options = [f"--config-settings=build-dir={kept}"] if kept.is_dir() else []
+    _run(sys.executable, "-m", *build, *options, REPO)
     _run(
-        sys.executable, "-m", "pip", "wheel", "--quiet", "--no-build-isolation", "--no-deps", "--wheel-dir", out,
-        REPO, REPO / "plugins" / "ldlidar",
-        REPO / "examples" / "thirdparty_plugin", REPO / "examples" / "beacon_plugin",
+        sys.executable, "-m", *build,
+        REPO / "plugins" / "ldlidar", REPO / "examples" / "thirdparty_plugin", REPO / "examples" / "beacon_plugin",
     )
     found = {path.name.split("-")[0]: path for path in out.glob("*.whl")}
     assert sorted(found) == ["beacon_nodes", "greeter_nodes", "ldlidar", "lifecycle_container"]
@@ -49,12 +54,17 @@ def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="module")
-def venv(wheels: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A new virtualenv with the container and LiDAR wheels installed by pip, their dependencies from PyPI."""
-    prefix = tmp_path_factory.mktemp("fresh") / "venv"
-    _run(sys.executable, "-m", "venv", prefix)
-    _run(prefix / "bin" / "python", "-m", "pip", "install", "--quiet", wheels["lifecycle_container"], wheels["ldlidar"])
-    yield prefix
+def venv(wheels: dict[str, Path], underlay: Path) -> Iterator[Path]:
+    """A virtualenv of ROS wheels (nothing of this project, nothing run) with the
+    container and LiDAR wheels then installed by pip; all of them uninstalled again."""
+    python = underlay / "bin" / "python"
+    _run(python, "-m", "pip", "install", "--quiet", wheels["lifecycle_container"], wheels["ldlidar"])
+    yield underlay
+    # The session's other users of the environment get it back as it was.
+    subprocess.run(
+        [str(python), "-m", "pip", "uninstall", "--yes", "--quiet", *(name.replace("_", "-") for name in wheels)],
+        capture_output=True, timeout=300,
+    )
 
 
 def _plain_env() -> dict[str, str]:

@@ -1,0 +1,47 @@
+"""Fresh virtualenvs of ROS wheels, for the tests of how users install (colcon, wheels)."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.container_support import REPO
+
+
+def installed_ros_distro() -> str:
+    """The ROS distribution whose rclpy wheel this test environment has."""
+    for distro in ("jazzy", "kilted"):
+        try:
+            importlib.metadata.distribution(f"ros-{distro}-rclpy")
+        except importlib.metadata.PackageNotFoundError:
+            continue
+        return distro
+    raise AssertionError("no ros-<distro>-rclpy installed in the test environment")
+
+
+def make_ros_wheels_venv(prefix: Path) -> Path:
+    """A new virtualenv at ``prefix`` with the ROS wheels, the ROS build tools and colcon: nothing of this project."""
+    subprocess.run([sys.executable, "-m", "venv", str(prefix)], check=True, timeout=120)
+    ros_distro = REPO / "container" / "interfaces" / "ros_distro.py"
+    env = {**os.environ, "ROS_DISTRO": installed_ros_distro()}
+    requirements = [
+        line
+        for kind in ("run-requires", "build-requires")
+        for line in subprocess.run(
+            [sys.executable, str(ros_distro), kind], env=env, check=True, capture_output=True, text=True
+        ).stdout.split()
+    ]
+    result = subprocess.run(
+        [
+            str(prefix / "bin" / "python"), "-m", "pip", "install", "--quiet", "--no-compile",
+            *requirements, "numpy", "colcon-common-extensions", "cmake>=3.21",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    return prefix

@@ -62,6 +62,11 @@ class Gaps:
         with self._lock:
             self.times.append(time.monotonic())
 
+    def rate(self) -> float:
+        with self._lock:
+            times = list(self.times)
+        return (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
+
     def longest(self) -> float:
         with self._lock:
             times = list(self.times)
@@ -120,7 +125,12 @@ def test_a_peer_cannot_make_the_container_open_what_the_operator_did_not_allow(
             assert time.monotonic() - started < 15, port
         with pytest.raises(BlockingIOError):
             listener.accept()  # no connection was ever made
-        assert gaps.longest() < 0.35, f"the talker stalled for {gaps.longest():.2f} s"
+        # At rate throughout: a port read on the event loop (what a named pipe
+        # did before) silenced it for good. The bound is five periods, as seen
+        # from this process, whose own scheduling on two busy cores adds to
+        # what it sees (0.36 s measured once in CI with every case refused).
+        assert gaps.longest() < 0.5, f"the talker was silent for {gaps.longest():.2f} s"
+        assert gaps.rate() > 8.5, f"the talker published at {gaps.rate():.1f} Hz"
     finally:
         spinning.set()
         spinner.join(5)

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import pytest
 
 if TYPE_CHECKING:
+    from rclpy.client import Client
     from rclpy.context import Context
     from rclpy.node import Node
 
@@ -168,7 +169,7 @@ class ContainerHost:
 
         :raises TimeoutError: the service did not appear or answer within ``timeout`` seconds.
         """
-        client = self.client.create_client(srv_type, service)
+        client: Client[Any, Any] = self.client.create_client(srv_type, service)
         try:
             deadline = time.monotonic() + timeout
             await self.wait_until(client.service_is_ready, timeout=timeout, what=f"service {service!r} available")

@@ -234,7 +234,7 @@ def test_a_burst_of_requests_is_answered_to_the_last(
 
     done = sum(f.done() for _, f in futures)
     assert answered, f"{done} of {len(futures)} answered\n{container.output()}"
-    results = [(loads, f.result()) for loads, f in futures]
+    results: list[tuple[bool, Any]] = [(loads, f.result()) for loads, f in futures]
     assert all(r.success for loads, r in results if loads)
     assert all(
         r.error_message == "Could not find requested resource in ament index" for loads, r in results if not loads

@@ -677,9 +677,11 @@ def test_container_run_example_streams_scans_to_another_process(
     scans = Recorder(observer, LaserScan, "/ldlidar/scan", 10)
 
     async def scenario() -> None:
-        await until(lambda: len(scans) >= 21, "21 scans from the container process", timeout=20)
+        await until(lambda: len(scans) >= 26, "26 scans from the container process", timeout=20)
 
     run(executor, scenario(), timeout=30)
+    # The last 21: over the first few revolutions the device-to-host clock
+    # mapping settles, and a first step 11 ms short was measured once in CI.
     received = [r.msg for r in scans.since(0)][-21:]
     check_scan_fields(received)
     # The scans' own stamps: receipt times in this process carry DDS's

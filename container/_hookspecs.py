@@ -18,6 +18,7 @@ the way rclcpp components are named ``composition::Talker``.
 
 from __future__ import annotations
 
+import re
 from typing import TYPE_CHECKING, Protocol
 
 import pluggy
@@ -25,12 +26,22 @@ import pluggy
 if TYPE_CHECKING:
     from rclpy.node import Node
 
-__all__ = ["PROJECT_NAME", "RegisterNodeType", "hookimpl", "hookspec"]
+__all__ = ["PROJECT_NAME", "RegisterNodeType", "hookimpl", "hookspec", "ros_package_name"]
 
 #: The pluggy project name; markers of any other project are not ours.
 PROJECT_NAME = "container"
 
 hookspec = pluggy.HookspecMarker(PROJECT_NAME)
+
+
+def ros_package_name(distribution: str) -> str:
+    """Return the ROS package name that node types of ``distribution`` live in.
+
+    Runs of ``-``, ``_`` and ``.`` collapse like in PEP 503, so two
+    distributions that importlib.metadata tells apart never share a package.
+    (Here, ROS-free, for the build backend as much as for the registry.)
+    """
+    return re.sub(r"[-_.]+", "_", distribution).lower()
 hookimpl = pluggy.HookimplMarker(PROJECT_NAME)
 
 

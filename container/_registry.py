@@ -23,7 +23,6 @@ from __future__ import annotations
 import importlib.metadata
 import logging
 import os
-import re
 import types
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -34,6 +33,7 @@ from rclpy.node import Node
 
 from . import _hookspecs
 from ._errors import LoadError, PluginError
+from ._hookspecs import ros_package_name
 
 __all__ = ["ENTRY_POINT_GROUP", "NodeType", "PluginRegistry", "ros_package_name"]
 
@@ -51,15 +51,6 @@ _NO_CLASS: Final = "Failed to find class with the requested plugin name."
 logger = logging.getLogger("container.plugins")
 #: Receives pluggy's hook-call trace when tracing is on.
 trace_logger = logging.getLogger("container.hooks")
-
-
-def ros_package_name(distribution: str) -> str:
-    """Return the ROS package name that node types of ``distribution`` live in.
-
-    Runs of ``-``, ``_`` and ``.`` collapse like in PEP 503, so two
-    distributions that importlib.metadata tells apart never share a package.
-    """
-    return re.sub(r"[-_.]+", "_", distribution).lower()
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,8 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
+from ._hookspecs import ros_package_name
+
 __all__ = [
     "build_editable",
     "build_sdist",
@@ -134,20 +136,13 @@ def add_index_entries(wheel: Path, *, source: Path) -> None:
     if not plugins:
         return
     distribution = next(line.split(":", 1)[1].strip() for line in metadata.splitlines() if line.startswith("Name:"))
-    package = _ros_package_name(distribution)
+    package = ros_package_name(distribution)
     lines = _node_types(wheel, distribution=distribution, plugins=plugins, source=source)
     data = info.replace(".dist-info", ".data") + "/data"
     files = {f"{data}/{_INDEX}/packages/{package}": b""}
     if lines:
         files[f"{data}/{_INDEX}/rclcpp_components/{package}"] = "".join(f"{line}\n" for line in lines).encode()
     _append(wheel, info, files)
-
-
-def _ros_package_name(distribution: str) -> str:
-    # As container._registry.ros_package_name (not imported: it loads rclpy).
-    import re
-
-    return re.sub(r"[-_.]+", "_", distribution).lower()
 
 
 def _entry_points(text: str) -> dict[str, dict[str, str]]:

@@ -22,11 +22,8 @@ from container.testing import isolate_ros
 
 isolate_ros()
 
-import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
-from rclpy.signals import SignalHandlerOptions  # noqa: E402
-from rclpy.utilities import try_shutdown  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
 from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E402
@@ -35,14 +32,9 @@ from tests.install_support import make_ros_wheels_venv  # noqa: E402
 
 
 @pytest.fixture
-def context() -> Iterator[Context]:
-    """A fresh rclpy context, shut down after the test."""
-    ctx = Context()
-    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        yield ctx
-    finally:
-        try_shutdown(context=ctx)
+def context(ros_context: Context) -> Context:
+    """A fresh rclpy context, shut down after the test (container.testing's ``ros_context``)."""
+    return ros_context
 
 
 @pytest.fixture

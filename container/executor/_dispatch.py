@@ -57,7 +57,6 @@ from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.waitable import NumberOfEntities
 
 from .._compat import (
-    RCLError,
     WaitSet,
     adopt_future,
     callback_attribute,
@@ -74,6 +73,7 @@ from .._compat import (
     waitable_futures,
 )
 from . import _fastpath
+from ._answers import respond
 from ._fastpath import CLIENT, EVENT, SERVICE, SUBSCRIPTION, Express, Lock, Notifier, Taker
 from ._fastpath import WaitSet as FastWaitSet
 from ._lanes import Lane, Post, Retired, Token, Work
@@ -1463,55 +1463,14 @@ def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable
     if is_async:
 
         async def serve_async() -> None:
-            _respond(srv, await callback(request, response_type()), header)
+            respond(srv, await callback(request, response_type()), header)
 
         return serve_async
 
     def serve() -> None:
-        _respond(srv, callback(request, response_type()), header)
+        respond(srv, callback(request, response_type()), header)
 
     return serve
-
-
-#: How long an answer whose client the service has not matched yet is sent again.
-_RESPOND_RETRY_S = 3.0
-_RESPOND_RETRY_EVERY_S = 0.05
-
-
-def _respond(srv: Any, response: Any, header: Any) -> None:
-    """Send ``response``; if its client is not matched yet, again from a thread of its own.
-
-    A client that has just discovered the service (``wait_for_service``
-    returned) may call before the service has matched the client's
-    response reader: Fast DDS's rmw then waits up to the writer's blocking
-    time (100 ms) and fails with "client will not receive response", and
-    the caller would wait forever (``ros2 component load`` right after a
-    container starts, seen once in some 2,900 tests here). The answer is
-    sent again until matched, for a few seconds, off the event loop.
-    """
-    try:
-        srv.send_response(response, header)
-    except RCLError as error:
-        if "will not receive response" not in str(error):
-            raise
-        threading.Thread(
-            target=_respond_later, args=(srv, response, header), name="respond-again", daemon=True
-        ).start()
-
-
-def _respond_later(srv: Any, response: Any, header: Any) -> None:
-    deadline = time.monotonic() + _RESPOND_RETRY_S
-    while True:
-        time.sleep(_RESPOND_RETRY_EVERY_S)
-        try:
-            srv.send_response(response, header)
-            return
-        except InvalidHandle:
-            return  # the service is gone, and its client's wait with it
-        except RCLError as error:
-            if "will not receive response" not in str(error) or time.monotonic() >= deadline:
-                _log.warning("service %s: an answer was not sent (%s)", getattr(srv, "srv_name", srv), error)
-                return
 
 
 def _entities_of(node: Node, kind: str) -> list[Any]:

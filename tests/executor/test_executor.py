@@ -7,6 +7,7 @@ import contextlib
 import contextvars
 import gc
 import itertools
+import logging
 import subprocess
 import sys
 import threading
@@ -23,6 +24,7 @@ from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.task import Future as RclFuture
 from std_msgs.msg import Int64
 from std_srvs.srv import Trigger
@@ -875,3 +877,54 @@ def test_an_answer_the_client_cannot_receive_yet_is_sent_again(
     assert future.done() and refusals == [0]
     result = future.result()
     assert result is not None and result.message == "late but there"
+
+
+def test_an_answer_its_client_cannot_match_is_retried_off_the_loop_then_dropped(
+    executor: AsyncioExecutor,
+    make_node: Callable[[str], Node],
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A client whose response reader never matches (it asks for transient-local answers).
+
+    rmw blocks 100 ms and gives up on each try ("client will not receive
+    response", a warning rclpy raises from C++); the executor sends the answer
+    again from its resender thread until the (here shortened) deadline, says
+    so once, and meanwhile answers a well-formed client at once. The same
+    path answers a client that has not been matched *yet*, right after
+    ``wait_for_service``.
+    """
+    from container.executor import _answers
+
+    monkeypatch.setattr(_answers, "RETRY_S", 0.5)
+    server, callers = make_node("answers_server"), make_node("answers_callers")
+    served = threading.Event()
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        served.set()
+        response.success = True
+        return response
+
+    server.create_service(Trigger, "answers", answer)
+    unmatched: Client[Any, Any] = callers.create_client(
+        Trigger, "answers", qos_profile=QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    )
+    good: Client[Any, Any] = callers.create_client(Trigger, "answers")
+    executor.add_node(server)
+    executor.add_node(callers)
+    thread = spin_in_thread(executor)
+    try:
+        assert good.wait_for_service(timeout_sec=10.0)
+        with caplog.at_level(logging.WARNING, logger=_answers.__name__):
+            lost = unmatched.call_async(Trigger.Request())
+            assert served.wait(10.0)
+            response: Any = good.call(Trigger.Request(), timeout_sec=5.0)
+            assert response is not None and response.success
+            deadline = time.monotonic() + 10.0
+            while "did not match" not in caplog.text and time.monotonic() < deadline:
+                served.wait(0.05)  # a poll of the log, not a pause the test relies on
+        assert "service answers: an answer was not sent" in caplog.text, caplog.text
+        assert not lost.done()
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)

@@ -25,7 +25,7 @@ def test_public_names_are_listed_once() -> None:
 
 
 def test_plugin_author_surface() -> None:
-    """What the plugin-writing guide in the README imports."""
+    """What the plugin-writing guide (docs/guide/plugins.md) imports."""
     from container import LifecycleNode, RegisterNodeType, hookimpl
 
     assert callable(hookimpl)

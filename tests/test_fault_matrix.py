@@ -6,7 +6,8 @@ constructor, in each transition, or in a timer, subscription or service
 callback, with plain and ``async def`` callbacks: 93 cells, all in one
 container beside a talker publishing at 5 Hz. For every cell the container
 survives, the talker keeps its rate, the faulty node ends in the state the
-README's containment table gives, and unloading it works.
+containment guide's table gives (``docs/guide/containment.md``), and
+unloading it works.
 
 "Forever" lasts :data:`FOREVER` seconds here, longer than every timeout the
 container applies (:data:`TIMEOUT`), so that one container can run every
@@ -82,7 +83,7 @@ IDS = {"configure": Transition.TRANSITION_CONFIGURE, "activate": Transition.TRAN
 
 
 def expected_state(style: str, fault: str, where: str) -> str:
-    """The state the README's containment table promises after the fault ("refused": never loaded)."""
+    """The state the containment guide's table promises after the fault ("refused": never loaded)."""
     if where == "constructor":
         return "unconfigured" if fault == "thread" else "refused"
     if where in TRANSITIONS:

@@ -90,7 +90,7 @@ def test_the_operators_enclave_may_call_what_the_command_line_calls() -> None:
     assert operator["request"] <= container["reply"] | lidar["reply"]
 
 
-def test_the_policy_file_is_the_one_the_readme_points_at() -> None:
-    readme = (REPO / "README.md").read_text()
-    assert str(POLICY.relative_to(REPO)) in readme
+def test_the_policy_file_is_the_one_the_security_guide_points_at() -> None:
+    guide = (REPO / "docs" / "guide" / "security.md").read_text()
+    assert str(POLICY.relative_to(REPO)) in guide
     assert Path(POLICY).is_file()

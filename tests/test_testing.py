@@ -102,7 +102,7 @@ async def test_leaving_the_host_takes_every_node_down_its_lifecycle(ros_context:
 
 @pytest.mark.parametrize("plugin", ["Talker", "Listener"])
 async def test_load_and_start_on_a_loop_of_the_users_own(ros_context: object, plugin: str) -> None:
-    # The README promises spin_async on an already running loop; autostart
+    # The executor's documentation promises spin_async on an already running loop; autostart
     # there once waited for a loop turn that only the executor's own loop takes.
     executor = AsyncioExecutor(context=ros_context)  # type: ignore[arg-type]
     manager = ComponentManager(registry=PluginRegistry(), executor=executor, context=ros_context)  # type: ignore[arg-type]

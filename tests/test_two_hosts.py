@@ -158,7 +158,7 @@ def test_manager_on_another_host_reaches_its_safe_state_when_the_link_is_cut_and
         # the instant the container is ready sometimes never discovered it
         # over static peers, while one started a second later always did:
         # Fast DDS participant discovery, seen with the code of every
-        # session, noted in the README.)
+        # session, noted in docs/guide/across-computers.md.)
         probe = subprocess.run(
             ["ip", "netns", "exec", b.namespace, sys.executable, "-c", _DISCOVERY_PROBE],
             env=env_b, capture_output=True, text=True, timeout=60, check=False,

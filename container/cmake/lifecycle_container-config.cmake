@@ -19,7 +19,7 @@
 # Needs CMake 3.21 and, in the build environment, the ROS build tools
 # (ament_cmake, rosidl_default_generators and the message packages used):
 # build with `pip install --no-build-isolation` in an environment set up by
-# lifecycle-container (see its README, "Messages of your own").
+# lifecycle-container (see its docs/guide/interfaces.md).
 
 include_guard(GLOBAL)
 include(ExternalProject)

@@ -1,6 +1,6 @@
 """``AsyncioExecutor``: an rclpy executor driven by an asyncio event loop.
 
-Where the time goes, measured here (``shared/brief/executor-facts.md``): rclpy's
+Where the time goes, measured here (design notes, ``docs/design.md``): rclpy's
 executors spend most of a round trip rebuilding their wait set in Python, and
 each hand-over between threads costs tens of microseconds. So:
 

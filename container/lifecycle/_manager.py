@@ -11,7 +11,7 @@ the nodes it already brought up running (navigation2#4678, #855). This one:
 * retries a failed transition with exponential backoff when asked
   (``transition_retries``, ``retry_delay``, ``retry_backoff``);
 * carries on past failures when taking nodes down: the goal is a safe state;
-* watches heartbeats (:mod:`container._heartbeat`) instead of bondcpp
+* watches heartbeats (:mod:`container.lifecycle._heartbeat`) instead of bondcpp
   handshakes, and re-runs start-up when a lost node comes back within
   ``bond_respawn_max_duration``.
 

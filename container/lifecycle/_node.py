@@ -15,7 +15,7 @@ This base keeps rclpy's rcl state machine, its standard services and
 * an unavailable transition answers ``success=false`` and is logged;
 * publishers and timers created through the node follow its state: publishing
   is a no-op and timers are paused unless the node is active;
-* the node publishes heartbeats (:mod:`container._heartbeat`) for a lifecycle
+* the node publishes heartbeats (:mod:`container.lifecycle._heartbeat`) for a lifecycle
   manager, in every state, every ``bond_heartbeat_period`` seconds.
 
 Transitions of one node never overlap, whoever asks for them (``change_state``,

@@ -5,7 +5,8 @@ behaviour of ``Executor``, ``spin_once``, ``spin_until_future_complete``,
 ``create_task``, guard conditions, timers, waitables, services, clients,
 callback groups and node removal. Where AsyncioExecutor differs on purpose
 (plain callbacks run on their callback group's thread, not the spinning
-one), the test says so and the README's executor table lists it.
+one), the test says so and the executor's table of differences lists it
+(``docs/executor/contract.md``).
 """
 
 from __future__ import annotations

@@ -74,9 +74,23 @@ from .._compat import (
 )
 from . import _fastpath
 from ._answers import respond
-from ._fastpath import CLIENT, EVENT, SERVICE, SUBSCRIPTION, Express, Lock, Notifier, Taker
+from ._fastpath import (
+    CLIENT,
+    EVENT,
+    SERVICE,
+    SUBSCRIPTION,
+    Express,
+    KeepLast,
+    Lock,
+    Notifier,
+    Route,
+    Routes,
+    Taker,
+    Token,
+    Work,
+)
 from ._fastpath import WaitSet as FastWaitSet
-from ._lanes import Lane, Post, Retired, Token, Work
+from ._lanes import Lane, Post, Retired
 from ._message_info import HAS_PUBLISHER_GID
 
 if TYPE_CHECKING:
@@ -119,12 +133,6 @@ class _Entry:
     wants_info: bool = False
 
 
-#: What :class:`Express` reads per callback, resolved once per table: (taker
-#: or timer address, entry, lane, the lane lock's ``locked``, the marker work
-#: a runner carries, the entity, its token, the attribute holding its callback).
-_Route = tuple[Any, _Entry, Lane, Lock, Work, Any, Token, str]
-
-
 @dataclass(slots=True)
 class _Table:
     """The entities one wait set waits on, collected once per change."""
@@ -143,9 +151,9 @@ class _Table:
     fast: FastWaitSet | None = None
     #: Subscriptions whose messages :class:`Express` takes and runs, by
     #: handle address (see :func:`_route`).
-    express: dict[int, _Route] = field(default_factory=dict)
+    express: dict[int, Route] = field(default_factory=dict)
     #: Timers whose calls and callbacks :class:`Express` makes, by handle address.
-    express_timers: dict[int, _Route] = field(default_factory=dict)
+    express_timers: dict[int, Route] = field(default_factory=dict)
     #: Subscription entries by the subscription object's ``id`` (intra-process
     #: deliveries look theirs up on every message: no handle address to read).
     subscriptions: dict[int, _Entry] = field(default_factory=dict)
@@ -211,13 +219,14 @@ class _WaitSet:
         self._takes_waitable = takes_waitable
         self._own_guards = own_guards
         self._table = _Table()
-        self._dirty = True
+        #: The express routes of the table, and whether it is stale (dirty) or
+        #: closed: what the compiled path reads of this wait set.
+        self._routes = Routes()
         #: Held by the thread in ``rcl_wait`` (one at a time per wait set).
         self._lock = threading.Lock()
         #: Held while taking and while the table changes: a lane's worker
         #: thread takes (``carry``) while the loop thread sleeps in rcl.
         self._take_lock = Lock()
-        self._closed = False
         #: When the next wait must include the QoS events (monotonic ns).
         self._events_next = 0
         #: New-message callbacks instead of waiting on subscriptions (hot only).
@@ -241,14 +250,27 @@ class _WaitSet:
         self.waits = 0
 
     def invalidate(self) -> None:
-        self._dirty = True
+        self._routes.dirty = True
+
+    @property
+    def dirty(self) -> bool:
+        """Whether the entities changed since the table was collected."""
+        return self._routes.dirty
+
+    @property
+    def routes(self) -> Routes:
+        return self._routes
+
+    def take_rest(self, reported: list[tuple[int, int]]) -> None:
+        """Take what the compiled path found reported but has no route for (under the take lock)."""
+        self._take_ready(self._table, reported)
 
     @property
     def take_lock(self) -> Lock:
         return self._take_lock
 
     def _rebuild(self) -> None:
-        self._dirty = False
+        self._routes.dirty = False
         dispatcher = self._dispatcher
         table = _Table()
         held = table.held
@@ -340,6 +362,8 @@ class _WaitSet:
                 context.handle,
             )
         old, self._table = self._table, table
+        self._routes.subscriptions = table.express
+        self._routes.timers = table.express_timers
         if notifier is not None:
             # Entities gone stop calling back before their handles are let go.
             live = set().union(*(table.by_pointer[kind].keys() for kind in (*_WATCHED, "event")))
@@ -372,15 +396,15 @@ class _WaitSet:
         :return: the flags of the executor's own guards that fired.
         """
         with self._lock:
-            if self._closed:
+            if self._routes.closed:
                 return WOKEN
             try:
-                if self._dirty:
+                if self._routes.dirty:
                     with self._take_lock:
                         self._rebuild()
                 return self._wait_and_dispatch(self._table, timeout_ns)
             except Exception:
-                self._dirty = True
+                self._routes.dirty = True
                 if not self._dispatcher.context.ok():
                     # rclpy.shutdown() while spinning: handles went invalid
                     # under us; the executor stops, nothing to report.
@@ -403,7 +427,8 @@ class _WaitSet:
         notifier = self._notifier
         fast = self._express if express else None
         monotonic_ns = time.monotonic_ns
-        while loop_is_idle(loop) and not self._dirty and monotonic_ns() - self._polled < _POLL_MAX_NS:
+        routes = self._routes
+        while loop_is_idle(loop) and not routes.dirty and monotonic_ns() - self._polled < _POLL_MAX_NS:
             if notifier is not None and notifier.pending():
                 if fast is not None:
                     try:
@@ -413,7 +438,7 @@ class _WaitSet:
                         self._taking_failed()
                         continue
                 with self._take_lock:
-                    if self._closed or self._dirty:
+                    if self._routes.closed or self._routes.dirty:
                         return
                     try:
                         self._take_ready(self._table, notifier.ready())
@@ -471,13 +496,13 @@ class _WaitSet:
         timeout_ns, poll = self._before_wait(notifier, timeout_ns)
         try:
             if poll:
-                # rclpy's wait lets go of the GIL even for a poll: see WaitSet_wait in _fastpath.c.
+                # rclpy's wait lets go of the GIL even for a poll: see WaitSet_wait in fastpath/waitset.c.
                 _fastpath.poll(wait_set.pointer, timeout_ns)
             else:
                 wait_set.wait(timeout_ns)
         finally:
             self._waited(notifier)
-        if self._closed:
+        if self._routes.closed:
             return WOKEN
 
         def ready(kind: str) -> list[int]:
@@ -541,11 +566,11 @@ class _WaitSet:
         """:meth:`_wait_and_dispatch` on the compiled wait set: one call fills, waits and reads it."""
         timeout_ns, poll = self._before_wait(notifier, timeout_ns)
         try:
-            # A poll keeps the GIL: see WaitSet_wait in _fastpath.c.
+            # A poll keeps the GIL: see WaitSet_wait in fastpath/waitset.c.
             ready = fast.wait(timeout_ns, poll)
         finally:
             self._waited(notifier)
-        if self._closed:
+        if self._routes.closed:
             return WOKEN
         with self._take_lock:
             if not ready:  # timed out
@@ -629,7 +654,7 @@ class _WaitSet:
             # waiting here would only line threads up behind the lock.
             return
         try:
-            if not self._closed and not self._dirty:
+            if not self._routes.closed and not self._routes.dirty:
                 self._take_ready(self._table, notifier.carry())
         except Exception:
             self._taking_failed()
@@ -643,11 +668,11 @@ class _WaitSet:
 
     def poll_is_recent(self) -> bool:
         """Whether timers and guard conditions were looked at less than ``_POLL_MAX_NS`` ago."""
-        return time.monotonic_ns() - self._polled < _POLL_MAX_NS and not self._dirty
+        return time.monotonic_ns() - self._polled < _POLL_MAX_NS and not self._routes.dirty
 
     def entry_of(self, subscription: Any) -> _Entry | None:
         """The current entry of ``subscription`` (``None``: not collected, or collecting)."""
-        if self._dirty:
+        if self._routes.dirty:
             return None
         entry = self._table.subscriptions.get(id(subscription))
         return entry if entry is not None and entry.entity is subscription else None
@@ -673,7 +698,7 @@ class _WaitSet:
 
     def _taking_failed(self) -> None:
         """A take outside a wait raised: rebuild before the next wait; log unless shutting down."""
-        self._dirty = True
+        self._routes.dirty = True
         if self._dispatcher.context.ok():
             _log.exception("dispatching ROS work failed")
 
@@ -706,7 +731,7 @@ class _WaitSet:
         A thread still inside ``rcl_wait`` holds the lock; whoever calls this
         has woken it first through one of its own guard conditions.
         """
-        self._closed = True
+        self._routes.closed = True
         if self._lock.acquire(timeout=max(timeout, 0.1)):
             self._take_lock.acquire()
             try:
@@ -718,6 +743,8 @@ class _WaitSet:
                     notifier.close()
                 self._table.held.close()
                 self._table = _Table()
+                self._routes.subscriptions = {}
+                self._routes.timers = {}
                 if self._notifier_guard is not None:
                     self._notifier_guard.destroy()
                     self._notifier_guard = None
@@ -799,8 +826,8 @@ class Dispatcher:
         self.relieving = False
         #: How many more callbacks may start (``None``: no limit); see :meth:`admit`.
         self._permits: int | None = 0
-        self._held: collections.deque[tuple[object, Callable[[], None]]] = collections.deque()
-        self._held_per_entity: dict[int, int] = {}
+        #: Work taken while no permit was left: its starts, keep-last per entity.
+        self._held = KeepLast()
         #: Whether a spin holds the gate open (``limit`` other than 0): a
         #: permit given back after the spin returned must not start anything.
         self._gate_open = False
@@ -966,7 +993,7 @@ class Dispatcher:
         return self._permits is None and self._dispatching_burst()
 
     def _wait_and_dispatch_once(self, timeout_ns: int) -> int:
-        if self._hot._dirty:
+        if self._hot.dirty:
             self._retire_lanes()
         eager = self._on_loop_thread()
         if eager:
@@ -1053,7 +1080,7 @@ class Dispatcher:
         ``wait_set``, and calls and runs its async timers."""
         return Express(
             notifier=notifier,
-            waitset=wait_set,
+            routes=wait_set.routes,
             take_lock=wait_set.take_lock,
             loop=self._loop,
             ready_queue=loop_ready_queue(self._loop),
@@ -1066,6 +1093,8 @@ class Dispatcher:
             slow=self._express_slow,
             suspended=self._express_suspended,
             failed=self._express_failed,
+            release_pending=Lane.express_release,
+            take_rest=wait_set.take_rest,
             cancelled_error=asyncio.CancelledError,
         )
 
@@ -1277,16 +1306,7 @@ class Dispatcher:
             if permits > 0:
                 self._permits = permits - 1
                 return True
-            key = id(entity)
-            kept = self._held_per_entity.get(key, 0)
-            if kept >= depth:
-                for index, (old, _) in enumerate(self._held):
-                    if old is entity:
-                        del self._held[index]
-                        break
-            else:
-                self._held_per_entity[key] = kept + 1
-            self._held.append((entity, start))
+            self._held.push(start, entity, depth)
             return False
 
     def limit(self, permits: int | None) -> None:
@@ -1326,13 +1346,7 @@ class Dispatcher:
 
     def _pop_held(self) -> Callable[[], None]:
         """The oldest held work's start (under the gate lock)."""
-        entity, start = self._held.popleft()
-        key = id(entity)
-        kept = self._held_per_entity[key] - 1
-        if kept:
-            self._held_per_entity[key] = kept
-        else:
-            del self._held_per_entity[key]
+        start: Callable[[], None] = self._held.pop()
         return start
 
     def run(self, entry: _Entry, call: Callable[[], Any]) -> None:
@@ -1430,12 +1444,21 @@ def _held_at_most(qos: QoSProfile) -> int:
     return _KEEP_ALL_DRAINED
 
 
-def _route(first: Any, entry: _Entry) -> _Route:
+def _route(first: Any, entry: _Entry) -> Route:
     """An express route of ``entry`` (see ``_Table.express``); ``first``: its taker or timer address."""
     entity = entry.entity
-    # The marker is what the runner carries, for the watchdog's report.
-    marker = _express_work(entry, ())
-    return (first, entry, entry.lane, entry.lane.lock, marker, entity, entry.token, callback_attribute(entity))
+    lane = entry.lane
+    return Route(
+        first=first,
+        entry=entry,
+        lane=lane,
+        slots=lane.slots,
+        # The marker is what the runner carries, for the watchdog's report.
+        marker=_express_work(entry, ()),
+        entity=entity,
+        token=entry.token,
+        callback=callback_attribute(entity),
+    )
 
 
 def _express_work(entry: _Entry, args: tuple[Any, ...]) -> Work:

@@ -43,7 +43,8 @@ from .._compat import executor_guards, loop_is_idle, running_loop, runs_plain_ca
 from .._errors import ExecutorError
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._dispatch import WOKEN, Dispatcher, describe, format_error
-from ._lanes import Lane, Work
+from ._fastpath import Work
+from ._lanes import Lane
 from ._selector import RclSelector
 from ._watchdog import LoopWatchdog
 

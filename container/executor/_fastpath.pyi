@@ -1,5 +1,6 @@
-"""Type stub of the ``_fastpath`` extension (``_fastpath.c``)."""
+"""Type stub of the ``_fastpath`` extension (``fastpath/*.c``)."""
 
+import contextvars
 from collections.abc import Callable, Iterable, Mapping, Sequence, Sized
 from typing import Any
 
@@ -74,13 +75,114 @@ class WaitSet:
     ) -> None: ...
     def wait(self, timeout_ns: int, poll: bool = False, /) -> Ready: ...
 
+class Token:
+    """Whether work for one entity (or for a node itself) may still start.
+
+    The dispatcher retires a token when its entity is destroyed or its node
+    is removed from the executor; work already waiting in a lane is then
+    dropped instead of run, as rclpy's executors drop it.
+    """
+
+    node: object
+    retired: bool
+    def __init__(self, node: object, retired: bool = False) -> None: ...
+
+class Work:
+    """One callback invocation waiting for, or running in, a lane."""
+
+    #: The rclpy entity whose callback this is (identity only).
+    entity: object
+    #: Runs the callback with ``args``; returns a coroutine when ``is_async``.
+    call: Callable[..., Any]
+    is_async: bool
+    #: How many waiting invocations of ``entity`` to keep.
+    depth: int
+    #: Told the outcome, in the thread or task that ran ``call``.
+    done: Callable[[Work, BaseException | None], None]
+    #: Whose work this is; once retired, the work never starts.
+    token: Token | None
+    #: What ``call`` is called with (a taken message).
+    args: tuple[Any, ...]
+    def __init__(
+        self,
+        entity: object,
+        call: Callable[..., Any],
+        is_async: bool,
+        depth: int,
+        done: Callable[[Work, BaseException | None], None],
+        token: Token | None = None,
+        args: tuple[Any, ...] = (),
+    ) -> None: ...
+
+class Runner:
+    """A runner task of a lane, the future it idles on, the context it runs in."""
+
+    task: Any
+    context: contextvars.Context
+    idle: Any
+    current: Work | None
+    def __init__(
+        self, task: Any, context: contextvars.Context, idle: Any = None, current: Work | None = None
+    ) -> None: ...
+
+class KeepLast:
+    """Items in arrival order, at most ``depth`` per entity, the entity's oldest going first."""
+
+    def push(self, item: object, entity: object, depth: int, /) -> bool: ...
+    def pop(self) -> Any: ...
+    def clear(self) -> None: ...
+    def items(self) -> list[Any]: ...
+    def __len__(self) -> int: ...
+
+class Slots:
+    """A lane's admission state; its methods are called with :attr:`lock` held."""
+
+    lock: Lock
+    limit: int
+    running: int
+    dropped: int
+    closed: bool
+    active: set[Work]
+    idle_runners: list[Runner]
+    waiting: int
+    def __init__(self, limit: int) -> None: ...
+    def admit(self, work: Work, /) -> bool: ...
+    def next(self, finished: Work, /) -> Work | None: ...
+    def close(self) -> None: ...
+    def retire(self, node: object, /) -> list[Work]: ...
+    def of(self, node: object, /) -> list[Work]: ...
+    def busy(self) -> bool: ...
+
+class Route:
+    """What the async chain needs of one entity, resolved once per wait-set change."""
+
+    first: Any
+    entry: Any
+    lane: Any
+    slots: Slots
+    marker: Work
+    entity: Any
+    token: Token
+    callback: str
+    def __init__(
+        self, *, first: Any, entry: Any, lane: Any, slots: Slots, marker: Work, entity: Any, token: Token, callback: str
+    ) -> None: ...
+
+class Routes:
+    """A wait set's current routes, and whether they are stale or closed."""
+
+    dirty: bool
+    closed: bool
+    subscriptions: dict[int, Route]
+    timers: dict[int, Route]
+
 class Express:
     def __init__(
         self,
         *,
         notifier: Notifier,
-        waitset: object,
-        take_lock: object,
+        routes: Routes,
+        take_lock: Lock,
         loop: object,
         ready_queue: object,
         eager: object,
@@ -92,10 +194,12 @@ class Express:
         slow: Callable[..., object],
         suspended: Callable[..., object],
         failed: Callable[..., object],
+        release_pending: Callable[[Any, Work], object],
+        take_rest: Callable[[list[tuple[int, int]]], object],
         cancelled_error: type[BaseException],
     ) -> None: ...
     def drain(self, deadline_ns: int, /) -> bool: ...
-    def call_timers(self, routes: Mapping[int, tuple[Any, ...]], ready: Iterable[int], /) -> list[int]: ...
+    def call_timers(self, routes: Mapping[int, Route], ready: Iterable[int], /) -> list[int]: ...
     def run_fired(self) -> None: ...
     @property
     def expressed(self) -> int: ...

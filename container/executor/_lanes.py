@@ -40,18 +40,17 @@ callback that blocks for seconds would let the queue grow without limit.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextvars
 import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from .._compat import enter_task, leave_task
 from ._bridge import drive
-from ._fastpath import Lock, mark_carrier
+from ._fastpath import Lock, Runner, Slots, Work, mark_carrier
 
 __all__: list[str] = []
 
@@ -73,40 +72,6 @@ class _Carrier(threading.local):
 
 
 _carrier = _Carrier()
-
-
-@dataclass(eq=False, slots=True)
-class Work:
-    """One callback invocation waiting for, or running in, a lane.
-
-    :param entity: the rclpy entity whose callback this is (identity only).
-    :param call: runs the callback (with ``args``); returns a coroutine when ``is_async``.
-    :param depth: how many pending invocations of ``entity`` to keep.
-    :param done: told the outcome, in the thread or task that ran ``call``.
-    """
-
-    entity: object
-    call: Callable[[], Any]
-    is_async: bool
-    depth: int
-    done: Callable[[Work, BaseException | None], None] = field(repr=False)
-    #: Whose work this is; once retired, the work never starts.
-    token: Token | None = None
-    #: What ``call`` is called with (a taken message), saving a partial per callback.
-    args: tuple[Any, ...] = ()
-
-
-@dataclass(eq=False, slots=True)
-class Token:
-    """Whether work for one entity (or for a node itself) may still start.
-
-    The dispatcher retires a token when its entity is destroyed or its node
-    is removed from the executor; work already waiting in a lane is then
-    dropped instead of run, as rclpy's executors drop it.
-    """
-
-    node: object
-    retired: bool = False
 
 
 class Retired(Exception):
@@ -131,17 +96,6 @@ class _Resume:
     coro: Any
     yielded: Any
     context: contextvars.Context
-
-
-@dataclass(eq=False, slots=True)
-class _Runner:
-    """A runner task, the future it idles on, and the context it runs in."""
-
-    task: asyncio.Task[None]
-    context: contextvars.Context
-    idle: asyncio.Future[Work | _Resume | None] | None = None
-    #: The work it carries now, if any.
-    current: Work | None = None
 
 
 class Lane:
@@ -177,18 +131,12 @@ class Lane:
         self._carry = carry
         self._post = post
         self._progress = progress
-        self.limit = limit
         self._loop = loop
         self._on_loop_thread = on_loop_thread
-        #: Guards the slot state below; the compiled path checks it without a call.
-        self._lock = Lock()
-        self._running = 0
-        #: Work started and not yet done (under ``_lock``).
-        self._active: set[Work] = set()
-        self._pending: collections.deque[Work] = collections.deque()
-        self._pending_per_entity: dict[int, int] = {}
-        self._closed = False
-        self.dropped = 0
+        #: The admission state (running, limit, waiting work, idle runners),
+        #: which the compiled path reads too; its lock guards the rest here.
+        self._slots = Slots(limit)
+        self._lock: Lock = self._slots.lock
         # Plain side: worker threads fed through an inbox.
         self._idle_threads = 0
         #: Threads away running another lane's work (see :meth:`_carry_on`).
@@ -196,8 +144,27 @@ class Lane:
         self._threads: list[threading.Thread] = []
         self._inbox: queue.SimpleQueue[Work | None] = queue.SimpleQueue()
         # Async side, touched on the loop thread only.
-        self._runners: dict[asyncio.Task[None], _Runner] = {}
-        self._idle_runners: list[_Runner] = []
+        self._runners: dict[asyncio.Task[None], Runner] = {}
+        #: The slots' list itself: runners idle, the last to be used first.
+        self._idle_runners: list[Runner] = self._slots.idle_runners
+
+    @property
+    def limit(self) -> int:
+        """How many of the group's callbacks may run at once."""
+        return self._slots.limit
+
+    @limit.setter
+    def limit(self, limit: int) -> None:
+        self._slots.limit = limit
+
+    @property
+    def dropped(self) -> int:
+        """Waiting invocations dropped for newer ones of their entity (keep-last)."""
+        return self._slots.dropped
+
+    @property
+    def _closed(self) -> bool:
+        return self._slots.closed
 
     # -- submission -------------------------------------------------------
     def submit(self, work: Work) -> None:
@@ -209,52 +176,16 @@ class Lane:
         """Whether ``work`` may start now (its slot taken); if not, it is kept
         pending, or dropped once the lane is closed."""
         with self._lock:
-            if self._closed:
-                return False
-            if self._running >= self.limit:
-                self._keep_pending(work)
-                return False
-            self._running += 1
-            self._active.add(work)
-            return True
+            return self._slots.admit(work)
 
     def busy(self) -> bool:
         with self._lock:
-            return self._running > 0 or bool(self._pending)
-
-    def _keep_pending(self, work: Work) -> None:
-        key = id(work.entity)
-        count = self._pending_per_entity.get(key, 0)
-        if count >= work.depth:
-            # Keep-last: the oldest pending invocation of this entity goes.
-            for index, old in enumerate(self._pending):
-                if old.entity is work.entity:
-                    del self._pending[index]
-                    break
-            self.dropped += 1
-        else:
-            self._pending_per_entity[key] = count + 1
-        self._pending.append(work)
+            return self._slots.busy()
 
     def _next_pending(self, finished: Work) -> Work | None:
         """``finished`` is done: take the next pending work, or release the running slot."""
         with self._lock:
-            self._active.discard(finished)
-            if self._pending and not self._closed:
-                work = self._pending.popleft()
-                self._forget_pending(work)
-                self._active.add(work)
-                return work
-            self._running -= 1
-            return None
-
-    def _forget_pending(self, work: Work) -> None:
-        key = id(work.entity)
-        left = self._pending_per_entity[key] - 1
-        if left:
-            self._pending_per_entity[key] = left
-        else:
-            del self._pending_per_entity[key]
+            return self._slots.next(finished)
 
     # -- retiring ---------------------------------------------------------------
     def retire(self, node: object) -> None:
@@ -265,10 +196,7 @@ class Lane:
         on the loop thread, or while the loop is not running.
         """
         with self._lock:
-            dropped = [w for w in self._pending if w.token is not None and w.token.node is node]
-            for work in dropped:
-                self._pending.remove(work)
-                self._forget_pending(work)
+            dropped = self._slots.retire(node)
         for work in dropped:
             work.done(work, Retired())
         for runner in list(self._runners.values()):
@@ -284,7 +212,7 @@ class Lane:
     def running(self, node: object) -> list[Work]:
         """``node``'s work started and not yet done."""
         with self._lock:
-            return [w for w in self._active if w.token is not None and w.token.node is node]
+            return self._slots.of(node)
 
     def _start(self, work: Work) -> None:
         if not work.is_async:
@@ -384,7 +312,7 @@ class Lane:
         # callbacks' awaits (see _run), and the executor's factory would
         # drive the runner's own in turn, hiding an asyncio.sleep(0) from it.
         task = asyncio.Task(self._run(item), loop=self._loop, name=f"lane:{self.name}", context=context)
-        self._runners[task] = _Runner(task, context, current=_work_of(item))
+        self._runners[task] = Runner(task, context, current=_work_of(item))
         task.add_done_callback(self._forget_runner)
 
     def _forget_runner(self, task: asyncio.Task[None]) -> None:
@@ -393,7 +321,7 @@ class Lane:
             self._idle_runners.remove(runner)
 
     @staticmethod
-    def _wake(runner: _Runner, item: Work | _Resume) -> bool:
+    def _wake(runner: Runner, item: Work | _Resume) -> bool:
         """Hand ``item`` to an idle runner; ``False`` if it was cancelled meanwhile."""
         idle, runner.idle = runner.idle, None
         if idle is None or idle.done():
@@ -409,10 +337,10 @@ class Lane:
             self.run_eager(work)
 
     @property
-    def lock(self) -> Lock:
-        """Held while the lane's state changes: the C path (``Express``) only
-        touches that state while nobody holds it."""
-        return self._lock
+    def slots(self) -> Slots:
+        """The admission state, which the C path (``Express``) reads and
+        changes too, only while nobody holds its lock."""
+        return self._slots
 
     def express_release(self, finished: Work) -> None:
         """The C path's first step of ``finished`` ended: its slot goes to
@@ -426,14 +354,14 @@ class Lane:
             self._hand_to_thread(nxt)
 
     def express_suspended(
-        self, runner: _Runner, work: Work, coro: Any, yielded: Any, context: contextvars.Context
+        self, runner: Runner, work: Work, coro: Any, yielded: Any, context: contextvars.Context
     ) -> None:
         """The C path's first step of ``work`` suspended in ``runner``: that runner finishes it."""
         with self._lock:
-            self._active.add(work)
+            self._slots.active.add(work)
         self._finish_in(runner, _Resume(work, coro, yielded, context))
 
-    def _finish_in(self, runner: _Runner, resume: _Resume) -> None:
+    def _finish_in(self, runner: Runner, resume: _Resume) -> None:
         """A first step suspended in idle ``runner``: that runner (no longer
         idle) finishes it, or a new one if it was cancelled meanwhile."""
         if runner in self._idle_runners:
@@ -468,7 +396,7 @@ class Lane:
                 done, error, resume = True, Retired(), None
             else:
                 runner.current = item  # what the loop runs, should it get stuck here
-                # Its own copy of the runner's context, as a task's (see run_one in _fastpath.c).
+                # Its own copy of the runner's context, as a task's (see run_one in fastpath/express.c).
                 context = runner.context.copy()
                 done, error, resume = context.run(self._first_step, runner.task, item, context)
                 runner.current = None
@@ -580,9 +508,7 @@ class Lane:
             ``timeout`` ran out (it is a daemon thread and cannot be killed).
         """
         with self._lock:
-            self._closed = True
-            self._pending.clear()
-            self._pending_per_entity.clear()
+            self._slots.close()
             threads = list(self._threads)
         for runner in list(self._runners):
             if self._on_loop_thread() or not self._loop.is_running():

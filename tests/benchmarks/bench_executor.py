@@ -433,14 +433,21 @@ def main() -> None:
     parser.add_argument("--kinds", nargs="+", choices=sorted(KINDS), default=list(KINDS))
     parser.add_argument(
         "--pythons", nargs="+", default=[sys.executable], metavar="PYTHON",
-        help="interpreters to measure under, side by side (each a set-up virtualenv's)",
+        help="interpreters to measure under, side by side (each a set-up virtualenv's): two "
+        "virtualenvs of one Python compare two versions of the code (a git worktree's .venv)",
     )
     parser.add_argument("--child", nargs=3, metavar=("MEASURE", "KIND", "SECONDS"))
     args = parser.parse_args()
     if args.child:
         _child(args.child[0], args.child[1], float(args.child[2]))
     kinds = [kind for kind in KINDS if kind in args.kinds]
-    pythons = {_python_label(python): python for python in args.pythons}
+    pythons: dict[str, str] = {}
+    for python in args.pythons:
+        label = _python_label(python)
+        # Two virtualenvs of one Python (two versions of the code) by their paths.
+        pythons[f"{label} {python}" if any(label == other.split()[0] for other in pythons) else label] = python
+    if len(set(map(lambda label: label.split()[0], pythons))) < len(pythons):
+        pythons = {f"{label.split()[0]} {python}": python for label, python in pythons.items()}
     results: dict[str, Results] = {label: {} for label in pythons}
     for round_index in range(args.rounds):
         for measure in [args.only] if args.only else MEASURES:

@@ -1,4 +1,4 @@
-"""The compiled hot path (``container/executor/_fastpath.c``), on real rcl entities.
+"""The compiled hot path (``container/executor/fastpath/``), on real rcl entities.
 
 The notifier turns rmw's new-data callbacks into a ready list and one guard
 trigger; the taker takes in C what rclpy's ``take_message`` takes. Both are
@@ -576,7 +576,7 @@ def test_qos_events_arrive_without_a_wait_set(executor: AsyncioExecutor, host: C
         )
         assert both.wait(TIMEOUT), seen
         hot = executor._dispatcher._hot
-        assert _until(lambda: not hot._dirty)
+        assert _until(lambda: not hot.dirty)
         assert hot._table.events == [], "QoS events should come through rmw callbacks, not the wait set"
         assert hot._notifier is not None and hot._notifier.watched >= 4
     assert EVENT != SUBSCRIPTION

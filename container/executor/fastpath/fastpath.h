@@ -1,0 +1,239 @@
+/* fastpath.h: what the compiled parts of the executor's hot path share.
+ *
+ * One module, _fastpath, built from one source per job (see module.c for
+ * the whole picture): notifier.c (rmw's new-data callbacks), waitset.c (an
+ * rcl wait set over fixed entities), taker.c (rcl_take into a kept
+ * message), lock.c (a mutex both languages use), lanes.c (the callback
+ * groups' slot state and the objects both languages read: work, tokens,
+ * runners, routes), express.c (the loop thread's async chain). Every
+ * object one file reads of another's is a compiled type declared here:
+ * no file reads a Python attribute of the executor's own classes by name.
+ */
+#ifndef CONTAINER_EXECUTOR_FASTPATH_H
+#define CONTAINER_EXECUTOR_FASTPATH_H
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <limits.h>
+#include <pthread.h>
+#include <stdatomic.h>
+#include <stdbool.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+#include <rcl/client.h>
+#include <rcl/error_handling.h>
+#include <rcl/event.h>
+#include <rcl/guard_condition.h>
+#include <rcl/publisher.h>
+#include <rcl/service.h>
+#include <rcl/subscription.h>
+#include <rcl/timer.h>
+#include <rcl/wait.h>
+#include <rmw/error_handling.h>
+#include <rmw/rmw.h>
+#include <rmw/types.h>
+
+enum { KIND_SUBSCRIPTION = 0, KIND_CLIENT = 1, KIND_SERVICE = 2, KIND_EVENT = 3 };
+
+static inline long long monotonic_ns(void)
+{
+  struct timespec now;
+  clock_gettime(CLOCK_MONOTONIC, &now);
+  return (long long)now.tv_sec * 1000000000LL + now.tv_nsec;
+}
+
+/* NULL, with RuntimeError "<call> failed: <rcl's error>" set and rcl's error reset. */
+static inline PyObject * rcl_failed(const char * call)
+{
+  PyErr_Format(PyExc_RuntimeError, "%s failed: %s", call, rcl_get_error_string().str);
+  rcl_reset_error();
+  return NULL;
+}
+
+/* The longest a carrier thread's publish may leave the waiter asleep (see
+ * on_event), should the publishing callback run on: rclpy's (and rclcpp's)
+ * single-threaded executors hold such a message until the callback returns,
+ * however long. 2 ms skipped only three quarters of the pointless wake-ups
+ * of ten 100 Hz timers (the loop's next firing is often further away); 5 ms
+ * skipped all of them. */
+#define DEFER_MAX_NS 5000000LL
+
+/* Set on lane worker threads that, after every plain callback, take what it
+ * published for other plain callbacks themselves (Notifier.carry). */
+extern _Thread_local int carrier_thread;
+/* Whether any thread was ever marked: until then no publish can be deferred,
+ * and a wait need not work out when it ends (an async-only process). */
+extern atomic_int carriers_exist;
+
+/* The event count that means "take until nothing is left". */
+#define DRAIN ((size_t)1 << 30)
+
+typedef struct Slot {
+  struct NotifierObject * owner;
+  uintptr_t key;
+  int kind;
+  int queued;    /* under owner->lock */
+  int plain;     /* its callback runs on a worker thread: carry() hands it out */
+  size_t count;  /* events since last ready(), under owner->lock */
+  struct Slot * next;
+} Slot;
+
+typedef struct NotifierObject {
+  PyObject_HEAD
+  pthread_mutex_t lock;
+  atomic_int armed;
+  atomic_int pending;
+  atomic_int plain_pending;      /* queued slots that are plain */
+  rcl_guard_condition_t * guard; /* under lock */
+  Slot * slots;                  /* touched by the owning Python thread only */
+  Slot ** ready;                 /* under lock */
+  size_t nready;
+  size_t capacity;
+  atomic_ulong triggers;
+  /* While the waiter blocks in WaitSet.wait: when it wakes at the latest
+   * (CLOCK_MONOTONIC ns, its timeout or its soonest timer); LLONG_MAX
+   * otherwise, or when unknown. */
+  atomic_llong wake_by;
+} NotifierObject;
+
+
+/* -- notifier.c ------------------------------------------------------------ */
+extern PyTypeObject NotifierType;
+/* How many reported entities notifier_take_reported moves without allocating. */
+#define REPORTED_INLINE 16
+Py_ssize_t notifier_take_reported(
+  NotifierObject * self, uintptr_t ** keys, size_t ** counts, uintptr_t * inline_keys, size_t * inline_counts);
+
+/* -- waitset.c --------------------------------------------------------------- */
+extern PyTypeObject WaitSetType;
+long long poll_timeout(long long timeout);
+
+/* -- taker.c ----------------------------------------------------------------- */
+typedef void * (*create_message_t)(void);
+typedef void (*destroy_message_t)(void *);
+typedef PyObject * (*convert_to_py_t)(void *);
+
+typedef struct {
+  PyObject_HEAD
+  const rcl_subscription_t * subscription;
+  void * message;
+  destroy_message_t destroy;
+  convert_to_py_t to_py;
+  int with_gid; /* the message info carries publisher_gid, as rclpy 9's does */
+} TakerObject;
+
+extern PyTypeObject TakerType;
+PyObject * taker_take(TakerObject * self, int with_info);
+PyObject * gid_dict(const rmw_gid_t * gid);
+
+/* -- lock.c ------------------------------------------------------------------ */
+typedef struct {
+  PyObject_HEAD
+  PyThread_type_lock lock;
+  int locked;
+} LockObject;
+
+extern PyTypeObject LockType;
+
+#define IS_LOCK(object) (Py_TYPE(object) == &LockType)
+
+/* Take the lock without waiting: 1 taken, 0 busy. */
+static inline int lock_try(LockObject * self)
+{
+  if (self->locked || !PyThread_acquire_lock(self->lock, NOWAIT_LOCK)) {
+    return 0;
+  }
+  self->locked = 1;
+  return 1;
+}
+
+static inline void lock_release(LockObject * self)
+{
+  self->locked = 0;
+  PyThread_release_lock(self->lock);
+}
+
+/* -- lanes.c ----------------------------------------------------------------- */
+typedef struct {
+  PyObject_HEAD
+  PyObject * node;
+  char retired;
+} TokenObject;
+
+typedef struct {
+  PyObject_HEAD
+  PyObject * entity;
+  PyObject * call;
+  PyObject * done;
+  PyObject * token; /* a Token, or None */
+  PyObject * args;  /* a tuple */
+  Py_ssize_t depth;
+  char is_async;
+} WorkObject;
+
+typedef struct {
+  PyObject_HEAD
+  PyObject * task;
+  PyObject * context;
+  PyObject * idle;    /* the future it idles on, or None */
+  PyObject * current; /* the work it carries, or None */
+} RunnerObject;
+
+typedef struct {
+  PyObject_HEAD
+  PyObject * items;    /* list, read from head on */
+  PyObject * entities; /* list, parallel to items */
+  PyObject * counts;   /* dict: entity address -> items of it */
+  Py_ssize_t head;
+} KeepLastObject;
+
+typedef struct {
+  PyObject_HEAD
+  LockObject * lock;
+  Py_ssize_t running;
+  Py_ssize_t limit;
+  Py_ssize_t dropped;
+  char closed;
+  KeepLastObject * pending;
+  PyObject * active;       /* set of Work started and not done */
+  PyObject * idle_runners; /* list of Runner */
+} SlotsObject;
+
+typedef struct {
+  PyObject_HEAD
+  PyObject * first;  /* a Taker (subscription) or the timer's address */
+  PyObject * entry;  /* opaque: handed back to the hooks */
+  PyObject * lane;   /* opaque: handed back to the hooks */
+  SlotsObject * slots;
+  PyObject * marker; /* Work */
+  PyObject * entity;
+  TokenObject * token;
+  PyObject * callback; /* str: the entity's attribute holding its callback */
+} RouteObject;
+
+typedef struct {
+  PyObject_HEAD
+  char dirty;
+  char closed;
+  PyObject * subscriptions; /* dict: address -> Route */
+  PyObject * timers;        /* dict: address -> Route */
+} RoutesObject;
+
+extern PyTypeObject TokenType, WorkType, RunnerType, KeepLastType, SlotsType, RouteType, RoutesType;
+
+int keeplast_push(KeepLastObject * self, PyObject * item, PyObject * entity, Py_ssize_t depth);
+PyObject * keeplast_pop(KeepLastObject * self);
+Py_ssize_t keeplast_size(KeepLastObject * self);
+int keeplast_clear(KeepLastObject * self);
+PyObject * slots_admit_first_step(SlotsObject * self);
+int slots_release_first_step(SlotsObject * self);
+void slots_undo_first_step(SlotsObject * self);
+
+/* -- express.c --------------------------------------------------------------- */
+extern PyTypeObject ExpressType;
+
+#endif

@@ -1,0 +1,166 @@
+/* _fastpath: the executor's hot path in C: readiness, takes, the async chain.
+ *
+ * One module from one source per job (shared declarations in fastpath.h):
+ * notifier.c, waitset.c, taker.c, lock.c, lanes.c, express.c; this file
+ * makes the module and holds its few free functions.
+ *
+ * Notifier: event-driven readiness for rcl subscriptions, clients and services.
+ *
+ * Why: a wait set is level-triggered and rebuilt (attached, detached) on
+ * every rcl_wait, and a message published by one node of this process to
+ * another is only found by the next wait. rmw offers a per-entity "new data"
+ * callback instead, which Fast DDS calls in the publishing thread for a
+ * reader of the same process, or in its receive thread for a remote writer.
+ * This module registers that callback, records which entities became ready,
+ * and triggers one rcl guard condition only while the executor's thread is
+ * actually asleep in rcl_wait (armed). The executor then takes what is
+ * ready without another wait: a ping-pong between two nodes of one process
+ * never enters rcl_wait at all. Nor is it triggered when a lane's worker
+ * publishes to a plain callback it will carry on to itself, while the
+ * waiter wakes within DEFER_MAX_NS anyway (see on_event).
+ *
+ * Entities are identified by their rcl handle's address, which rclpy exposes
+ * as ``handle.pointer``. The caller keeps each handle alive (held) from
+ * ``watch`` until ``unwatch``: after ``unwatch`` returns no callback runs
+ * for it any more (rmw serialises setting and calling the callback).
+ *
+ * WaitSet: an rcl wait set over entities given once (by handle address),
+ * filled, waited on and read in one call: rclpy's wait set takes a call per
+ * entity to fill and one per kind to read, on every wait.
+ *
+ * Taker: rcl_take of one subscription into a C message kept across takes,
+ * converted with the message type's own rosidl capsules; what rclpy's
+ * take_message does, without rebuilding the message, the pybind11 call
+ * and the message-info dictionary nobody asked for.
+ *
+ * Slots, Work, Token, Runner, KeepLast, Route, Routes (lanes.c): a callback
+ * group's admission state and the objects both languages read, so that the
+ * Python lanes and the async chain follow one admission protocol and
+ * neither depends on the other's attribute names.
+ *
+ * Express: the loop thread's chain of async def subscription callbacks
+ * (take, admit to the callback group's lane, first step, release) without
+ * returning to Python between messages, and the same for async def timer
+ * callbacks after a wait; see express.c.
+ */
+#include "fastpath.h"
+
+static PyObject * mark_carrier(PyObject * Py_UNUSED(module), PyObject * Py_UNUSED(ignored))
+{
+  carrier_thread = 1;
+  atomic_store(&carriers_exist, 1);
+  Py_RETURN_NONE;
+}
+
+/* poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set (its
+ * ``pointer``) keeping the GIL, where rclpy's own ``wait`` would let go of it
+ * even for a poll: WaitSet_wait's poll, for the wait set rclpy fills. */
+/* publisher_gid(publisher): the gid of the rcl publisher at that address, as
+ * rclpy 9's message info gives a message's publisher_gid. */
+static PyObject * publisher_gid(PyObject * Py_UNUSED(module), PyObject * arg)
+{
+  unsigned long long address = PyLong_AsUnsignedLongLong(arg);
+  rmw_publisher_t * rmw_publisher;
+  rmw_gid_t gid;
+  if (address == (unsigned long long)-1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  rmw_publisher = rcl_publisher_get_rmw_handle((const rcl_publisher_t *)(uintptr_t)address);
+  if (rmw_publisher == NULL) {
+    return rcl_failed("rcl_publisher_get_rmw_handle");
+  }
+  if (rmw_get_gid_for_publisher(rmw_publisher, &gid) != RMW_RET_OK) {
+    PyErr_Format(PyExc_RuntimeError, "rmw_get_gid_for_publisher failed: %s", rmw_get_error_string().str);
+    rmw_reset_error();
+    return NULL;
+  }
+  return gid_dict(&gid);
+}
+
+static PyObject * poll_wait_set(PyObject * Py_UNUSED(module), PyObject * const * args, Py_ssize_t nargs)
+{
+  rcl_wait_set_t * ws;
+  long long timeout;
+  rcl_ret_t ret;
+  if (nargs != 2) {
+    PyErr_SetString(PyExc_TypeError, "poll(wait_set, timeout_ns)");
+    return NULL;
+  }
+  ws = (rcl_wait_set_t *)PyLong_AsVoidPtr(args[0]);
+  if (ws == NULL) {
+    if (!PyErr_Occurred()) {
+      PyErr_SetString(PyExc_ValueError, "poll: no wait set at address 0");
+    }
+    return NULL;
+  }
+  timeout = PyLong_AsLongLong(args[1]);
+  if (timeout == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  ret = rcl_wait(ws, (int64_t)poll_timeout(timeout));
+  if (ret != RCL_RET_OK && ret != RCL_RET_TIMEOUT) {
+    return rcl_failed("rcl_wait");
+  }
+  Py_RETURN_NONE;
+}
+
+static PyMethodDef module_methods[] = {
+  {"poll", (PyCFunction)(void (*)(void))poll_wait_set, METH_FASTCALL,
+   "poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set at that address, keeping the GIL "
+   "(for a wait whose guard condition is already triggered)"},
+  {"publisher_gid", publisher_gid, METH_O,
+   "publisher_gid(publisher) -> dict: the gid of the rcl publisher at that address, as rclpy 9's message "
+   "info gives it ({'implementation_identifier': str, 'data': bytes})"},
+  {"mark_carrier", mark_carrier, METH_NOARGS,
+   "mark_carrier() -> None: this thread takes, after each plain callback, what it published to other "
+   "plain callbacks (Notifier.carry); a notifier's waiter that wakes soon anyway is not woken for that"},
+  {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+  PyModuleDef_HEAD_INIT,
+  .m_name = "_fastpath",
+  .m_doc = "The executor's hot path: readiness and takes of rcl entities (see the C source for why).",
+  .m_size = -1,
+  .m_methods = module_methods,
+};
+
+PyMODINIT_FUNC PyInit__fastpath(void)
+{
+  static struct {
+    const char * name;
+    PyTypeObject * type;
+  } types[] = {
+    {"Notifier", &NotifierType}, {"Lock", &LockType}, {"Taker", &TakerType}, {"WaitSet", &WaitSetType},
+    {"Express", &ExpressType}, {"Token", &TokenType}, {"Work", &WorkType}, {"Runner", &RunnerType},
+    {"KeepLast", &KeepLastType}, {"Slots", &SlotsType}, {"Route", &RouteType}, {"Routes", &RoutesType},
+  };
+  size_t i;
+  PyObject * m;
+  for (i = 0; i < sizeof(types) / sizeof(types[0]); ++i) {
+    if (PyType_Ready(types[i].type) < 0) {
+      return NULL;
+    }
+  }
+  m = PyModule_Create(&module);
+  if (m == NULL) {
+    return NULL;
+  }
+  for (i = 0; i < sizeof(types) / sizeof(types[0]); ++i) {
+    Py_INCREF(types[i].type);
+    if (PyModule_AddObject(m, types[i].name, (PyObject *)types[i].type) < 0) {
+      Py_DECREF(types[i].type);
+      Py_DECREF(m);
+      return NULL;
+    }
+  }
+  if (PyModule_AddIntConstant(m, "SUBSCRIPTION", KIND_SUBSCRIPTION) < 0 ||
+      PyModule_AddIntConstant(m, "CLIENT", KIND_CLIENT) < 0 ||
+      PyModule_AddIntConstant(m, "SERVICE", KIND_SERVICE) < 0 ||
+      PyModule_AddIntConstant(m, "EVENT", KIND_EVENT) < 0 ||
+      PyModule_AddIntConstant(m, "DRAIN", (long)DRAIN) < 0) {
+    Py_DECREF(m);
+    return NULL;
+  }
+  return m;
+}

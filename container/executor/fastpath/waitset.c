@@ -1,0 +1,294 @@
+/* WaitSet: an rcl wait set over fixed entities, filled, waited on and read in one call (see module.c). */
+#include "fastpath.h"
+
+/* ------------------------------------------------------------------------ */
+enum { WS_SUBSCRIPTIONS, WS_GUARDS, WS_TIMERS, WS_CLIENTS, WS_SERVICES, WS_EVENTS, WS_KINDS };
+
+typedef struct {
+  PyObject_HEAD
+  rcl_wait_set_t wait_set;
+  int initialised;
+  void ** entities[WS_KINDS];
+  size_t counts[WS_KINDS];
+  NotifierObject * notifier; /* told when each wait ends at the latest, or NULL */
+} WaitSetObject;
+
+static int addresses(PyObject * sequence, void *** out, size_t * count)
+{
+  PyObject * fast = PySequence_Fast(sequence, "entities must be a sequence of handle addresses");
+  Py_ssize_t i, n;
+  if (fast == NULL) {
+    return -1;
+  }
+  n = PySequence_Fast_GET_SIZE(fast);
+  *out = calloc(n > 0 ? (size_t)n : 1, sizeof(void *));
+  if (*out == NULL) {
+    Py_DECREF(fast);
+    PyErr_NoMemory();
+    return -1;
+  }
+  for (i = 0; i < n; ++i) {
+    unsigned long long address = PyLong_AsUnsignedLongLong(PySequence_Fast_GET_ITEM(fast, i));
+    if (PyErr_Occurred()) {
+      Py_DECREF(fast);
+      return -1;
+    }
+    if (address == 0) {
+      Py_DECREF(fast);
+      PyErr_SetString(PyExc_ValueError, "a handle address is 0");
+      return -1;
+    }
+    (*out)[i] = (void *)(uintptr_t)address;
+  }
+  *count = (size_t)n;
+  Py_DECREF(fast);
+  return 0;
+}
+
+static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs)
+{
+  static char * keywords[] = {
+    "context", "subscriptions", "guard_conditions", "timers", "clients", "services", "events", "notifier",
+    NULL};
+  unsigned long long context;
+  PyObject * notifier = Py_None;
+  PyObject * given[WS_KINDS] = {NULL, NULL, NULL, NULL, NULL, NULL};
+  PyObject * empty;
+  rcl_ret_t ret;
+  int kind;
+  if (self->initialised) {
+    PyErr_SetString(PyExc_RuntimeError, "WaitSet is initialised once");
+    return -1;
+  }
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwargs, "K|$OOOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
+      &given[WS_TIMERS], &given[WS_CLIENTS], &given[WS_SERVICES], &given[WS_EVENTS], &notifier))
+  {
+    return -1;
+  }
+  if (notifier != Py_None && !PyObject_TypeCheck(notifier, &NotifierType)) {
+    PyErr_SetString(PyExc_TypeError, "notifier must be a Notifier or None");
+    return -1;
+  }
+  if (context == 0) {
+    PyErr_SetString(PyExc_ValueError, "context must be an rcl context's address");
+    return -1;
+  }
+  empty = PyTuple_New(0);
+  if (empty == NULL) {
+    return -1;
+  }
+  for (kind = 0; kind < WS_KINDS; ++kind) {
+    if (addresses(given[kind] != NULL ? given[kind] : empty, &self->entities[kind], &self->counts[kind]) < 0) {
+      Py_DECREF(empty);
+      return -1;
+    }
+  }
+  Py_DECREF(empty);
+  self->wait_set = rcl_get_zero_initialized_wait_set();
+  ret = rcl_wait_set_init(
+    &self->wait_set, self->counts[WS_SUBSCRIPTIONS], self->counts[WS_GUARDS], self->counts[WS_TIMERS],
+    self->counts[WS_CLIENTS], self->counts[WS_SERVICES], self->counts[WS_EVENTS],
+    (rcl_context_t *)(uintptr_t)context, rcl_get_default_allocator());
+  if (ret != RCL_RET_OK) {
+    rcl_failed("rcl_wait_set_init");
+    return -1;
+  }
+  if (notifier != Py_None) {
+    Py_INCREF(notifier);
+    self->notifier = (NotifierObject *)notifier;
+  }
+  self->initialised = 1;
+  return 0;
+}
+
+static void WaitSet_dealloc(WaitSetObject * self)
+{
+  int kind;
+  if (self->initialised && rcl_wait_set_fini(&self->wait_set) != RCL_RET_OK) {
+    rcl_reset_error();
+  }
+  for (kind = 0; kind < WS_KINDS; ++kind) {
+    free(self->entities[kind]);
+  }
+  Py_XDECREF(self->notifier);
+  Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static rcl_ret_t fill(WaitSetObject * self)
+{
+  rcl_wait_set_t * ws = &self->wait_set;
+  rcl_ret_t ret = rcl_wait_set_clear(ws);
+  size_t i;
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_SUBSCRIPTIONS]; ++i) {
+    ret = rcl_wait_set_add_subscription(ws, self->entities[WS_SUBSCRIPTIONS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_GUARDS]; ++i) {
+    ret = rcl_wait_set_add_guard_condition(ws, self->entities[WS_GUARDS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_TIMERS]; ++i) {
+    ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_CLIENTS]; ++i) {
+    ret = rcl_wait_set_add_client(ws, self->entities[WS_CLIENTS][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_SERVICES]; ++i) {
+    ret = rcl_wait_set_add_service(ws, self->entities[WS_SERVICES][i], NULL);
+  }
+  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_EVENTS]; ++i) {
+    ret = rcl_wait_set_add_event(ws, self->entities[WS_EVENTS][i], NULL);
+  }
+  return ret;
+}
+
+/* The ready entities of one kind, as a list of addresses. */
+static PyObject * ready_of(const void * const * slots, size_t count)
+{
+  PyObject * list = PyList_New(0);
+  size_t i;
+  if (list == NULL) {
+    return NULL;
+  }
+  for (i = 0; i < count; ++i) {
+    if (slots[i] != NULL) {
+      PyObject * address = PyLong_FromUnsignedLongLong((unsigned long long)(uintptr_t)slots[i]);
+      if (address == NULL || PyList_Append(list, address) < 0) {
+        Py_XDECREF(address);
+        Py_DECREF(list);
+        return NULL;
+      }
+      Py_DECREF(address);
+    }
+  }
+  return list;
+}
+
+/* When an rcl_wait with this timeout (ns, negative: none) returns at the
+ * latest, on CLOCK_MONOTONIC: rcl_wait's own rule (the timeout or the soonest
+ * timer, skipping cancelled timers and ROS-time timers under a time
+ * override, which only their clock's jumps wake); LLONG_MAX when unknown. */
+static long long wake_deadline(WaitSetObject * self, long long timeout)
+{
+  long long soonest = timeout >= 0 ? timeout : LLONG_MAX;
+  size_t i;
+  for (i = 0; i < self->counts[WS_TIMERS]; ++i) {
+    const rcl_timer_t * timer = self->entities[WS_TIMERS][i];
+    rcl_clock_t * clock = NULL;
+    int64_t until = 0;
+    rcl_ret_t ret = rcl_timer_clock((rcl_timer_t *)timer, &clock);
+    if (ret == RCL_RET_OK && clock->type == RCL_ROS_TIME) {
+      bool overridden = false;
+      ret = rcl_is_enabled_ros_time_override(clock, &overridden);
+      if (ret == RCL_RET_OK && overridden) {
+        continue;
+      }
+    }
+    if (ret == RCL_RET_OK) {
+      ret = rcl_timer_get_time_until_next_call(timer, &until);
+    }
+    if (ret == RCL_RET_TIMER_CANCELED) {
+      rcl_reset_error();
+      continue;
+    }
+    if (ret != RCL_RET_OK) {
+      rcl_reset_error();
+      return LLONG_MAX;
+    }
+    if (until < soonest) {
+      soonest = until > 0 ? until : 0;
+    }
+  }
+  return soonest == LLONG_MAX ? LLONG_MAX : monotonic_ns() + soonest;
+}
+
+/* The longest a poll may hold the GIL in rcl_wait, should its guard
+ * condition not be in the wait set after all (destroyed at shutdown). */
+#define POLL_HOLD_MAX_NS 1000000LL
+
+long long poll_timeout(long long timeout)
+{
+  return timeout < 0 || timeout > POLL_HOLD_MAX_NS ? POLL_HOLD_MAX_NS : timeout;
+}
+
+/* wait(timeout_ns, poll=False). A poll (a wait whose guard condition is
+ * already triggered, so rcl_wait returns at once) keeps the GIL. Released
+ * for those few microseconds, once a millisecond while a chain of callbacks
+ * runs, it wakes a thread waiting for it (a lane's worker, the watchdog),
+ * which loses the race to take it back and starts its wait for a forced
+ * switch (sys.getswitchinterval()) all over again: a plain 20 Hz timer beside
+ * a busy chain ran 0-12 times in 4 s instead of 80. Kept, the waiting
+ * thread's switch interval runs out and CPython hands the GIL over. A poll
+ * waits at most POLL_HOLD_MAX_NS, whatever its timeout. */
+static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py_ssize_t nargs)
+{
+  long long timeout;
+  int poll = 0;
+  rcl_wait_set_t * ws = &self->wait_set;
+  rcl_ret_t ret;
+  if (nargs < 1 || nargs > 2) {
+    PyErr_SetString(PyExc_TypeError, "wait(timeout_ns, poll=False)");
+    return NULL;
+  }
+  timeout = PyLong_AsLongLong(args[0]);
+  if (timeout == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  if (nargs == 2 && (poll = PyObject_IsTrue(args[1])) < 0) {
+    return NULL;
+  }
+  if (!self->initialised) {
+    PyErr_SetString(PyExc_RuntimeError, "WaitSet not initialised");
+    return NULL;
+  }
+  ret = fill(self);
+  if (ret == RCL_RET_OK && poll) {
+    ret = rcl_wait(ws, (int64_t)poll_timeout(timeout));
+  } else if (ret == RCL_RET_OK) {
+    /* Only a carrier's publish reads it (on_event). */
+    NotifierObject * told = atomic_load(&carriers_exist) ? self->notifier : NULL;
+    Py_BEGIN_ALLOW_THREADS
+    if (told != NULL) {
+      atomic_store(&told->wake_by, wake_deadline(self, timeout));
+    }
+    ret = rcl_wait(ws, (int64_t)timeout);
+    if (told != NULL) {
+      atomic_store(&told->wake_by, LLONG_MAX);
+    }
+    Py_END_ALLOW_THREADS
+  }
+  if (ret == RCL_RET_TIMEOUT) {
+    /* Nothing ready: rcl cleared every slot. */
+    return Py_BuildValue("()");
+  }
+  if (ret != RCL_RET_OK) {
+    return rcl_failed("rcl_wait");
+  }
+  return Py_BuildValue(
+    "(NNNNNN)",
+    ready_of((const void * const *)ws->subscriptions, ws->size_of_subscriptions),
+    ready_of((const void * const *)ws->guard_conditions, ws->size_of_guard_conditions),
+    ready_of((const void * const *)ws->timers, ws->size_of_timers),
+    ready_of((const void * const *)ws->clients, ws->size_of_clients),
+    ready_of((const void * const *)ws->services, ws->size_of_services),
+    ready_of((const void * const *)ws->events, ws->size_of_events));
+}
+
+static PyMethodDef WaitSet_methods[] = {
+  {"wait", (PyCFunction)(void (*)(void))WaitSet_wait, METH_FASTCALL,
+   "wait(timeout_ns, poll=False) -> () on timeout, else the ready addresses: (subscriptions, guard_conditions, "
+   "timers, clients, services, events)"},
+  {NULL, NULL, 0, NULL},
+};
+
+PyTypeObject WaitSetType = {
+  PyVarObject_HEAD_INIT(NULL, 0)
+  .tp_name = "container.executor._fastpath.WaitSet",
+  .tp_doc = "An rcl wait set over fixed entities: fill, wait and read in one call.",
+  .tp_basicsize = sizeof(WaitSetObject),
+  .tp_flags = Py_TPFLAGS_DEFAULT,
+  .tp_new = PyType_GenericNew,
+  .tp_init = (initproc)WaitSet_init,
+  .tp_dealloc = (destructor)WaitSet_dealloc,
+  .tp_methods = WaitSet_methods,
+};
+

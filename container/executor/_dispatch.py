@@ -90,7 +90,8 @@ from ._fastpath import (
     Work,
 )
 from ._fastpath import WaitSet as FastWaitSet
-from ._lanes import Lane, Post, Retired
+from ._hooks import ExecutorHooks
+from ._lanes import Lane, Retired
 from ._message_info import HAS_PUBLISHER_GID
 
 if TYPE_CHECKING:
@@ -193,11 +194,10 @@ _EVENT_SKIP_MAX_NS = 50_000_000
 #: keep arriving (ns): timers and guard conditions are looked at least this often.
 _POLL_MAX_NS = 1_000_000
 
-#: Entity kinds of the loop's wait set, and of the other thread's (none
-#: now: services and clients are event-driven too, so requests are taken
-#: and answered on the loop's thread without a hop).
-_HOT = ("subscription", "timer", "client", "guard_condition", "service")
-_COLD: tuple[str, ...] = ()
+#: Entity kinds, all in the loop's wait set (services and clients are
+#: event-driven too, so requests are taken and answered on the loop's thread
+#: without a hop); the other thread's wait set serves generic waitables only.
+_KINDS = ("subscription", "timer", "client", "guard_condition", "service")
 
 #: What the notifier watches instead of waiting, by entity kind.
 _WATCHED = {"subscription": SUBSCRIPTION, "service": SERVICE, "client": CLIENT}
@@ -275,7 +275,7 @@ class _WaitSet:
         table = _Table()
         held = table.held
         extra = NumberOfEntities()
-        for kind in _HOT + _COLD:
+        for kind in _KINDS:
             table.by_pointer[kind] = {}
             table.handles[kind] = []
         table.by_pointer["event"] = {}
@@ -761,41 +761,38 @@ class Dispatcher:
     has its own thread, started by :meth:`start`.
     """
 
+    #: Lanes' workers carry on to the plain callbacks their publishes reach (:class:`LaneHooks`).
+    carries = True
+
     def __init__(
         self,
         *,
         context: Context,
-        nodes: Callable[[], Iterable[Node]],
-        own_guards: Callable[[], Iterable[tuple[GuardCondition, int]]],
         loop: asyncio.AbstractEventLoop,
-        post: Post,
+        hooks: ExecutorHooks,
         reentrant_limit: int,
         future_executor: Executor,
-        on_error: ErrorHandler,
-        on_done: Callable[[], None],
-        done_waiters: Sized,
-        on_response: Callable[[], None],
-        progress: Callable[[], asyncio.Future[None]],
-        wake: Callable[[], None],
         loop_waits: bool = True,
     ) -> None:
         self.context = context
         #: Whether the loop's own thread waits in rcl (the executor's loop);
         #: on a loop of the user's (``spin_async``) a waiter thread does.
         self._loop_waits = loop_waits
+        # The executor's hooks, bound once: several are called per callback.
         #: Triggers one of the executor's guard conditions in the hot wait set.
-        self._wake = wake
-        self._nodes = nodes
+        self._wake = hooks.wake
+        self._nodes = hooks.nodes
         self._loop = loop
-        self._post = post
+        self._post = hooks.post
         self._reentrant_limit = reentrant_limit
         self._future_executor = future_executor
-        self._on_error = on_error
-        self._on_done = on_done
+        self._on_error = hooks.report_error
+        self._on_done = hooks.callback_completed
         #: ``on_done`` matters only while this is non-empty (the C path skips it otherwise).
-        self._done_waiters = done_waiters
-        self._on_response = on_response
-        self._progress = progress
+        self._done_waiters = hooks.done_waiters
+        self._on_response = hooks.response_arrived
+        self._progress = hooks.progress
+        own_guards = hooks.own_guards
         self._lanes: dict[int, tuple[CallbackGroup, Lane]] = {}
         self._lanes_lock = threading.Lock()
         #: Entity (or node) id -> (the object, its token); see ``_token``.
@@ -808,11 +805,11 @@ class Dispatcher:
         # whether its lane admitted it already (else: as it starts).
         self._eager: collections.deque[tuple[Lane, Work, bool]] = collections.deque()
         self._hot = _WaitSet(
-            self, kinds=_HOT, takes_waitable=_is_hot_waitable, own_guards=own_guards
+            self, kinds=_KINDS, takes_waitable=_is_hot_waitable, own_guards=own_guards
         )
         self._cold = _WaitSet(
             self,
-            kinds=_COLD,
+            kinds=(),
             takes_waitable=lambda waitable: not _is_hot_waitable(waitable),
             own_guards=lambda: [(self._cold_wake, WOKEN)],
         )
@@ -899,7 +896,7 @@ class Dispatcher:
     def loop_thread(self) -> int | None:
         return self._loop_thread
 
-    def _on_loop_thread(self) -> bool:
+    def on_loop_thread(self) -> bool:
         return threading.get_ident() == self._loop_thread
 
     # -- entities ---------------------------------------------------------------
@@ -922,7 +919,7 @@ class Dispatcher:
     def members(node: Node) -> tuple[object, ...]:
         """What of ``node`` the wait sets collect: the same members, the same wait sets."""
         found: list[object] = []
-        for kind in _HOT + _COLD:
+        for kind in _KINDS:
             found += _entities_of(node, kind)
         found += list(node.waitables)
         return tuple(found)
@@ -966,7 +963,7 @@ class Dispatcher:
             self._run_eager()
             flags = 0
         else:
-            if self._eager and self._on_loop_thread():
+            if self._eager and self.on_loop_thread():
                 timeout_ns = 0  # a poll, then that work runs
             flags = self._wait_and_dispatch_once(timeout_ns)
         if not flags and self._dispatching_burst():
@@ -985,7 +982,7 @@ class Dispatcher:
         return self.relieving or bool(self._eager) or not hot.poll_is_recent() or hot.ready_without_wait()
 
     def _dispatching_burst(self) -> bool:
-        return self._on_loop_thread() and not self.relieving
+        return self.on_loop_thread() and not self.relieving
 
     def expressing(self) -> bool:
         """Whether async work taken now may start on the C path (``Express``):
@@ -995,7 +992,7 @@ class Dispatcher:
     def _wait_and_dispatch_once(self, timeout_ns: int) -> int:
         if self._hot.dirty:
             self._retire_lanes()
-        eager = self._on_loop_thread()
+        eager = self.on_loop_thread()
         if eager:
             self.busy_since = None
             if self.relieving:
@@ -1021,7 +1018,7 @@ class Dispatcher:
             else:
                 lane.run_express(work)
 
-    def _defer_eager(self, lane: Lane, work: Work) -> bool:
+    def defer(self, lane: Lane, work: Work) -> bool:
         """Keep async ``work`` (submitted on the loop thread) to start eagerly.
 
         During a dispatch it starts once the wait set's lock is released;
@@ -1073,6 +1070,19 @@ class Dispatcher:
             return True
         del self._set_aside[id(waitable)]  # another object at a reused address
         return False
+
+    # -- what lanes ask of the dispatcher (LaneHooks) ---------------------------
+    def post(self, callback: Callable[..., object], *args: Any) -> None:
+        self._post(callback, *args)
+
+    def progress(self) -> asyncio.Future[None]:
+        return self._progress()
+
+    def carry(self) -> None:
+        self._hot.carry()
+
+    def suspended(self) -> None:
+        self._on_done()
 
     # -- express: the C path's hand-overs (see ``_fastpath.Express``) -----------------
     def express(self, notifier: Notifier, wait_set: _WaitSet) -> Express:
@@ -1135,7 +1145,7 @@ class Dispatcher:
         nodes = self.nodes()
         live = {id(node) for node in nodes}
         for node in nodes:
-            for kind in _HOT + _COLD:
+            for kind in _KINDS:
                 live.update(id(entity) for entity in _entities_of(node, kind))
             live.update(id(waitable) for waitable in list(node.waitables))
         with self._tokens_lock:
@@ -1368,17 +1378,7 @@ class Dispatcher:
                 return found[1]
             limit = self._reentrant_limit if isinstance(group, ReentrantCallbackGroup) else 1
             owner = node.get_fully_qualified_name() if node is not None else "executor"
-            lane = Lane(
-                name=f"{owner}:{type(group).__name__}",
-                limit=limit,
-                loop=self._loop,
-                on_loop_thread=self._on_loop_thread,
-                post=self._post,
-                progress=self._progress,
-                defer=self._defer_eager,
-                carry=self._hot.carry,
-                on_suspend=self._on_done,
-            )
+            lane = Lane(name=f"{owner}:{type(group).__name__}", limit=limit, loop=self._loop, hooks=self)
             self._lanes[key] = (group, lane)
             return lane
 
@@ -1510,7 +1510,7 @@ def _entities_of(node: Node, kind: str) -> list[Any]:
 
 def _groups_of(nodes: Iterable[Node]) -> Iterator[CallbackGroup]:
     for node in nodes:
-        for kind in _HOT + _COLD:
+        for kind in _KINDS:
             for entity in _entities_of(node, kind):
                 yield entity.callback_group
         for waitable in list(node.waitables):

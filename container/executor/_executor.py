@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import atexit
-import collections
 import contextlib
 import enum
 import functools
@@ -44,6 +43,7 @@ from .._errors import ExecutorError
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._dispatch import WOKEN, Dispatcher, describe, format_error
 from ._fastpath import Work
+from ._inbox import Inbox, Post
 from ._lanes import Lane
 from ._selector import RclSelector
 from ._watchdog import LoopWatchdog
@@ -148,13 +148,10 @@ class AsyncioExecutor(Executor):
         # watcher), a hand-over arrived in the inbox. Each guard condition in
         # the wait set costs on every single wait.
         self._selector = RclSelector(wake=self._guard_trigger)
-        # Hand-overs from other threads to the owned loop: a deque and the
-        # guard condition, one wake-up instead of call_soon_threadsafe's three
-        # (self-pipe, fd watcher, guard condition).
-        self._inbox: collections.deque[tuple[Callable[..., object], tuple[Any, ...]]] = (
-            collections.deque()
-        )
         self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
+        #: Every hand-over to a loop's thread: to the owned loop, one guard
+        #: trigger instead of call_soon_threadsafe's three wake-ups.
+        self._inbox = Inbox(loop=self._loop, wake=self._guard_trigger)
         self._loop.set_task_factory(self._make_task)
         self._running_loop: asyncio.AbstractEventLoop | None = None
         self._completion_waiters: list[asyncio.Future[None]] = []
@@ -229,7 +226,7 @@ class AsyncioExecutor(Executor):
             dispatcher.retire(node)
         elif self.loop.is_running():
             dispatcher.invalidate()
-            self._post_to(self.loop, dispatcher.retire, node)
+            self._inbox.post_to(self.loop, dispatcher.retire, node)
         else:
             # Nobody spins: rclpy.spin_once(node, executor=...) adds and
             # removes the node around every call. The next spin retires it
@@ -364,7 +361,7 @@ class AsyncioExecutor(Executor):
                 _settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
 
-            begin = functools.partial(self._post_to, self.loop, run)
+            begin = functools.partial(self._inbox.post_to, self.loop, run)
         if self._dispatcher.admit(result, 1 << 16, begin):
             begin()
         self._notify_progress()
@@ -395,9 +392,9 @@ class AsyncioExecutor(Executor):
             # Suspended after its first step, it counts as run (spin_once), as in rclpy.
             task = loop.create_task(self.adapt(contained(coro), on_suspend=self._callback_completed))
             task.add_done_callback(finished)
-            result.stop_with(functools.partial(self._call_soon, loop, task.cancel))
+            result.stop_with(functools.partial(self._inbox.call_soon, loop, task.cancel))
 
-        return functools.partial(self._call_soon, loop, start)
+        return functools.partial(self._inbox.call_soon, loop, start)
 
     def _task_done(self, work: Work, error: BaseException | None) -> None:
         self._callback_completed()
@@ -444,18 +441,12 @@ class AsyncioExecutor(Executor):
             if is_async:
                 settle(error)
             else:
-                self._post_to(loop, settle, error)
+                self._inbox.post_to(loop, settle, error)
 
         lane = self._dispatcher.lane_for(group, node)
         token = self._dispatcher.node_token(node) if node is not None else None
         lane.submit(Work(call, capture, is_async, 1 << 16, done, token))
         return outcome
-
-    def _post_to(self, loop: asyncio.AbstractEventLoop, callback: Callable[..., object], *args: Any) -> None:
-        if loop is self._loop:
-            self._post(callback, *args)
-        else:
-            loop.call_soon_threadsafe(callback, *args)
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
         """Stop running callbacks, wait for running ones, release resources.
@@ -680,29 +671,16 @@ class AsyncioExecutor(Executor):
 
     def _make_dispatcher(self, loop: asyncio.AbstractEventLoop) -> Dispatcher:
         return Dispatcher(
-            post=self._post if loop is self._loop else _threadsafe_poster(loop),
             context=self.context,
-            nodes=self.get_nodes,
-            own_guards=self._own_guards,
             loop=loop,
+            hooks=_DispatcherHooks(self, self._inbox.poster(loop)),
             reentrant_limit=self._reentrant_limit,
             future_executor=self,
-            on_error=self._report_error,
-            on_done=self._callback_completed,
-            done_waiters=self._completion_waiters,
-            on_response=self._notify_progress,
-            progress=self._progress_future,
-            wake=self._guard_trigger,
             loop_waits=loop is self._loop,
         )
 
     def _own_guards(self) -> list[tuple[Any, int]]:
         return [(guard, WOKEN) for guard in executor_guards(self)]
-
-    def _post(self, callback: Callable[..., object], *args: Any) -> None:
-        """Run ``callback(*args)`` on the owned loop's thread soon (any thread)."""
-        self._inbox.append((callback, args))
-        self._guard_trigger()
 
     def _ros_turn_due(self) -> bool:
         # Hand-overs from other threads (the inbox) run after a wait.
@@ -710,10 +688,7 @@ class AsyncioExecutor(Executor):
 
     def _wait(self, timeout_ns: int) -> int:
         flags = self._dispatcher.wait_and_dispatch(timeout_ns)
-        inbox = self._inbox
-        while inbox:
-            callback, args = inbox.popleft()
-            callback(*args)
+        self._inbox.run()
         # Shutdown of the context and SIGINT both trigger one of our guards.
         if flags & WOKEN and not self.context.ok():
             self._signal_stopped()
@@ -797,7 +772,7 @@ class AsyncioExecutor(Executor):
             if not stopped.done():
                 stopped.set_result(None)
 
-        self._call_soon(stopped.get_loop(), settle)
+        self._inbox.call_soon(stopped.get_loop(), settle)
         self._guard_trigger()
 
     def _guard_trigger(self) -> None:
@@ -817,28 +792,12 @@ class AsyncioExecutor(Executor):
     def _notify_progress(self) -> None:
         progress = self._progress
         if progress is not None and not progress.done():
-            self._call_soon(progress.get_loop(), _resolve, progress)
+            self._inbox.call_soon(progress.get_loop(), _resolve, progress)
 
     def _callback_completed(self) -> None:
         if self._completion_waiters:
             for waiter in list(self._completion_waiters):
-                self._call_soon(waiter.get_loop(), _resolve, waiter)
-
-    def _call_soon(
-        self, loop: asyncio.AbstractEventLoop, callback: Callable[..., object], *args: Any
-    ) -> None:
-        if loop.is_closed():
-            return
-        if self._dispatcher_on_loop_thread(loop):
-            loop.call_soon(callback, *args)
-        else:
-            loop.call_soon_threadsafe(callback, *args)
-
-    def _dispatcher_on_loop_thread(self, loop: asyncio.AbstractEventLoop) -> bool:
-        try:
-            return asyncio.get_running_loop() is loop
-        except RuntimeError:
-            return False
+                self._inbox.call_soon(waiter.get_loop(), _resolve, waiter)
 
     def _report_error(self, node: Node, entity: object, error: BaseException) -> None:
         if isinstance(error, asyncio.CancelledError):
@@ -852,12 +811,7 @@ class AsyncioExecutor(Executor):
             self._refuse_if_closed("create a task")
             if self._task_lane is None:
                 self._task_lane = Lane(
-                    name="executor:tasks",
-                    limit=self._reentrant_limit,
-                    loop=self.loop,
-                    on_loop_thread=lambda: False,
-                    post=self._post,
-                    progress=self._progress_future,
+                    name="executor:tasks", limit=self._reentrant_limit, loop=self.loop, hooks=_TaskLaneHooks(self)
                 )
             return self._task_lane
 
@@ -884,11 +838,44 @@ class AsyncioExecutor(Executor):
         return True
 
 
-def _threadsafe_poster(loop: asyncio.AbstractEventLoop) -> Callable[..., None]:
-    def post(callback: Callable[..., object], *args: Any) -> None:
-        loop.call_soon_threadsafe(callback, *args)
+class _TaskLaneHooks:
+    """What the lane of plain tasks (:meth:`AsyncioExecutor.create_task` with a
+    plain callable) asks of the executor (:class:`LaneHooks`): it starts
+    nothing eagerly and carries nothing on."""
 
-    return post
+    carries = False
+
+    def __init__(self, executor: AsyncioExecutor) -> None:
+        self.post = executor._inbox.post
+        self.progress = executor._progress_future
+
+    def on_loop_thread(self) -> bool:
+        return False
+
+    def defer(self, lane: Lane, work: Work) -> bool:
+        return False
+
+    def carry(self) -> None:
+        pass
+
+    def suspended(self) -> None:
+        pass
+
+
+class _DispatcherHooks:
+    """The executor as a dispatcher sees it (:class:`ExecutorHooks`), posting through ``post``."""
+
+    def __init__(self, executor: AsyncioExecutor, post: Post) -> None:
+        self.done_waiters = executor._completion_waiters
+        # Bound methods as attributes: the dispatcher calls several per callback.
+        self.nodes = executor.get_nodes
+        self.own_guards = executor._own_guards
+        self.post = post
+        self.report_error = executor._report_error
+        self.callback_completed = executor._callback_completed
+        self.response_arrived = executor._notify_progress
+        self.progress = executor._progress_future
+        self.wake = executor._guard_trigger
 
 
 def _resolve(future: asyncio.Future[None]) -> None:

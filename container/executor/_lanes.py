@@ -51,18 +51,9 @@ from typing import Any
 from .._compat import enter_task, leave_task
 from ._bridge import drive
 from ._fastpath import Lock, Runner, Slots, Work, mark_carrier
+from ._hooks import LaneHooks
 
 __all__: list[str] = []
-
-#: Runs ``callback(*args)`` on the event loop's thread soon; callable from any thread.
-Post = Callable[..., None]
-
-#: Takes async work to start eagerly after the current wait, or declines it
-#: (returns ``False``) when no wait is being dispatched on this thread.
-Defer = Callable[["Lane", "Work"], bool]
-
-#: Takes what plain callbacks are reported ready for, submitting it to lanes.
-Carry = Callable[[], None]
 
 
 class _Carrier(threading.local):
@@ -111,28 +102,25 @@ class Lane:
         name: str,
         limit: int,
         loop: asyncio.AbstractEventLoop,
-        on_loop_thread: Callable[[], bool],
-        post: Post,
-        progress: Callable[[], asyncio.Future[None]],
-        defer: Defer | None = None,
-        carry: Carry | None = None,
-        on_suspend: Callable[[], object] | None = None,
+        hooks: LaneHooks,
     ) -> None:
         self.name = name
-        self._defer = defer
+        self._hooks = hooks
+        # Bound once: called per callback.
+        self._defer = hooks.defer
         #: Told when an async callback's first step suspends: rclpy's
         #: ``spin_once`` counts a coroutine callback as run at that point.
-        self._on_suspend = on_suspend
+        self._on_suspend = hooks.suspended
         #: What every callback's context is a copy of: the context the lane
         #: was made in (the spinning thread's), as asyncio tasks copy the
         #: context they are created in. What one callback sets in a
         #: ContextVar is not the next one's.
         self._context = contextvars.copy_context()
-        self._carry = carry
-        self._post = post
-        self._progress = progress
+        self._carries = hooks.carries
+        self._post = hooks.post
+        self._progress = hooks.progress
         self._loop = loop
-        self._on_loop_thread = on_loop_thread
+        self._on_loop_thread = hooks.on_loop_thread
         #: The admission state (running, limit, waiting work, idle runners),
         #: which the compiled path reads too; its lock guards the rest here.
         self._slots = Slots(limit)
@@ -222,7 +210,7 @@ class Lane:
             else:
                 self._hand_to_thread(work)
         elif self._on_loop_thread():
-            if self._defer is None or not self._defer(self, work):
+            if not self._defer(self, work):
                 self._hand_to_runner(work)
         else:
             self._post(self._hand_to_runner, work)
@@ -244,15 +232,15 @@ class Lane:
             thread.start()
 
     def _worker(self) -> None:
-        if self._carry is not None:
+        if self._carries:
             mark_carrier()  # its publishes to plain callbacks need not wake the loop
         while True:
             work = self._inbox.get()
             if work is None:
                 return
             self._run_plain(work)
-            if self._carry is not None:
-                self._carry_on(self._carry)
+            if self._carries:
+                self._carry_on(self._hooks.carry)
             with self._lock:
                 if self._closed:
                     return
@@ -276,7 +264,7 @@ class Lane:
                 nxt = None
             work = nxt
 
-    def _carry_on(self, carry: Carry) -> None:
+    def _carry_on(self, carry: Callable[[], None]) -> None:
         """Run, on this worker thread, plain work its callbacks' publishes made ready."""
         with self._lock:
             self._away += 1
@@ -403,8 +391,7 @@ class Lane:
             if not done:
                 assert resume is not None
                 self._finish_in(runner, resume)
-                if self._on_suspend is not None:
-                    self._on_suspend()
+                self._on_suspend()
                 return
             item.done(item, error)
             item = self._next_pending(item)

@@ -1,33 +1,17 @@
-"""The rcl side of the executor: cached wait sets, take, hand to lanes.
+"""The dispatcher: wait sets, lanes and the gate, put together for one loop.
 
-rclpy's own executors rebuild the wait set in Python on every iteration
-(re-collecting every entity of every node); measured here that is most of
-their cost. The dispatcher collects entities only when they change (rclpy
-nodes call ``executor.wake()`` whenever one is created or destroyed) and
-otherwise just re-adds the cached handles before each wait, since ``rcl_wait``
-clears the slots of entities that were not ready.
-
-Entities are split over two wait sets. The *hot* one (subscriptions,
-timers, services, clients, guard conditions, QoS event handlers) is served
-by the event loop's thread; of those, subscriptions, services, clients and
-QoS events are not waited on at all but reported by rmw's new-data
-callbacks (the notifier), so that every node's seven parameter and
-type-description services cost the wait nothing (re-adding them before
-every wait was a quarter of a ping-pong round trip) and a request is taken
-and answered in the loop's own turn. The *cold* one (other waitables such
-as action servers, whose entities rclpy's Waitable API adds itself) is
-waited on by a thread of its own.
-
-Everything that becomes ready is *taken at once* and handed to its callback
-group's lane. rcl wait sets are level-triggered, so an entity left untaken
-would wake the next wait immediately; taking eagerly and bounding what is
-pending per entity (see ``_lanes``) avoids both the busy loop and a wait-set
-rebuild whenever a group becomes busy or idle.
+The *hot* wait set (see ``_waitset``) is served by the event loop's thread:
+subscriptions, timers, services, clients, guard conditions and QoS event
+handlers. The *cold* one (other waitables such as action servers, whose
+entities rclpy's Waitable API adds itself) is waited on by a thread of its
+own. What they take is handed to the entity's callback group's lane
+(``_lanes``), through the spin_once gate (``_gate``); async work taken on the
+loop thread starts eagerly right after the wait that found it.
 
 On the loop thread, a chain of ``async def`` subscription callbacks (one
-node's callback publishing to another's) runs in C (``_fastpath.Express``):
-this module gives it the routes (``_Table.express``) and takes back every
-case but the common one (``Dispatcher._express_*``, ``Lane.express_*``).
+node's callback publishing to another's) runs in C (``_fastpath.Express``),
+which hands back every case but the common one (``Dispatcher._express_*``,
+``Lane.express_*``).
 """
 
 from __future__ import annotations
@@ -38,67 +22,41 @@ import contextlib
 import contextvars
 import functools
 import inspect
-import itertools
 import logging
 import threading
 import time
-import traceback
 import weakref
-from collections.abc import Callable, Iterable, Iterator, Sized
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
-from rclpy.event_handler import EventHandler
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile
-from rclpy.waitable import NumberOfEntities
 
 from .._compat import (
-    WaitSet,
-    adopt_future,
-    callback_attribute,
     enter_task,
-    event_handle,
-    fire_timer,
     leave_task,
-    loop_is_idle,
     loop_ready_queue,
-    mark_event_ready,
-    set_event_index,
     subscription_wants_info,
-    timer_info_parameter,
-    waitable_futures,
 )
-from . import _fastpath
-from ._answers import respond
+from ._entries import KINDS, WOKEN, Entry, describe, entities_of, express_work, format_error
 from ._fastpath import (
-    CLIENT,
-    EVENT,
-    SERVICE,
-    SUBSCRIPTION,
     Express,
-    KeepLast,
-    Lock,
     Notifier,
-    Route,
-    Routes,
-    Taker,
     Token,
     Work,
 )
-from ._fastpath import WaitSet as FastWaitSet
+from ._gate import Gate
 from ._hooks import ExecutorHooks
 from ._lanes import Lane, Retired
-from ._message_info import HAS_PUBLISHER_GID
+from ._waitset import EntityWaitSet, is_hot_waitable
 
 if TYPE_CHECKING:
     from rclpy.context import Context
     from rclpy.executors import Executor
 
-__all__: list[str] = []
+__all__ = ["WOKEN", "Dispatcher", "describe", "format_error"]
 
 _log = logging.getLogger(__name__)
 
@@ -106,651 +64,6 @@ _log = logging.getLogger(__name__)
 _COALESCED = 1
 #: Pending items kept for a waitable (action goals, QoS events): never drop.
 _WAITABLE_DEPTH = 1 << 16
-#: Empty takes a keep-all client goes through before its reader counts as
-#: drained (see ``Dispatcher.take_response``).
-_KEEP_ALL_DRAINED = 1024
-
-#: What :meth:`Dispatcher.wait_and_dispatch` returns when one of the
-#: executor's own guard conditions fired.
-WOKEN = 1
-
-ErrorHandler = Callable[["Node", object, BaseException], None]
-
-
-@dataclass(slots=True)
-class _Entry:
-    """An entity with what dispatching it needs, computed once per change."""
-
-    entity: Any
-    node: Node
-    lane: Lane
-    is_async: bool
-    depth: int
-    done: Callable[[Work, BaseException | None], None]
-    token: Token
-    #: Takes the subscription's messages in C (``None``: rclpy's take, e.g. raw).
-    taker: Taker | None = None
-    #: A subscription whose callback takes ``(message, message_info)``.
-    wants_info: bool = False
-
-
-@dataclass(slots=True)
-class _Table:
-    """The entities one wait set waits on, collected once per change."""
-
-    by_pointer: dict[str, dict[int, _Entry]] = field(default_factory=dict)
-    handles: dict[str, list[Any]] = field(default_factory=dict)
-    own_guards: dict[int, int] = field(default_factory=dict)
-    #: QoS event handlers, added through their event handle directly.
-    events: list[tuple[Any, _Entry]] = field(default_factory=list)
-    #: Any other waitable (actions), through the generic Waitable API.
-    waitables: list[_Entry] = field(default_factory=list)
-    held: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
-    wait_set: Any = None
-    #: The compiled wait set, where every entity is known by address (no
-    #: generic waitable, no QoS event left to the wait set).
-    fast: FastWaitSet | None = None
-    #: Subscriptions whose messages :class:`Express` takes and runs, by
-    #: handle address (see :func:`_route`).
-    express: dict[int, Route] = field(default_factory=dict)
-    #: Timers whose calls and callbacks :class:`Express` makes, by handle address.
-    express_timers: dict[int, Route] = field(default_factory=dict)
-    #: Subscription entries by the subscription object's ``id`` (intra-process
-    #: deliveries look theirs up on every message: no handle address to read).
-    subscriptions: dict[int, _Entry] = field(default_factory=dict)
-
-
-def describe(entity: object) -> str:
-    """Name an entity the way a ROS user would recognise it in a log."""
-    # Work the executor runs for a node itself (a transition) is the callable.
-    callback = getattr(entity, "callback", entity)
-    name = getattr(callback, "__qualname__", None) or repr(callback)
-    for attribute, kind in (("topic_name", "subscription"), ("srv_name", "service")):
-        value = getattr(entity, attribute, None)
-        if isinstance(value, str):
-            return f"{kind} {value!r} callback {name}"
-    return f"{type(entity).__name__.lower()} callback {name}"
-
-
-def format_error(entity: object, error: BaseException) -> str:
-    details = "".join(traceback.format_exception(error)).rstrip()
-    return f"{describe(entity)} raised {type(error).__name__}: {error}\n{details}"
-
-
-def _is_hot_waitable(waitable: object) -> bool:
-    """Whether a waitable belongs to the hot wait set: QoS event handlers.
-
-    Their events reach the hot wait set's notifier through rmw's event
-    callbacks (or, where rmw has none for an event type, the hot wait set
-    waits on them every ``_EVENT_SKIP_MAX_NS``); nothing of theirs costs a wait.
-    """
-    return isinstance(waitable, EventHandler)
-
-
-#: Longest time without QoS events in the wait set (ns); see :meth:`_WaitSet._events_due_in`.
-_EVENT_SKIP_MAX_NS = 50_000_000
-
-#: Longest time the hot wait set goes without an ``rcl_wait`` while messages
-#: keep arriving (ns): timers and guard conditions are looked at least this often.
-_POLL_MAX_NS = 1_000_000
-
-#: Entity kinds, all in the loop's wait set (services and clients are
-#: event-driven too, so requests are taken and answered on the loop's thread
-#: without a hop); the other thread's wait set serves generic waitables only.
-_KINDS = ("subscription", "timer", "client", "guard_condition", "service")
-
-#: What the notifier watches instead of waiting, by entity kind.
-_WATCHED = {"subscription": SUBSCRIPTION, "service": SERVICE, "client": CLIENT}
-
-
-class _WaitSet:
-    """One rcl wait set over some kinds of entity, used by one thread at a time."""
-
-    def __init__(
-        self,
-        dispatcher: Dispatcher,
-        *,
-        kinds: tuple[str, ...],
-        takes_waitable: Callable[[Any], bool],
-        own_guards: Callable[[], Iterable[tuple[GuardCondition, int]]],
-    ) -> None:
-        self._dispatcher = dispatcher
-        self._kinds = kinds
-        self._takes_waitable = takes_waitable
-        self._own_guards = own_guards
-        self._table = _Table()
-        #: The express routes of the table, and whether it is stale (dirty) or
-        #: closed: what the compiled path reads of this wait set.
-        self._routes = Routes()
-        #: Held by the thread in ``rcl_wait`` (one at a time per wait set).
-        self._lock = threading.Lock()
-        #: Held while taking and while the table changes: a lane's worker
-        #: thread takes (``carry``) while the loop thread sleeps in rcl.
-        self._take_lock = Lock()
-        #: When the next wait must include the QoS events (monotonic ns).
-        self._events_next = 0
-        #: New-message callbacks instead of waiting on subscriptions (hot only).
-        self._notifier: Notifier | None = None
-        self._notifier_guard: GuardCondition | None = None
-        #: Takes and runs reported ``async def`` subscription callbacks in C.
-        self._express: Express | None = None
-        if "subscription" in kinds:
-            self._notifier_guard = GuardCondition(
-                callback=None, callback_group=None, context=dispatcher.context
-            )
-            self._notifier = Notifier(guard=self._notifier_guard.handle.pointer)
-            if isinstance(self._notifier, _fastpath.Notifier):  # not a stand-in (tests)
-                self._express = dispatcher.express(self._notifier, self)
-        #: When timers and guard conditions were last looked at (monotonic ns):
-        #: as a wait returns, which reports what was ready then.
-        self._polled = 0
-        #: Handle addresses the notifier calls back for (their handles held).
-        self._watched: set[int] = set()
-        #: How many times this wait set entered ``rcl_wait`` (tests, diagnostics).
-        self.waits = 0
-
-    def invalidate(self) -> None:
-        self._routes.dirty = True
-
-    @property
-    def dirty(self) -> bool:
-        """Whether the entities changed since the table was collected."""
-        return self._routes.dirty
-
-    @property
-    def routes(self) -> Routes:
-        return self._routes
-
-    def take_rest(self, reported: list[tuple[int, int]]) -> None:
-        """Take what the compiled path found reported but has no route for (under the take lock)."""
-        self._take_ready(self._table, reported)
-
-    @property
-    def take_lock(self) -> Lock:
-        return self._take_lock
-
-    def _rebuild(self) -> None:
-        self._routes.dirty = False
-        dispatcher = self._dispatcher
-        table = _Table()
-        held = table.held
-        extra = NumberOfEntities()
-        for kind in _KINDS:
-            table.by_pointer[kind] = {}
-            table.handles[kind] = []
-        table.by_pointer["event"] = {}
-        notifier = self._notifier
-        for node in dispatcher.nodes():
-            for kind in self._kinds:
-                for entity in _entities_of(node, kind):
-                    if _hold(held, entity.handle):
-                        entry = dispatcher.entry(entity, node, kind)
-                        table.by_pointer[kind][entity.handle.pointer] = entry
-                        if kind == "subscription":
-                            table.subscriptions[id(entity)] = entry
-                        watched = _WATCHED.get(kind)
-                        if watched is None or not self._watch(
-                            entity.handle.pointer, watched, plain=kind == "subscription" and not entry.is_async
-                        ):
-                            # Not event-driven (an rmw without new-data callbacks): waited on.
-                            table.handles[kind].append(entity.handle)
-                            if (
-                                kind == "timer"
-                                and entry.is_async
-                                and self._express is not None
-                                and timer_info_parameter(entity.callback) is None
-                            ):
-                                table.express_timers[entity.handle.pointer] = _route(entity.handle.pointer, entry)
-                        elif kind == "subscription" and not entity.raw:
-                            entry.taker = taker = _taker(entity)
-                            if taker is not None and entry.is_async and not entry.wants_info:
-                                table.express[entity.handle.pointer] = _route(taker, entry)
-            for waitable in list(node.waitables):
-                if not self._takes_waitable(waitable) or dispatcher.is_set_aside(waitable):
-                    continue
-                event = event_handle(waitable)
-                where = "__enter__()"
-                try:
-                    if not _hold(held, waitable):
-                        continue
-                    where = "get_num_entities()"
-                    counts = waitable.get_num_entities() if event is None else None
-                except Exception as error:  # a waitable's own code: never the executor's end
-                    dispatcher.set_aside(waitable, node, where, error)
-                    continue
-                entry = dispatcher.entry(waitable, node, "waitable")
-                if event is not None:
-                    if notifier is not None and self._watch(event.pointer, EVENT):
-                        table.by_pointer["event"][event.pointer] = entry
-                    else:
-                        table.events.append((event, entry))
-                else:
-                    assert counts is not None  # get_num_entities() ran: no event handle
-                    table.waitables.append(entry)
-                    extra += counts
-        guards = table.handles["guard_condition"]
-        own = list(self._own_guards())
-        if self._notifier_guard is not None:
-            own.append((self._notifier_guard, 0))
-        for gc, flag in own:
-            if _hold(held, gc.handle):
-                table.own_guards[gc.handle.pointer] = flag
-                guards.append(gc.handle)
-        context = dispatcher.context
-        held.enter_context(context.handle)  # type: ignore[arg-type]
-        if not table.waitables and not table.events:
-            handles = table.handles
-            context_handle: Any = context.handle  # rclpy's typing omits its address
-            table.fast = FastWaitSet(
-                context_handle.pointer,
-                subscriptions=[handle.pointer for handle in handles["subscription"]],
-                guard_conditions=[handle.pointer for handle in guards],
-                timers=[handle.pointer for handle in handles["timer"]],
-                clients=[handle.pointer for handle in handles["client"]],
-                services=[handle.pointer for handle in handles["service"]],
-                # Told how long each wait may last: a carrier's publish need not wake it.
-                notifier=self._notifier if isinstance(self._notifier, _fastpath.Notifier) else None,
-            )
-        else:
-            table.wait_set = WaitSet(
-                len(table.handles["subscription"]) + extra.num_subscriptions,
-                len(guards) + extra.num_guard_conditions,
-                len(table.handles["timer"]) + extra.num_timers,
-                len(table.handles["client"]) + extra.num_clients,
-                len(table.handles["service"]) + extra.num_services,
-                len(table.events) + extra.num_events,
-                context.handle,
-            )
-        old, self._table = self._table, table
-        self._routes.subscriptions = table.express
-        self._routes.timers = table.express_timers
-        if notifier is not None:
-            # Entities gone stop calling back before their handles are let go.
-            live = set().union(*(table.by_pointer[kind].keys() for kind in (*_WATCHED, "event")))
-            for pointer in self._watched - live:
-                notifier.unwatch(pointer)
-            self._watched &= live
-        old.held.close()
-
-    def _watch(self, pointer: int, kind: int, *, plain: bool = False) -> bool:
-        """Have rmw report new data of the entity at ``pointer``; ``False`` where it cannot
-        (no notifier, or an rmw without that callback: the entity is then waited on).
-
-        :param plain: its callback is plain: a worker thread may take it (:meth:`carry`).
-        """
-        if self._notifier is None:
-            return False
-        try:
-            self._notifier.watch(pointer, kind, plain)
-        except NotImplementedError:
-            return False
-        except RuntimeError as exc:
-            _log.warning("rmw refused a new-data callback (%s); waiting on the entity instead", exc)
-            return False
-        self._watched.add(pointer)
-        return True
-
-    def wait_and_dispatch(self, timeout_ns: int) -> int:
-        """Block in rcl until something is ready (or timeout) and dispatch it.
-
-        :return: the flags of the executor's own guards that fired.
-        """
-        with self._lock:
-            if self._routes.closed:
-                return WOKEN
-            try:
-                if self._routes.dirty:
-                    with self._take_lock:
-                        self._rebuild()
-                return self._wait_and_dispatch(self._table, timeout_ns)
-            except Exception:
-                self._routes.dirty = True
-                if not self._dispatcher.context.ok():
-                    # rclpy.shutdown() while spinning: handles went invalid
-                    # under us; the executor stops, nothing to report.
-                    return WOKEN
-                # Whatever went wrong stays ready (rcl wait sets are
-                # level-triggered) and is tried again; the executor lives on.
-                _log.exception("dispatching ROS work failed")
-                return WOKEN
-
-    def burst(
-        self, loop: asyncio.AbstractEventLoop, eager: Sized, run_eager: Callable[[], None], *, express: bool
-    ) -> None:
-        """Take what the notifier reports and run it, without waiting, for as
-        long as asyncio has nothing to run and no wait is due (timers and
-        guard conditions looked at within ``_POLL_MAX_NS``).
-
-        The hot path of a chain of callbacks in one process: one call per
-        round, the checks inlined.
-        """
-        notifier = self._notifier
-        fast = self._express if express else None
-        monotonic_ns = time.monotonic_ns
-        routes = self._routes
-        while loop_is_idle(loop) and not routes.dirty and monotonic_ns() - self._polled < _POLL_MAX_NS:
-            if notifier is not None and notifier.pending():
-                if fast is not None:
-                    try:
-                        if fast.drain(self._polled + _POLL_MAX_NS):
-                            continue  # it ran what it took, and the eager work after
-                    except Exception:
-                        self._taking_failed()
-                        continue
-                with self._take_lock:
-                    if self._routes.closed or self._routes.dirty:
-                        return
-                    try:
-                        self._take_ready(self._table, notifier.ready())
-                    except Exception:
-                        self._taking_failed()
-            elif not eager:
-                return
-            run_eager()
-
-    def _wait_and_dispatch(self, table: _Table, timeout_ns: int) -> int:
-        notifier = self._notifier
-        if notifier is not None and notifier.pending():
-            if self.poll_is_recent():
-                # Messages are ready and timers were looked at just now:
-                # take them without a wait (no attach, no detach, no syscall).
-                with self._take_lock:
-                    self._take_ready(table, notifier.ready())
-                return 0
-            timeout_ns = 0
-        if table.fast is not None:
-            return self._wait_fast(table, table.fast, notifier, timeout_ns)
-        wait_set = table.wait_set
-        handles = table.handles
-        dispatcher = self._dispatcher
-        wait_set.clear_entities()
-        add = wait_set.add_subscription
-        for handle in handles["subscription"]:
-            add(handle)
-        add = wait_set.add_guard_condition
-        for handle in handles["guard_condition"]:
-            add(handle)
-        add = wait_set.add_timer
-        for handle in handles["timer"]:
-            add(handle)
-        add = wait_set.add_client
-        for handle in handles["client"]:
-            add(handle)
-        add = wait_set.add_service
-        for handle in handles["service"]:
-            add(handle)
-        due_in = self._events_due_in() if table.events else 0
-        events = table.events if due_in == 0 else ()
-        if events:
-            add = wait_set.add_event
-            indices = [add(event) for event, _ in events]
-        elif table.events and not 0 <= timeout_ns <= due_in:
-            # Blocking without the events: the next wait (with them) comes soon.
-            timeout_ns = due_in
-        for entry in table.waitables:
-            try:
-                entry.entity.add_to_wait_set(wait_set)
-            except Exception as error:
-                dispatcher.set_aside(entry.entity, entry.node, "add_to_wait_set()", error)
-                timeout_ns = 0  # rebuilt without it at once
-        timeout_ns, poll = self._before_wait(notifier, timeout_ns)
-        try:
-            if poll:
-                # rclpy's wait lets go of the GIL even for a poll: see WaitSet_wait in fastpath/waitset.c.
-                _fastpath.poll(wait_set.pointer, timeout_ns)
-            else:
-                wait_set.wait(timeout_ns)
-        finally:
-            self._waited(notifier)
-        if self._routes.closed:
-            return WOKEN
-
-        def ready(kind: str) -> list[int]:
-            return wait_set.get_ready_entities(kind) if handles[kind] else []
-
-        with self._take_lock:
-            flags = self._dispatch_ready(
-                table,
-                notifier,
-                guards=wait_set.get_ready_entities("guard_condition"),
-                timers=ready("timer"),
-                subscriptions=ready("subscription"),
-                clients=ready("client"),
-                services=ready("service"),
-            )
-            if events:
-                is_ready = wait_set.is_ready
-                for index, (_, entry) in zip(indices, events, strict=True):
-                    if is_ready("event", index):
-                        # Hand over to rclpy's own handler for the rare ready path.
-                        set_event_index(entry.entity, index)
-                        if entry.entity.is_ready(wait_set):
-                            dispatcher.take_waitable(entry)
-            for entry in table.waitables:
-                try:
-                    ready_now = entry.entity.is_ready(wait_set)
-                except Exception as error:
-                    dispatcher.set_aside(entry.entity, entry.node, "is_ready()", error)
-                    continue
-                if ready_now:
-                    dispatcher.take_waitable(entry)
-        return flags
-
-    def _before_wait(self, notifier: Notifier | None, timeout_ns: int) -> tuple[int, bool]:
-        """Arm the notifier and count the wait: the timeout to wait with, and
-        whether the wait is a poll (a guard condition already triggered)."""
-        poll = False
-        if notifier is not None and notifier.arm():
-            timeout_ns = 0
-        if timeout_ns == 0 and self._notifier_guard is not None:
-            # A wait with a zero timeout costs ~90 us here (Fast DDS sleeps on
-            # its condition variable until the timeout, plus the kernel's timer
-            # slack); with a guard condition already triggered it returns at
-            # once (~5 us) and still reports everything else that is ready.
-            self._notifier_guard.trigger()
-            timeout_ns, poll = _EVENT_SKIP_MAX_NS, True
-        self.waits += 1
-        return timeout_ns, poll
-
-    def _waited(self, notifier: Notifier | None) -> None:
-        """Back from ``rcl_wait``: what it reported is what was ready now.
-
-        A burst of callbacks right after a long wait (a timer's callback
-        publishing to another node) may then run without another wait.
-        """
-        self._polled = time.monotonic_ns()
-        if notifier is not None:
-            notifier.disarm()
-
-    def _wait_fast(self, table: _Table, fast: FastWaitSet, notifier: Notifier | None, timeout_ns: int) -> int:
-        """:meth:`_wait_and_dispatch` on the compiled wait set: one call fills, waits and reads it."""
-        timeout_ns, poll = self._before_wait(notifier, timeout_ns)
-        try:
-            # A poll keeps the GIL: see WaitSet_wait in fastpath/waitset.c.
-            ready = fast.wait(timeout_ns, poll)
-        finally:
-            self._waited(notifier)
-        if self._routes.closed:
-            return WOKEN
-        with self._take_lock:
-            if not ready:  # timed out
-                return self._dispatch_ready(table, notifier)
-            subscriptions, guards, timers, clients, services, _ = ready
-            return self._dispatch_ready(
-                table,
-                notifier,
-                guards=guards,
-                timers=timers,
-                subscriptions=subscriptions,
-                clients=clients,
-                services=services,
-            )
-
-    def _dispatch_ready(
-        self,
-        table: _Table,
-        notifier: Notifier | None,
-        *,
-        guards: Iterable[int] = (),
-        timers: Iterable[int] = (),
-        subscriptions: Iterable[int] = (),
-        clients: Iterable[int] = (),
-        services: Iterable[int] = (),
-    ) -> int:
-        """Hand what a wait found ready, and what the notifier reported, to lanes.
-
-        Ready addresses that are not in the table belong to waitables (an
-        action server's services, a custom waitable's guard condition): the
-        waitable itself finds and takes them.
-
-        :return: the flags of the executor's own guards that fired.
-        """
-        dispatcher = self._dispatcher
-        by_pointer = table.by_pointer
-        flags = 0
-        for pointer in guards:
-            own = table.own_guards.get(pointer)
-            if own is not None:
-                flags |= own
-            elif (guard := by_pointer["guard_condition"].get(pointer)) is not None:
-                dispatcher.submit(guard, guard.entity.callback, ())
-        entries = by_pointer["timer"]
-        if timers and table.express_timers and dispatcher.expressing():
-            assert self._express is not None  # routes are made only with it
-            # Called here, under the locks; their callbacks run once released.
-            timers = self._express.call_timers(table.express_timers, timers)
-        for pointer in timers:
-            if (timer := entries.get(pointer)) is not None:
-                dispatcher.take_timer(timer)
-        if notifier is not None:
-            self._take_ready(table, notifier.ready())
-        entries = by_pointer["subscription"]
-        for pointer in subscriptions:
-            if (subscription := entries.get(pointer)) is not None:
-                dispatcher.take_messages(subscription, 1)
-        entries = by_pointer["client"]
-        for pointer in clients:
-            if (client := entries.get(pointer)) is not None:
-                dispatcher.take_response(client)
-        entries = by_pointer["service"]
-        for pointer in services:
-            if (service := entries.get(pointer)) is not None:
-                dispatcher.take_request(service)
-        return flags
-
-    def carry(self) -> None:
-        """Take, on a lane's worker thread, what plain callbacks are reported ready for.
-
-        Called by a worker that just ran a plain callback: what that callback
-        published to this process's other plain subscriptions is taken here
-        and the next callback runs on this same thread (see ``Lane``), instead
-        of the loop thread waking to hand it to yet another thread: a plain
-        ping-pong costs no thread switch. Left to the loop (which the
-        notifier woke anyway) while the table is being rebuilt.
-        """
-        notifier = self._notifier
-        if notifier is None or not self._take_lock.acquire(blocking=False):
-            # Whoever takes now (the loop, another worker) takes this too:
-            # waiting here would only line threads up behind the lock.
-            return
-        try:
-            if not self._routes.closed and not self._routes.dirty:
-                self._take_ready(self._table, notifier.carry())
-        except Exception:
-            self._taking_failed()
-        finally:
-            self._take_lock.release()
-
-    def ready_without_wait(self) -> bool:
-        """Whether messages wait to be taken and the next ``rcl_wait`` is not due yet."""
-        notifier = self._notifier
-        return notifier is not None and notifier.pending() and self.poll_is_recent()
-
-    def poll_is_recent(self) -> bool:
-        """Whether timers and guard conditions were looked at less than ``_POLL_MAX_NS`` ago."""
-        return time.monotonic_ns() - self._polled < _POLL_MAX_NS and not self._routes.dirty
-
-    def entry_of(self, subscription: Any) -> _Entry | None:
-        """The current entry of ``subscription`` (``None``: not collected, or collecting)."""
-        if self._routes.dirty:
-            return None
-        entry = self._table.subscriptions.get(id(subscription))
-        return entry if entry is not None and entry.entity is subscription else None
-
-    def _take_ready(self, table: _Table, reported: list[tuple[int, int]]) -> None:
-        """Take what the notifier reported: every message of the subscriptions
-        that had new data, every request and response waiting, and the QoS
-        events that fired."""
-        by_pointer = table.by_pointer
-        subscriptions = by_pointer["subscription"]
-        dispatcher = self._dispatcher
-        take = dispatcher.take_messages
-        for pointer, count in reported:
-            if (subscription := subscriptions.get(pointer)) is not None:
-                take(subscription, count)
-            elif (service := by_pointer["service"].get(pointer)) is not None:
-                dispatcher.take_request(service)
-            elif (client := by_pointer["client"].get(pointer)) is not None:
-                dispatcher.take_response(client, count)
-            elif (event := by_pointer["event"].get(pointer)) is not None:
-                mark_event_ready(event.entity)
-                dispatcher.take_waitable(event)
-
-    def _taking_failed(self) -> None:
-        """A take outside a wait raised: rebuild before the next wait; log unless shutting down."""
-        self._routes.dirty = True
-        if self._dispatcher.context.ok():
-            _log.exception("dispatching ROS work failed")
-
-    def _events_due_in(self) -> int:
-        """Nanoseconds until a wait must include the QoS events again (0: this one).
-
-        Every publisher and subscription carries QoS event handlers (rclpy
-        adds incompatible-QoS and incompatible-type ones by default): ten
-        nodes bring sixty of them, and Fast DDS attaches and detaches every
-        entity of a wait set on every wait, which measured here was most of
-        an idle-ish executor's CPU. Events are rare and level-triggered (a
-        ready one stays ready until taken), so they are waited on at most
-        every ``_EVENT_SKIP_MAX_NS``: a QoS event is seen within 50 ms.
-        """
-        now = time.monotonic_ns()
-        left = self._events_next - now
-        if left > 0:
-            return left
-        self._events_next = now + _EVENT_SKIP_MAX_NS
-        return 0
-
-    def settle(self, *, timeout: float) -> None:
-        """Wait until no thread is inside this wait set (it was woken first)."""
-        if self._lock.acquire(timeout=timeout):
-            self._lock.release()
-
-    def close(self, *, timeout: float) -> None:
-        """Release every handle, once no thread waits any more.
-
-        A thread still inside ``rcl_wait`` holds the lock; whoever calls this
-        has woken it first through one of its own guard conditions.
-        """
-        self._routes.closed = True
-        if self._lock.acquire(timeout=max(timeout, 0.1)):
-            self._take_lock.acquire()
-            try:
-                notifier = self._notifier
-                if notifier is not None:
-                    for pointer in self._watched:
-                        notifier.unwatch(pointer)
-                    self._watched.clear()
-                    notifier.close()
-                self._table.held.close()
-                self._table = _Table()
-                self._routes.subscriptions = {}
-                self._routes.timers = {}
-                if self._notifier_guard is not None:
-                    self._notifier_guard.destroy()
-                    self._notifier_guard = None
-            finally:
-                self._take_lock.release()
-                self._lock.release()
 
 
 class Dispatcher:
@@ -785,12 +98,14 @@ class Dispatcher:
         self._loop = loop
         self._post = hooks.post
         self._reentrant_limit = reentrant_limit
-        self._future_executor = future_executor
+        #: Whose futures the responses complete (rclpy's ``Future._set_executor``).
+        self.future_executor = future_executor
         self._on_error = hooks.report_error
         self._on_done = hooks.callback_completed
         #: ``on_done`` matters only while this is non-empty (the C path skips it otherwise).
         self._done_waiters = hooks.done_waiters
-        self._on_response = hooks.response_arrived
+        #: A client's response was taken (the takes call it).
+        self.response_arrived = hooks.response_arrived
         self._progress = hooks.progress
         own_guards = hooks.own_guards
         self._lanes: dict[int, tuple[CallbackGroup, Lane]] = {}
@@ -804,13 +119,13 @@ class Dispatcher:
         # wait set's lock is released (see ``Lane.run_eager``), each with
         # whether its lane admitted it already (else: as it starts).
         self._eager: collections.deque[tuple[Lane, Work, bool]] = collections.deque()
-        self._hot = _WaitSet(
-            self, kinds=_KINDS, takes_waitable=_is_hot_waitable, own_guards=own_guards
+        self._hot = EntityWaitSet(
+            self, kinds=KINDS, takes_waitable=is_hot_waitable, own_guards=own_guards
         )
-        self._cold = _WaitSet(
+        self._cold = EntityWaitSet(
             self,
             kinds=(),
-            takes_waitable=lambda waitable: not _is_hot_waitable(waitable),
+            takes_waitable=lambda waitable: not is_hot_waitable(waitable),
             own_guards=lambda: [(self._cold_wake, WOKEN)],
         )
         self._cold_thread: threading.Thread | None = None
@@ -821,14 +136,8 @@ class Dispatcher:
         self.busy_since: float | None = None
         #: Whether another thread (the loop watchdog) waits in the loop's place.
         self.relieving = False
-        #: How many more callbacks may start (``None``: no limit); see :meth:`admit`.
-        self._permits: int | None = 0
-        #: Work taken while no permit was left: its starts, keep-last per entity.
-        self._held = KeepLast()
-        #: Whether a spin holds the gate open (``limit`` other than 0): a
-        #: permit given back after the spin returned must not start anything.
-        self._gate_open = False
-        self._gate_lock = threading.Lock()
+        #: How many callbacks may start (``spin_once``); see :class:`Gate`.
+        self.gate = Gate()
         #: Waitables whose own code raised (see :meth:`set_aside`), by identity.
         self._set_aside: dict[int, weakref.ref[object] | object] = {}
 
@@ -919,12 +228,12 @@ class Dispatcher:
     def members(node: Node) -> tuple[object, ...]:
         """What of ``node`` the wait sets collect: the same members, the same wait sets."""
         found: list[object] = []
-        for kind in _KINDS:
-            found += _entities_of(node, kind)
+        for kind in KINDS:
+            found += entities_of(node, kind)
         found += list(node.waitables)
         return tuple(found)
 
-    def entry(self, entity: Any, node: Node, kind: str) -> _Entry:
+    def entry(self, entity: Any, node: Node, kind: str) -> Entry:
         if kind == "waitable":
             is_async, depth = True, _WAITABLE_DEPTH
         elif kind == "subscription":
@@ -938,7 +247,7 @@ class Dispatcher:
             is_async, depth = False, 1
         else:
             is_async, depth = inspect.iscoroutinefunction(entity.callback), _COALESCED
-        return _Entry(
+        return Entry(
             wants_info=kind == "subscription" and subscription_wants_info(entity),
             entity=entity,
             node=node,
@@ -950,7 +259,7 @@ class Dispatcher:
         )
 
     def wait_and_dispatch(self, timeout_ns: int) -> int:
-        """Wait on the hot wait set and dispatch; see :class:`_WaitSet`.
+        """Wait on the hot wait set and dispatch; see :class:`EntityWaitSet`.
 
         On the loop thread, messages that the callbacks just run published to
         this process's other subscriptions are taken and run in the same call,
@@ -967,7 +276,7 @@ class Dispatcher:
                 timeout_ns = 0  # a poll, then that work runs
             flags = self._wait_and_dispatch_once(timeout_ns)
         if not flags and self._dispatching_burst():
-            self._hot.burst(self._loop, self._eager, self._run_eager, express=self._permits is None)
+            self._hot.burst(self._loop, self._eager, self._run_eager, express=self.gate.permits is None)
         return flags
 
     def ros_turn_due(self) -> bool:
@@ -987,7 +296,7 @@ class Dispatcher:
     def expressing(self) -> bool:
         """Whether async work taken now may start on the C path (``Express``):
         on the loop thread, nobody relieving it, no ``spin_once`` gate."""
-        return self._permits is None and self._dispatching_burst()
+        return self.gate.permits is None and self._dispatching_burst()
 
     def _wait_and_dispatch_once(self, timeout_ns: int) -> int:
         if self._hot.dirty:
@@ -1085,7 +394,7 @@ class Dispatcher:
         self._on_done()
 
     # -- express: the C path's hand-overs (see ``_fastpath.Express``) -----------------
-    def express(self, notifier: Notifier, wait_set: _WaitSet) -> Express:
+    def express(self, notifier: Notifier, wait_set: EntityWaitSet) -> Express:
         """The C path that takes and runs ``notifier``'s async subscriptions of
         ``wait_set``, and calls and runs its async timers."""
         return Express(
@@ -1108,20 +417,20 @@ class Dispatcher:
             cancelled_error=asyncio.CancelledError,
         )
 
-    def _work(self, entry: _Entry, message: object) -> Work:
+    def _work(self, entry: Entry, message: object) -> Work:
         """The work of a message the C path took (``None``: of a timer it called)."""
-        return _express_work(entry, () if message is None else (message,))
+        return express_work(entry, () if message is None else (message,))
 
-    def _express_slow(self, entry: _Entry, message: object) -> None:
+    def _express_slow(self, entry: Entry, message: object) -> None:
         """A message the C path took whose lane cannot start it there (busy, locked, no idle runner)."""
         entry.lane.run_express(self._work(entry, message))
 
     def _express_suspended(
-        self, entry: _Entry, message: object, runner: Any, coro: Any, yielded: Any, context: contextvars.Context
+        self, entry: Entry, message: object, runner: Any, coro: Any, yielded: Any, context: contextvars.Context
     ) -> None:
         entry.lane.express_suspended(runner, self._work(entry, message), coro, yielded, context)
 
-    def _express_failed(self, entry: _Entry, message: object, error: BaseException | None) -> None:
+    def _express_failed(self, entry: Entry, message: object, error: BaseException | None) -> None:
         entry.lane.express_finished(self._work(entry, message), error)
 
     # -- tokens: which work may still start ----------------------------------------
@@ -1145,8 +454,8 @@ class Dispatcher:
         nodes = self.nodes()
         live = {id(node) for node in nodes}
         for node in nodes:
-            for kind in _KINDS:
-                live.update(id(entity) for entity in _entities_of(node, kind))
+            for kind in KINDS:
+                live.update(id(entity) for entity in entities_of(node, kind))
             live.update(id(waitable) for waitable in list(node.waitables))
         with self._tokens_lock:
             gone = [key for key in self._tokens if key not in live]
@@ -1170,121 +479,9 @@ class Dispatcher:
         """``node``'s work that started and has not finished."""
         return [work for lane in self.lanes() for work in lane.running(node)]
 
-    # -- taking ---------------------------------------------------------------
-    def take_timer(self, entry: _Entry) -> None:
-        tmr = entry.entity
-        try:
-            with tmr.handle:
-                arguments = fire_timer(tmr)
-        except InvalidHandle:
-            return
-        if arguments is None:
-            return
-        if arguments:
-            self.submit(entry, functools.partial(tmr.callback, **arguments), ())
-        else:
-            self.submit(entry, tmr.callback, ())
-
-    def take_messages(self, entry: _Entry, count: int) -> None:
-        """Take up to ``count`` messages: what its new-data callbacks reported (fewer if
-        DDS dropped some), or one for a subscription a wait found ready."""
-        sub = entry.entity
-        callback = sub.callback
-        submit = self.submit
-        taker = entry.taker
-        with_info = entry.wants_info
-        if taker is None:
-            msg_type, raw = sub.msg_type, sub.raw
-            for _ in range(count):
-                taken = sub.handle.take_message(msg_type, raw)
-                if taken is None:
-                    return
-                submit(entry, callback, tuple(taken) if with_info else (taken[0],))
-        elif with_info:
-            for _ in range(count):
-                pair = taker.take_with_info()
-                if pair is None:
-                    return
-                submit(entry, callback, pair)
-        else:
-            for _ in range(count):
-                message = taker.take()
-                if message is None:
-                    return
-                submit(entry, callback, (message,))
-
-    def take_response(self, entry: _Entry, count: int = _fastpath.DRAIN) -> None:
-        """Take ``count`` times (what the new-response callbacks reported), or
-        every response waiting (a wait found the client ready; a fresh watch).
-
-        A client's reader receives the responses to every client of its
-        service, and a take of another client's response takes nothing
-        (rmw drops it): only a count of takes reaches this client's own
-        response behind those. Stopping at the first empty take left it in
-        the reader, with no callback to come: a caller among twenty waited
-        forever, about once in thirty runs. Without a count, an empty take
-        is either, so taking goes on until as many empty takes as the
-        reader holds responses.
-        """
-        cli = entry.entity
-        drain = count >= _fastpath.DRAIN
-        empty_left = _held_at_most(cli.qos_profile) if drain else 0
-        for _ in itertools.repeat(None) if drain else range(count):
-            try:
-                with cli.handle:
-                    header, response = cli.handle.take_response(cli.srv_type.Response)
-            except InvalidHandle:
-                return
-            if header is None:
-                if drain:
-                    empty_left -= 1
-                    if empty_left <= 0:
-                        return
-                continue  # another client's response (or, draining, none left)
-            try:
-                future = cli.get_pending_request(header.request_id.sequence_number)
-            except KeyError:
-                continue  # the caller cancelled the request
-            adopt_future(future, self._future_executor)
-            future.set_result(response)
-            self._on_response()
-
-    def take_request(self, entry: _Entry) -> None:
-        """Take every request waiting, each to be answered.
-
-        All at once, not one per wait: service requests sit in a keep-last
-        history (depth 10 by default), and twenty peers asking at once would
-        otherwise lose the oldest before their turn came.
-        """
-        srv = entry.entity
-        while True:
-            try:
-                with srv.handle:
-                    request, header = srv.handle.service_take_request(srv.srv_type.Request)
-            except InvalidHandle:
-                return
-            if header is None:
-                return
-            self.run(entry, _serving(srv, request, header, is_async=entry.is_async))
-
-    def take_waitable(self, entry: _Entry) -> None:
-        waitable = entry.entity
-        try:
-            data = waitable.take_data()
-        except Exception as error:
-            self.set_aside(waitable, entry.node, "take_data()", error)
-            return
-        for future in waitable_futures(waitable):
-            adopt_future(future, self._future_executor)
-
-        async def execute() -> None:
-            await waitable.execute(data)
-
-        self.run(entry, execute)
-
     # -- lanes ----------------------------------------------------------------
     def submit(
-        self, entry: _Entry, callback: Callable[..., Any], args: tuple[Any, ...], *, burst: bool | None = None
+        self, entry: Entry, callback: Callable[..., Any], args: tuple[Any, ...], *, burst: bool | None = None
     ) -> None:
         """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set).
 
@@ -1293,78 +490,21 @@ class Dispatcher:
         work = Work(entry.entity, callback, entry.is_async, entry.depth, entry.done, entry.token, args)
         if burst is None:
             burst = self._dispatching_burst()
-        if entry.is_async and burst and self._permits is None:
+        if entry.is_async and burst and self.gate.permits is None:
             # Taken on the loop thread while it dispatches: the lane admits
             # it when it starts, eagerly, right after (one call, not five).
             self._eager.append((entry.lane, work, False))
             return
-        if self._permits is None or self.admit(entry.entity, entry.depth, functools.partial(entry.lane.submit, work)):
+        gate = self.gate
+        if gate.permits is None or gate.admit(entry.entity, entry.depth, functools.partial(entry.lane.submit, work)):
             entry.lane.submit(work)
 
-    # -- the gate: how many callbacks may start (spin_once) ------------------------
-    def admit(self, entity: object, depth: int, start: Callable[[], None]) -> bool:
-        """Whether a callback may start now; if not, ``start`` is kept until it may.
-
-        Without a limit (``spin``) everything starts. Under ``spin_once`` one
-        callback starts per call, as in rclpy: what was taken meanwhile waits
-        here, bounded per entity by its depth like the rcl queue it came from.
-        """
-        with self._gate_lock:
-            permits = self._permits
-            if permits is None:
-                return True
-            if permits > 0:
-                self._permits = permits - 1
-                return True
-            self._held.push(start, entity, depth)
-            return False
-
-    def limit(self, permits: int | None) -> None:
-        """Let ``permits`` more callbacks start (``None``: any number), those held first.
-
-        Held work starts in the order it was taken; until the last of it has
-        started, work taken meanwhile (other threads deliver too) is held
-        behind it, so a subscription's messages never overtake each other.
-        """
-        left = permits
-        with self._gate_lock:
-            self._gate_open = permits != 0
-        while True:
-            with self._gate_lock:
-                if not self._held or left == 0:
-                    self._permits = left
-                    return
-                self._permits = 0
-                start = self._pop_held()
-                if left is not None:
-                    left -= 1
-            start()
-
-    def refund(self) -> None:
-        """Give back the permit of a callback that turned out to have nothing
-        to run (a task cancelled before its turn, work of a removed node):
-        under ``spin_once`` the next one starts instead, as rclpy passes
-        over what it will not run. Nothing once the spin has returned."""
-        with self._gate_lock:
-            if self._permits is None or not self._gate_open:
-                return
-            if not self._held:
-                self._permits += 1
-                return
-            start = self._pop_held()
-        start()
-
-    def _pop_held(self) -> Callable[[], None]:
-        """The oldest held work's start (under the gate lock)."""
-        start: Callable[[], None] = self._held.pop()
-        return start
-
-    def run(self, entry: _Entry, call: Callable[[], Any]) -> None:
+    def run(self, entry: Entry, call: Callable[[], Any]) -> None:
         self.submit(entry, call, ())
 
     def _done(self, node: Node, work: Work, error: BaseException | None) -> None:
         if isinstance(error, Retired):
-            self.refund()  # dropped, never started: nothing to report; the next runs
+            self.gate.refund()  # dropped, never started: nothing to report; the next runs
             return
         if error is not None:
             self._on_error(node, work.entity, error)
@@ -1437,90 +577,13 @@ class Dispatcher:
         return burst
 
 
-def _held_at_most(qos: QoSProfile) -> int:
-    """How many samples a reader with ``qos`` holds at most (keep-all: a bound of ours)."""
-    if qos.history == HistoryPolicy.KEEP_LAST and qos.depth > 0:
-        return int(qos.depth)
-    return _KEEP_ALL_DRAINED
-
-
-def _route(first: Any, entry: _Entry) -> Route:
-    """An express route of ``entry`` (see ``_Table.express``); ``first``: its taker or timer address."""
-    entity = entry.entity
-    lane = entry.lane
-    return Route(
-        first=first,
-        entry=entry,
-        lane=lane,
-        slots=lane.slots,
-        # The marker is what the runner carries, for the watchdog's report.
-        marker=_express_work(entry, ()),
-        entity=entity,
-        token=entry.token,
-        callback=callback_attribute(entity),
-    )
-
-
-def _express_work(entry: _Entry, args: tuple[Any, ...]) -> Work:
-    """Async work of ``entry``'s callback called with ``args``, as the C path runs it."""
-    entity = entry.entity
-    return Work(entity, entity.callback, True, entry.depth, entry.done, entry.token, args)
-
-
-def _taker(subscription: Any) -> Taker | None:
-    """A compiled take for ``subscription``; ``None`` (rclpy's take) for a type it cannot handle."""
-    try:
-        return Taker(
-            subscription=subscription.handle.pointer,
-            message_type=subscription.msg_type,
-            publisher_gid=HAS_PUBLISHER_GID,
-        )
-    except (AttributeError, TypeError, ValueError, MemoryError):
-        return None
-
-
-def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable[[], Any]:
-    """The call that runs a service callback on ``request`` and sends its answer."""
-    callback = srv.callback
-    response_type = srv.srv_type.Response
-    if is_async:
-
-        async def serve_async() -> None:
-            respond(srv, await callback(request, response_type()), header)
-
-        return serve_async
-
-    def serve() -> None:
-        respond(srv, callback(request, response_type()), header)
-
-    return serve
-
-
-def _entities_of(node: Node, kind: str) -> list[Any]:
-    if kind == "subscription":
-        return list(node.subscriptions)
-    if kind == "timer":
-        return list(node.timers)
-    if kind == "client":
-        return list(node.clients)
-    if kind == "service":
-        return list(node.services)
-    return list(node.guards)
-
 
 def _groups_of(nodes: Iterable[Node]) -> Iterator[CallbackGroup]:
     for node in nodes:
-        for kind in _KINDS:
-            for entity in _entities_of(node, kind):
+        for kind in KINDS:
+            for entity in entities_of(node, kind):
                 yield entity.callback_group
         for waitable in list(node.waitables):
             yield waitable.callback_group
 
 
-def _hold(stack: contextlib.ExitStack, handle: Any) -> bool:
-    """Keep ``handle`` alive while it sits in the wait set; skip destroyed ones."""
-    try:
-        stack.enter_context(handle)
-    except InvalidHandle:
-        return False
-    return True

@@ -356,13 +356,13 @@ class AsyncioExecutor(Executor):
 
             def run() -> None:
                 if result.cancelled():
-                    self._dispatcher.refund()
+                    self._dispatcher.gate.refund()
                     return
                 _settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
 
             begin = functools.partial(self._inbox.post_to, self.loop, run)
-        if self._dispatcher.admit(result, 1 << 16, begin):
+        if self._dispatcher.gate.admit(result, 1 << 16, begin):
             begin()
         self._notify_progress()
         return result
@@ -387,7 +387,7 @@ class AsyncioExecutor(Executor):
         def start() -> None:
             if result.cancelled():
                 coro.close()
-                self._dispatcher.refund()
+                self._dispatcher.gate.refund()
                 return
             # Suspended after its first step, it counts as run (spin_once), as in rclpy.
             task = loop.create_task(self.adapt(contained(coro), on_suspend=self._callback_completed))
@@ -595,11 +595,11 @@ class AsyncioExecutor(Executor):
             for node in removed:
                 owned.retire(node, sweep=False)
         self._dispatcher.start()
-        self._dispatcher.limit(permits)
+        self._dispatcher.gate.limit(permits)
         try:
             yield
         finally:
-            self._dispatcher.limit(0)
+            self._dispatcher.gate.limit(0)
             with self._state_changed:
                 foreign: Dispatcher | None = None
                 if self._dispatcher is not owned:

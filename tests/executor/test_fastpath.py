@@ -31,9 +31,9 @@ from std_msgs.msg import Int64
 from container import AsyncioExecutor
 from container._compat import WaitSet
 from container.executor import HAS_PUBLISHER_GID, _fastpath
-from container.executor._dispatch import _WaitSet
 from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, Taker
 from container.executor._fastpath import WaitSet as FastWaitSet
+from container.executor._waitset import EntityWaitSet
 
 TIMEOUT = 10.0
 
@@ -695,9 +695,9 @@ def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: G
 def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
     monkeypatch: pytest.MonkeyPatch, context: Context
 ) -> None:
-    from container.executor import _dispatch
+    from container.executor import _waitset
 
-    monkeypatch.setattr(_dispatch, "Notifier", _NoSubscriptionCallbacks)
+    monkeypatch.setattr(_waitset, "Notifier", _NoSubscriptionCallbacks)
     executor = AsyncioExecutor(context=context)
     talker, listener = Node("fp_nocb_pub", context=context), Node("fp_nocb_sub", context=context)
     got: list[int] = []
@@ -744,12 +744,12 @@ def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
     GIL whatever the timeout; polls go around it.
     """
     if wait_set == "rclpy":
-        watch = _WaitSet._watch
+        watch = EntityWaitSet._watch
 
-        def no_events(self: _WaitSet, pointer: int, kind: int, *, plain: bool = False) -> bool:
+        def no_events(self: EntityWaitSet, pointer: int, kind: int, *, plain: bool = False) -> bool:
             return kind != EVENT and watch(self, pointer, kind, plain=plain)
 
-        monkeypatch.setattr(_WaitSet, "_watch", no_events)
+        monkeypatch.setattr(EntityWaitSet, "_watch", no_events)
     a, b, c = (Node(f"fp_gil_{name}", context=context) for name in "abc")
     if wait_set == "rclpy":
         c.create_subscription(

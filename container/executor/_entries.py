@@ -1,0 +1,90 @@
+"""What the executor knows of each entity it serves, and how it names one in a log.
+
+An :class:`Entry` is computed once per change of a node's entities (not per
+message): its lane, whether its callback is ``async def``, how much of its
+work may wait, its token. The wait set and the takes read it per message.
+"""
+
+from __future__ import annotations
+
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from rclpy.node import Node
+
+from ._fastpath import (
+    Taker,
+    Token,
+    Work,
+)
+from ._lanes import Lane
+
+__all__: list[str] = []
+
+#: What :meth:`Dispatcher.wait_and_dispatch` returns when one of the
+#: executor's own guard conditions fired.
+WOKEN = 1
+
+#: Entity kinds, all in the loop's wait set (services and clients are
+#: event-driven too, so requests are taken and answered on the loop's thread
+#: without a hop); the other thread's wait set serves generic waitables only.
+KINDS = ("subscription", "timer", "client", "guard_condition", "service")
+
+
+@dataclass(slots=True)
+class Entry:
+    """An entity with what dispatching it needs, computed once per change."""
+
+    entity: Any
+    node: Node
+    lane: Lane
+    is_async: bool
+    depth: int
+    done: Callable[[Work, BaseException | None], None]
+    token: Token
+    #: Takes the subscription's messages in C (``None``: rclpy's take, e.g. raw).
+    taker: Taker | None = None
+    #: A subscription whose callback takes ``(message, message_info)``.
+    wants_info: bool = False
+
+
+
+def describe(entity: object) -> str:
+    """Name an entity the way a ROS user would recognise it in a log."""
+    # Work the executor runs for a node itself (a transition) is the callable.
+    callback = getattr(entity, "callback", entity)
+    name = getattr(callback, "__qualname__", None) or repr(callback)
+    for attribute, kind in (("topic_name", "subscription"), ("srv_name", "service")):
+        value = getattr(entity, attribute, None)
+        if isinstance(value, str):
+            return f"{kind} {value!r} callback {name}"
+    return f"{type(entity).__name__.lower()} callback {name}"
+
+
+def format_error(entity: object, error: BaseException) -> str:
+    details = "".join(traceback.format_exception(error)).rstrip()
+    return f"{describe(entity)} raised {type(error).__name__}: {error}\n{details}"
+
+
+
+def express_work(entry: Entry, args: tuple[Any, ...]) -> Work:
+    """Async work of ``entry``'s callback called with ``args``, as the C path runs it."""
+    entity = entry.entity
+    return Work(entity, entity.callback, True, entry.depth, entry.done, entry.token, args)
+
+
+
+def entities_of(node: Node, kind: str) -> list[Any]:
+    if kind == "subscription":
+        return list(node.subscriptions)
+    if kind == "timer":
+        return list(node.timers)
+    if kind == "client":
+        return list(node.clients)
+    if kind == "service":
+        return list(node.services)
+    return list(node.guards)
+
+

@@ -1,0 +1,174 @@
+"""Taking what rcl has ready and handing it to the dispatcher, per kind of entity.
+
+Each function takes everything its entity has waiting, at once (rcl wait
+sets are level-triggered, and a service's requests sit in a keep-last
+history that twenty peers asking at once would overflow), and submits each
+callback invocation to the entity's lane through the dispatcher.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from rclpy.exceptions import InvalidHandle
+from rclpy.qos import HistoryPolicy, QoSProfile
+
+from .._compat import (
+    adopt_future,
+    fire_timer,
+    waitable_futures,
+)
+from . import _fastpath
+from ._answers import respond
+from ._entries import Entry
+
+if TYPE_CHECKING:
+    from ._dispatch import Dispatcher
+
+__all__: list[str] = []
+
+#: Empty takes a keep-all client goes through before its reader counts as
+#: drained (see :func:`take_response`).
+_KEEP_ALL_DRAINED = 1024
+
+
+def take_timer(dispatcher: Dispatcher, entry: Entry) -> None:
+    tmr = entry.entity
+    try:
+        with tmr.handle:
+            arguments = fire_timer(tmr)
+    except InvalidHandle:
+        return
+    if arguments is None:
+        return
+    if arguments:
+        dispatcher.submit(entry, functools.partial(tmr.callback, **arguments), ())
+    else:
+        dispatcher.submit(entry, tmr.callback, ())
+
+def take_messages(dispatcher: Dispatcher, entry: Entry, count: int) -> None:
+    """Take up to ``count`` messages: what its new-data callbacks reported (fewer if
+    DDS dropped some), or one for a subscription a wait found ready."""
+    sub = entry.entity
+    callback = sub.callback
+    submit = dispatcher.submit
+    taker = entry.taker
+    with_info = entry.wants_info
+    if taker is None:
+        msg_type, raw = sub.msg_type, sub.raw
+        for _ in range(count):
+            taken = sub.handle.take_message(msg_type, raw)
+            if taken is None:
+                return
+            submit(entry, callback, tuple(taken) if with_info else (taken[0],))
+    elif with_info:
+        for _ in range(count):
+            pair = taker.take_with_info()
+            if pair is None:
+                return
+            submit(entry, callback, pair)
+    else:
+        for _ in range(count):
+            message = taker.take()
+            if message is None:
+                return
+            submit(entry, callback, (message,))
+
+def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.DRAIN) -> None:
+    """Take ``count`` times (what the new-response callbacks reported), or
+    every response waiting (a wait found the client ready; a fresh watch).
+
+    A client's reader receives the responses to every client of its
+    service, and a take of another client's response takes nothing
+    (rmw drops it): only a count of takes reaches this client's own
+    response behind those. Stopping at the first empty take left it in
+    the reader, with no callback to come: a caller among twenty waited
+    forever, about once in thirty runs. Without a count, an empty take
+    is either, so taking goes on until as many empty takes as the
+    reader holds responses.
+    """
+    cli = entry.entity
+    drain = count >= _fastpath.DRAIN
+    empty_left = _held_at_most(cli.qos_profile) if drain else 0
+    for _ in itertools.repeat(None) if drain else range(count):
+        try:
+            with cli.handle:
+                header, response = cli.handle.take_response(cli.srv_type.Response)
+        except InvalidHandle:
+            return
+        if header is None:
+            if drain:
+                empty_left -= 1
+                if empty_left <= 0:
+                    return
+            continue  # another client's response (or, draining, none left)
+        try:
+            future = cli.get_pending_request(header.request_id.sequence_number)
+        except KeyError:
+            continue  # the caller cancelled the request
+        adopt_future(future, dispatcher.future_executor)
+        future.set_result(response)
+        dispatcher.response_arrived()
+
+def take_request(dispatcher: Dispatcher, entry: Entry) -> None:
+    """Take every request waiting, each to be answered.
+
+    All at once, not one per wait: service requests sit in a keep-last
+    history (depth 10 by default), and twenty peers asking at once would
+    otherwise lose the oldest before their turn came.
+    """
+    srv = entry.entity
+    while True:
+        try:
+            with srv.handle:
+                request, header = srv.handle.service_take_request(srv.srv_type.Request)
+        except InvalidHandle:
+            return
+        if header is None:
+            return
+        dispatcher.run(entry, _serving(srv, request, header, is_async=entry.is_async))
+
+def take_waitable(dispatcher: Dispatcher, entry: Entry) -> None:
+    waitable = entry.entity
+    try:
+        data = waitable.take_data()
+    except Exception as error:
+        dispatcher.set_aside(waitable, entry.node, "take_data()", error)
+        return
+    for future in waitable_futures(waitable):
+        adopt_future(future, dispatcher.future_executor)
+
+    async def execute() -> None:
+        await waitable.execute(data)
+
+    dispatcher.run(entry, execute)
+
+
+def _held_at_most(qos: QoSProfile) -> int:
+    """How many samples a reader with ``qos`` holds at most (keep-all: a bound of ours)."""
+    if qos.history == HistoryPolicy.KEEP_LAST and qos.depth > 0:
+        return int(qos.depth)
+    return _KEEP_ALL_DRAINED
+
+
+
+def _serving(srv: Any, request: Any, header: Any, *, is_async: bool) -> Callable[[], Any]:
+    """The call that runs a service callback on ``request`` and sends its answer."""
+    callback = srv.callback
+    response_type = srv.srv_type.Response
+    if is_async:
+
+        async def serve_async() -> None:
+            respond(srv, await callback(request, response_type()), header)
+
+        return serve_async
+
+    def serve() -> None:
+        respond(srv, callback(request, response_type()), header)
+
+    return serve
+
+

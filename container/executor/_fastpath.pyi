@@ -30,6 +30,19 @@ def poll(wait_set: int, timeout_ns: int, /) -> None:
     """``rcl_wait`` on rclpy's wait set at that address (its ``pointer``),
     keeping the GIL: for a wait whose guard condition is already triggered."""
 
+def first_step(
+    loop: object,
+    enter_task: Callable[..., object],
+    leave_task: Callable[..., object],
+    cancelled_error: type[BaseException],
+    runner: Runner,
+    work: Work,
+    /,
+) -> BaseException | tuple[Any, Any, contextvars.Context] | None:
+    """Async ``work`` up to its first suspension, in ``runner``'s task and a copy of its context
+    (the same step the compiled chain runs): ``None`` done (or cancelled itself), the
+    error it failed with, or ``(coro, yielded, context)`` suspended."""
+
 def mark_carrier() -> None:
     """This thread takes, after each plain callback, what it published to
     other plain callbacks (``Notifier.carry``): a notifier's waiter due to

@@ -50,7 +50,7 @@ from typing import Any
 
 from .._compat import enter_task, leave_task
 from ._bridge import drive
-from ._fastpath import Lock, Runner, Slots, Work, mark_carrier
+from ._fastpath import Lock, Runner, Slots, Work, first_step, mark_carrier
 from ._hooks import LaneHooks
 
 __all__: list[str] = []
@@ -381,43 +381,22 @@ class Lane:
                 continue
             error: BaseException | None
             if _retired(item):
-                done, error, resume = True, Retired(), None
+                error = Retired()
             else:
-                runner.current = item  # what the loop runs, should it get stuck here
-                # Its own copy of the runner's context, as a task's (see run_one in fastpath/express.c).
-                context = runner.context.copy()
-                done, error, resume = context.run(self._first_step, runner.task, item, context)
-                runner.current = None
-            if not done:
-                assert resume is not None
-                self._finish_in(runner, resume)
-                self._on_suspend()
-                return
+                # The same first step as the compiled chain's (fastpath/express.c):
+                # in the runner's task, in a copy of its context.
+                outcome = first_step(self._loop, enter_task, leave_task, asyncio.CancelledError, runner, item)
+                if isinstance(outcome, tuple):
+                    coro, yielded, context = outcome
+                    self._finish_in(runner, _Resume(item, coro, yielded, context))
+                    self._on_suspend()
+                    return
+                error = outcome
             item.done(item, error)
             item = self._next_pending(item)
             if item is not None and not item.is_async:
                 self._hand_to_thread(item)
                 return
-
-    def _first_step(
-        self, task: asyncio.Task[None], work: Work, context: contextvars.Context
-    ) -> tuple[bool, BaseException | None, _Resume | None]:
-        enter_task(self._loop, task)
-        try:
-            coro = work.call(*work.args)
-            try:
-                yielded = coro.send(None)
-            except StopIteration:
-                return True, None, None
-            return False, None, _Resume(work, coro, yielded, context)
-        except asyncio.CancelledError:
-            return True, None, None  # a callback's own cancellation ends that callback only
-        except KeyboardInterrupt:
-            raise
-        except BaseException as exc:  # reported, never fatal: sys.exit() included
-            return True, exc, None
-        finally:
-            leave_task(self._loop, task)
 
     async def _run(self, item: Work | _Resume | None) -> None:
         """Run async work, one callback after another, inside one task.

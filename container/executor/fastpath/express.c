@@ -162,6 +162,98 @@ static int release(ExpressObject * self, RouteObject * route)
   return result == NULL ? -1 : 0;
 }
 
+/* The first step of a callback, the one both paths run: ``call(*args)`` up
+ * to its first suspension, inside ``runner``'s task (asyncio's current task
+ * while it runs, as an eager task's is) and in a copy of the runner's
+ * context (as each asyncio task gets a copy of the context it was created
+ * in: what one callback sets in a ContextVar is not the next one's), with
+ * ``current`` as what the runner carries meanwhile (for the watchdog).
+ *
+ * Returns PYGEN_RETURN (done), PYGEN_NEXT (suspended: *coro, *yielded and
+ * *context set, new references), PYGEN_ERROR (the callback failed, in
+ * creating its coroutine or in its step: that exception is set), or
+ * STEP_BROKEN (this path itself failed, before or after the step: that
+ * exception is set, and the step may not have run). */
+#define STEP_BROKEN (-2)
+
+static int first_step(
+  PyObject * loop, PyObject * enter_task, PyObject * leave_task, RunnerObject * runner, PyObject * current,
+  PyObject * call, PyObject * const * args, Py_ssize_t nargs, PyObject ** coro, PyObject ** yielded,
+  PyObject ** context)
+{
+  PyObject * result, * type, * value, * traceback;
+  PySendResult status;
+  *coro = *yielded = NULL;
+  if ((*context = PyContext_Copy(runner->context)) == NULL) {
+    return STEP_BROKEN;
+  }
+  Py_XSETREF(runner->current, Py_NewRef(current));
+  if (PyContext_Enter(*context) < 0) {
+    goto broken;
+  }
+  result = call2(enter_task, loop, runner->task);
+  if (result == NULL) {
+    PyContext_Exit(*context);
+    goto broken;
+  }
+  Py_DECREF(result);
+  *coro = PyObject_Vectorcall(call, args, (size_t)nargs, NULL);
+  status = *coro != NULL ? PyIter_Send(*coro, Py_None, yielded) : PYGEN_ERROR;
+  PyErr_Fetch(&type, &value, &traceback);
+  result = call2(leave_task, loop, runner->task);
+  PyContext_Exit(*context);
+  Py_XSETREF(runner->current, Py_NewRef(Py_None));
+  if (result == NULL) { /* leaving the task failed: nothing sane is left to do */
+    Py_XDECREF(type);
+    Py_XDECREF(value);
+    Py_XDECREF(traceback);
+    Py_CLEAR(*coro);
+    Py_CLEAR(*yielded);
+    Py_CLEAR(*context);
+    return STEP_BROKEN;
+  }
+  Py_DECREF(result);
+  if (status == PYGEN_NEXT) {
+    return PYGEN_NEXT;
+  }
+  Py_CLEAR(*coro);
+  Py_CLEAR(*yielded);
+  Py_CLEAR(*context);
+  if (status == PYGEN_ERROR) {
+    PyErr_NormalizeException(&type, &value, &traceback);
+    if (value != NULL && traceback != NULL) {
+      PyException_SetTraceback(value, traceback);
+    }
+    PyErr_Restore(type, value, traceback);
+  }
+  return status;
+
+broken:
+  Py_XSETREF(runner->current, Py_NewRef(Py_None));
+  Py_CLEAR(*context);
+  return STEP_BROKEN;
+}
+
+/* A failed first step's error (new reference): None for a callback's own
+ * cancellation (it ends that callback only), NULL with KeyboardInterrupt
+ * set (that one stops the executor). The exception is consumed. */
+static PyObject * step_error(PyObject * cancelled_error)
+{
+  PyObject * type, * value, * traceback;
+  PyErr_Fetch(&type, &value, &traceback);
+  if (value != NULL && PyErr_GivenExceptionMatches(value, PyExc_KeyboardInterrupt)) {
+    PyErr_Restore(type, value, traceback);
+    return NULL;
+  }
+  Py_XDECREF(type);
+  Py_XDECREF(traceback);
+  if (value == NULL || PyErr_GivenExceptionMatches(value, cancelled_error)) {
+    Py_XDECREF(value);
+    Py_RETURN_NONE;
+  }
+  return value;
+}
+
 /* Run one taken message's callback (``message`` NULL: a called timer's,
  * without arguments): 0, or -1 with an exception set (one that must stop the
  * executor: KeyboardInterrupt, or a failure of this path). The hand-overs to
@@ -170,11 +262,10 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
 {
   PyObject * given = message != NULL ? message : Py_None;
   PyObject * entry = route->entry;
-  PyObject * callback, * coro, * yielded = NULL, * context;
-  PyObject * result, * type, * value, * traceback;
+  PyObject * callback, * coro, * yielded, * context, * result;
   RunnerObject * runner;
-  PySendResult status;
   Py_ssize_t waiting;
+  int status;
 
   if (route->token->retired) {
     return 0; /* its entity or node left: dropped, as rclpy drops it */
@@ -189,47 +280,18 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
     return result == NULL ? -1 : 0;
   }
   runner = (RunnerObject *)result;
-  /* Each callback runs in a copy of its runner's context, as each asyncio
-   * task gets a copy of the context it was created in: what one callback
-   * sets in a ContextVar is not the next one's. */
-  context = PyContext_Copy(runner->context);
   callback = PyObject_GetAttr(route->entity, route->callback);
-  if (context == NULL || callback == NULL) {
-    goto undo;
-  }
-  Py_XSETREF(runner->current, Py_NewRef(route->marker));
-  if (PyContext_Enter(context) < 0) {
-    goto undo;
-  }
-  result = call2(self->enter_task, self->loop, runner->task);
-  if (result == NULL) {
-    PyContext_Exit(context);
-    goto undo;
-  }
-  Py_DECREF(result);
-  coro = message != NULL ? PyObject_CallOneArg(callback, message) : PyObject_CallNoArgs(callback);
-  status = coro != NULL ? PyIter_Send(coro, Py_None, &yielded) : PYGEN_ERROR;
-  PyErr_Fetch(&type, &value, &traceback);
-  result = call2(self->leave_task, self->loop, runner->task);
-  Py_XDECREF(result);
-  PyContext_Exit(context);
-  Py_DECREF(callback);
-  if (result == NULL) { /* leaving the task failed: nothing sane is left to do */
-    Py_XDECREF(type);
-    Py_XDECREF(value);
-    Py_XDECREF(traceback);
-    Py_XDECREF(coro);
-    Py_XDECREF(yielded);
-    Py_DECREF(context);
+  status = callback == NULL ? STEP_BROKEN : first_step(
+    self->loop, self->enter_task, self->leave_task, runner, route->marker, callback, &message,
+    message != NULL ? 1 : 0, &coro, &yielded, &context);
+  Py_XDECREF(callback);
+  if (status == STEP_BROKEN) {
+    slots_undo_first_step(route->slots);
     Py_DECREF(runner);
     return -1;
   }
-  Py_XSETREF(runner->current, Py_NewRef(Py_None));
   self->expressed++;
   if (status == PYGEN_RETURN) {
-    Py_DECREF(coro);
-    Py_XDECREF(yielded);
-    Py_DECREF(context);
     Py_DECREF(runner);
     waiting = PyObject_Length(self->done_waiters);
     if (waiting != 0) {
@@ -251,38 +313,57 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
     Py_XDECREF(result);
     return result == NULL ? -1 : 0;
   }
-  /* Failed: in creating the coroutine or in its first step. */
-  Py_XDECREF(coro);
-  Py_DECREF(context);
   Py_DECREF(runner);
-  PyErr_NormalizeException(&type, &value, &traceback);
-  if (value != NULL && traceback != NULL) {
-    PyException_SetTraceback(value, traceback);
-  }
-  if (value != NULL && PyErr_GivenExceptionMatches(value, PyExc_KeyboardInterrupt)) {
-    PyErr_Restore(type, value, traceback);
+  if ((result = step_error(self->cancelled_error)) == NULL) {
     return -1;
   }
-  Py_XDECREF(type);
-  Py_XDECREF(traceback);
   {
-    /* A callback's own cancellation ends that callback only: no error. */
-    int cancelled = value != NULL && PyErr_GivenExceptionMatches(value, self->cancelled_error);
-    PyObject * args[3] = {entry, given, cancelled || value == NULL ? Py_None : value};
-    result = PyObject_Vectorcall(self->failed, args, 3, NULL);
+    PyObject * args[3] = {entry, given, result};
+    PyObject * told = PyObject_Vectorcall(self->failed, args, 3, NULL);
+    Py_DECREF(result);
+    Py_XDECREF(told);
+    return told == NULL ? -1 : 0;
   }
-  Py_XDECREF(value);
-  Py_XDECREF(result);
-  return result == NULL ? -1 : 0;
-
-undo:
-  Py_XSETREF(runner->current, Py_NewRef(Py_None));
-  slots_undo_first_step(route->slots);
-  Py_XDECREF(context);
-  Py_XDECREF(callback);
-  Py_DECREF(runner);
-  return -1;
 }
+
+/* first_step(loop, enter_task, leave_task, cancelled_error, runner, work) ->
+ * None | BaseException | (coro, yielded, context): the Python lanes' first
+ * step of async work, the same as the chain's: done (None), failed (the
+ * error), or suspended. Raises KeyboardInterrupt, and what breaks the path. */
+static PyObject * first_step_py(PyObject * Py_UNUSED(module), PyObject * const * args, Py_ssize_t nargs)
+{
+  RunnerObject * runner;
+  WorkObject * work;
+  PyObject * coro, * yielded, * context, * call_args;
+  int status;
+  if (nargs != 6 || !PyObject_TypeCheck(args[4], &RunnerType) || !PyObject_TypeCheck(args[5], &WorkType)) {
+    PyErr_SetString(PyExc_TypeError, "first_step(loop, enter_task, leave_task, cancelled_error, runner, work)");
+    return NULL;
+  }
+  runner = (RunnerObject *)args[4];
+  work = (WorkObject *)args[5];
+  call_args = work->args;
+  status = first_step(
+    args[0], args[1], args[2], runner, (PyObject *)work, work->call, &PyTuple_GET_ITEM(call_args, 0),
+    PyTuple_GET_SIZE(call_args), &coro, &yielded, &context);
+  if (status == STEP_BROKEN) {
+    return NULL;
+  }
+  if (status == PYGEN_RETURN) {
+    Py_RETURN_NONE;
+  }
+  if (status == PYGEN_NEXT) {
+    return Py_BuildValue("(NNN)", coro, yielded, context);
+  }
+  return step_error(args[3]);
+}
+
+PyMethodDef express_functions[] = {
+  {"first_step", (PyCFunction)(void (*)(void))first_step_py, METH_FASTCALL,
+   "first_step(loop, enter_task, leave_task, cancelled_error, runner, work) -> None | BaseException | "
+   "(coro, yielded, context): async work up to its first suspension in runner's task (done, failed, suspended)"},
+  {NULL, NULL, 0, NULL},
+};
 
 /* Take what the notifier reported (into ``batch``: route, message, ...) under
  * the take lock; 1 taken, 0 nothing to do (stop), -1 error. Entities that are

@@ -235,5 +235,7 @@ void slots_undo_first_step(SlotsObject * self);
 
 /* -- express.c --------------------------------------------------------------- */
 extern PyTypeObject ExpressType;
+/* The module's functions that express.c defines (first_step). */
+extern PyMethodDef express_functions[];
 
 #endif

@@ -154,7 +154,8 @@ PyMODINIT_FUNC PyInit__fastpath(void)
       return NULL;
     }
   }
-  if (PyModule_AddIntConstant(m, "SUBSCRIPTION", KIND_SUBSCRIPTION) < 0 ||
+  if (PyModule_AddFunctions(m, express_functions) < 0 ||
+      PyModule_AddIntConstant(m, "SUBSCRIPTION", KIND_SUBSCRIPTION) < 0 ||
       PyModule_AddIntConstant(m, "CLIENT", KIND_CLIENT) < 0 ||
       PyModule_AddIntConstant(m, "SERVICE", KIND_SERVICE) < 0 ||
       PyModule_AddIntConstant(m, "EVENT", KIND_EVENT) < 0 ||

@@ -46,6 +46,7 @@ from ._fastpath import Work
 from ._inbox import Inbox, Post
 from ._lanes import Lane
 from ._selector import RclSelector
+from ._tasks import TaskFuture, TaskLaneHooks, plain_work, settle, settle_from
 from ._watchdog import LoopWatchdog
 
 if TYPE_CHECKING:
@@ -339,16 +340,16 @@ class AsyncioExecutor(Executor):
         :raises ExecutorError: the executor is shut down (or shutting down).
         """
         self._refuse_if_closed("create a task")
-        result = _TaskFuture(executor=self)
+        result = TaskFuture(executor=self)
         begin: Callable[[], None]
         if inspect.iscoroutinefunction(callback) and runs_plain_callback(callback, args):
             function: Callable[..., Any] = callback
 
             def drive_here() -> None:
                 if not result.cancelled():
-                    _settle_from(result, lambda: drive_in_thread(function(*args, **kwargs)))
+                    settle_from(result, lambda: drive_in_thread(function(*args, **kwargs)))
 
-            begin = functools.partial(self._tasks_lane().submit, _work(drive_here, self._task_done))
+            begin = functools.partial(self._tasks_lane().submit, plain_work(drive_here, self._task_done))
         elif inspect.iscoroutine(callback) or inspect.iscoroutinefunction(callback):
             begin = self._loop_task(callback, args, kwargs, result)
         else:
@@ -358,7 +359,7 @@ class AsyncioExecutor(Executor):
                 if result.cancelled():
                     self._dispatcher.gate.refund()
                     return
-                _settle_from(result, lambda: plain(*args, **kwargs))
+                settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
 
             begin = functools.partial(self._inbox.post_to, self.loop, run)
@@ -372,7 +373,7 @@ class AsyncioExecutor(Executor):
         callback: Callable[..., Any] | Coroutine[Any, Any, Any],
         args: tuple[Any, ...],
         kwargs: dict[str, Any],
-        result: _TaskFuture,
+        result: TaskFuture,
     ) -> Callable[[], None]:
         """What starts a coroutine task of :meth:`create_task` on the loop."""
         loop = self.loop
@@ -381,7 +382,7 @@ class AsyncioExecutor(Executor):
         )
 
         def finished(task: asyncio.Task[Any]) -> None:
-            _settle(result, task)
+            settle(result, task)
             self._callback_completed()
 
         def start() -> None:
@@ -811,7 +812,10 @@ class AsyncioExecutor(Executor):
             self._refuse_if_closed("create a task")
             if self._task_lane is None:
                 self._task_lane = Lane(
-                    name="executor:tasks", limit=self._reentrant_limit, loop=self.loop, hooks=_TaskLaneHooks(self)
+                    name="executor:tasks",
+                    limit=self._reentrant_limit,
+                    loop=self.loop,
+                    hooks=TaskLaneHooks(post=self._inbox.post, progress=self._progress_future),
                 )
             return self._task_lane
 
@@ -838,30 +842,6 @@ class AsyncioExecutor(Executor):
         return True
 
 
-class _TaskLaneHooks:
-    """What the lane of plain tasks (:meth:`AsyncioExecutor.create_task` with a
-    plain callable) asks of the executor (:class:`LaneHooks`): it starts
-    nothing eagerly and carries nothing on."""
-
-    carries = False
-
-    def __init__(self, executor: AsyncioExecutor) -> None:
-        self.post = executor._inbox.post
-        self.progress = executor._progress_future
-
-    def on_loop_thread(self) -> bool:
-        return False
-
-    def defer(self, lane: Lane, work: Work) -> bool:
-        return False
-
-    def carry(self) -> None:
-        pass
-
-    def suspended(self) -> None:
-        pass
-
-
 class _DispatcherHooks:
     """The executor as a dispatcher sees it (:class:`ExecutorHooks`), posting through ``post``."""
 
@@ -883,83 +863,8 @@ def _resolve(future: asyncio.Future[None]) -> None:
         future.set_result(None)
 
 
-if TYPE_CHECKING:
-    _AnyRclFuture = RclFuture[Any]
-else:  # rclpy 7 (Jazzy): Future is not subscriptable
-    _AnyRclFuture = RclFuture
-
-
-class _TaskFuture(_AnyRclFuture):
-    """What :meth:`AsyncioExecutor.create_task` returns: cancelling it stops the task.
-
-    As with rclpy's ``Task``: a task cancelled before it starts never runs,
-    one suspended at an ``await`` is cancelled there (asyncio's
-    ``CancelledError`` where rclpy closes the coroutine), and whatever it
-    returns after that leaves it cancelled. A plain callable already running
-    runs to its end, as in rclpy.
-    """
-
-    def __init__(self, *, executor: Executor) -> None:
-        super().__init__(executor=executor)  # type: ignore[no-untyped-call, unused-ignore]  # rclpy 7's is untyped
-        self._on_cancel: Callable[[], None] | None = None
-
-    def cancel(self) -> None:
-        super().cancel()  # type: ignore[no-untyped-call, unused-ignore]  # rclpy 7's is untyped
-        on_cancel = self._on_cancel
-        if on_cancel is not None and self.cancelled():
-            on_cancel()
-
-    def stop_with(self, on_cancel: Callable[[], None]) -> None:
-        """Have ``on_cancel`` called once this is cancelled (now, if it is)."""
-        self._on_cancel = on_cancel
-        if self.cancelled():
-            on_cancel()
-
-
 def _same(members: tuple[object, ...] | None, now: tuple[object, ...]) -> bool:
     return members is not None and len(members) == len(now) and all(a is b for a, b in zip(members, now, strict=True))
-
-
-def _settle(result: RclFuture[Any], task: asyncio.Task[Any]) -> None:
-    if result.cancelled():
-        return  # cancelled by its owner; what the coroutine did after is moot
-    with _late_callbacks_dropped():
-        if task.cancelled():
-            result.cancel()
-        elif (error := task.exception()) is not None:
-            # rclpy 9 annotates Exception; a task's other BaseException is handed on as it is.
-            result.set_exception(error)  # type: ignore[arg-type, unused-ignore]
-        else:
-            result.set_result(task.result())
-
-
-@contextlib.contextmanager
-def _late_callbacks_dropped() -> Generator[None, None, None]:
-    """Completing a task's future after its executor shut down (the task
-    shut it down): rclpy's future hands its done-callbacks to the executor,
-    which refuses new tasks now. They never run, as rclpy's tasks created
-    after shutdown never run; the future is complete all the same."""
-    with contextlib.suppress(ExecutorError):
-        yield
-
-
-def _work(run: Callable[[], None], done: Callable[[Work, BaseException | None], None]) -> Work:
-    return Work(entity=run, call=run, is_async=False, depth=1 << 16, done=done)
-
-
-def _settle_from(result: RclFuture[Any], call: Callable[[], Any]) -> None:
-    """Complete ``result`` with what ``call()`` returns or raises (unless cancelled meanwhile)."""
-    try:
-        value = call()
-    except BaseException as exc:  # handed to the future's owner
-        if not result.cancelled():
-            with _late_callbacks_dropped():
-                # rclpy 9 annotates Exception; a SystemExit is handed on as it is.
-                result.set_exception(exc)  # type: ignore[arg-type, unused-ignore]
-    else:
-        if not result.cancelled():
-            with _late_callbacks_dropped():
-                result.set_result(value)
 
 
 #: Executors not yet shut down. Their waiter threads sit in ``rcl_wait``; one

@@ -32,9 +32,9 @@ from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
 from ._text import clip
-from .executor._bridge import Escaped, in_thread
-from .intra import enable_intra_process
-from .lifecycle import LifecycleNode, _transitions
+from .executor import Escaped, in_thread
+from .intra import intra_process_class
+from .lifecycle import LifecycleNode, bring_down, bring_up, is_lifecycle
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -207,7 +207,11 @@ class ComponentManager(Node):
             overrides.append(Parameter(TYPE_DESCRIPTION_SERVICE, value=False))
         cli_args = ["--ros-args", *(part for rule in remaps for part in ("-r", rule))] if remaps else None
         intra_process = request.wants_intra_process(self.use_intra_process_comms)
-        node_class = node_type.node_class
+        # A node joins intra-process from its constructor on, so that what
+        # the constructor creates joins too; its class (or its intra-process
+        # subclass) takes the keyword.
+        node_class = intra_process_class(node_type.node_class) if intra_process else node_type.node_class
+        options = {"use_intra_process_comms": True} if intra_process else {}
         built: list[Node] = []
 
         def construct() -> Node:
@@ -223,9 +227,8 @@ class ComponentManager(Node):
                 # rclcpp's default: the container's command line is the container's.
                 use_global_arguments=forward_global_arguments,
                 parameter_overrides=overrides,
+                **options,
             )
-            if intra_process:
-                enable_intra_process(node)
             return node
 
         construction = asyncio.ensure_future(in_thread(construct, name=f"construct:{clip(full_name)}"))
@@ -289,8 +292,8 @@ class ComponentManager(Node):
         :param timeout: seconds each transition may take.
         :raises TransitionError: a transition failed; the node stays where it stopped.
         """
-        if _transitions.is_lifecycle(loaded.node):
-            await _transitions.bring_up(self._host, loaded.node, timeout=timeout)
+        if is_lifecycle(loaded.node):
+            await bring_up(self._host, loaded.node, timeout=timeout)
 
     # -- unload -------------------------------------------------------------------
     async def unload(self, unique_id: int) -> tuple[LoadedNode, list[str]]:
@@ -317,9 +320,9 @@ class ComponentManager(Node):
             cut = await node.end_transition(timeout=self.unload_timeout)
             if cut is not None:
                 notes.append(cut)
-        if _transitions.is_lifecycle(node):
+        if is_lifecycle(node):
             try:
-                await _transitions.bring_down(self._host, node, timeout=self.unload_timeout)
+                await bring_down(self._host, node, timeout=self.unload_timeout)
             except TransitionError as exc:
                 notes.append(f"taken down incompletely: {exc.reason}")
         stuck = await self._host.retire(node, timeout=self.unload_timeout)

@@ -128,13 +128,13 @@ class ContainerHost:
 
         :raises TransitionError: it failed, raised or timed out.
         """
-        from .lifecycle._transitions import transition
+        from .lifecycle import transition
 
         await transition(self.executor, self._loaded(node).node, label, timeout=timeout)
 
     def state_of(self, node: Node) -> str:
         """The label of ``node``'s lifecycle state (``active``, ``inactive``, ...)."""
-        from .lifecycle._transitions import state_of
+        from .lifecycle import state_of
 
         return state_of(node)
 

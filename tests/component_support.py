@@ -1,4 +1,4 @@
-"""Helpers for the container-service tests: a test plugin, service calls, graph waits.
+"""Helpers for the container-service tests: a test plugin, service calls, the graph.
 
 This module is also the test plugin itself: ``install_test_plugin`` writes a
 distribution ``test-nodes`` whose entry point names this module, so a
@@ -8,9 +8,8 @@ distribution ``test-nodes`` whose entry point names this module, so a
 
 from __future__ import annotations
 
-import time
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -174,22 +173,6 @@ class ContainerClient:
     def list(self) -> list[tuple[int, str]]:
         response = self.call(self.list_client, ListNodes.Request())
         return list(zip(response.unique_ids, response.full_node_names, strict=True))
-
-
-def wait_until(
-    executor: AsyncioExecutor, condition: Callable[[], bool], *, timeout: float = 20.0
-) -> bool:
-    """Serve callbacks until ``condition()`` holds; ``False`` after ``timeout``.
-
-    Discovery changes arrive without any event rclpy exposes, so the
-    condition is checked each time the executor wakes, or every 50 ms.
-    """
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() >= deadline:
-            return False
-        executor.spin_once(timeout_sec=0.05)
-    return True
 
 
 def graph_nodes(node: Node) -> set[str]:

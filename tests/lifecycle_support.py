@@ -15,6 +15,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from container import AsyncioExecutor
+from tests.waiting import wait_until
 
 T = TypeVar("T")
 
@@ -64,11 +65,11 @@ class TransitionLog:
 
     def wait_matched(self, *, timeout: float = 10.0) -> None:
         """Block until each node's ``transition_event`` publisher is discovered."""
-        deadline = time.monotonic() + timeout
-        for name, subscription in self._subscriptions.items():
-            while subscription.get_publisher_count() == 0:
-                assert time.monotonic() < deadline, f"{name}/transition_event never matched"
-                time.sleep(0.01)
+
+        def unmatched() -> list[str]:
+            return [name for name, sub in self._subscriptions.items() if sub.get_publisher_count() == 0]
+
+        wait_until(lambda: not unmatched(), lambda: f"transition_event publishers of {unmatched()}", timeout=timeout)
 
     def pairs(self, node: str | None = None) -> list[tuple[str, str]]:
         with self._changed:

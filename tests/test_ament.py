@@ -133,6 +133,8 @@ def test_packages_executables_and_types_resolve_as_ros_tools_resolve_them(ament_
     assert result.stdout == printed
 
 
+# Indexes and ROS tools in child processes.
+@pytest.mark.slow
 def test_index_adds_a_new_plugin_and_removes_it_when_it_is_gone(tmp_path: Path) -> None:
     prefix = tmp_path / "prefix"
     foreign = prefix / "share" / "ament_index" / "resource_index" / "packages" / "test_nodes_foreign"
@@ -179,6 +181,8 @@ def test_an_existing_ros_package_of_the_same_name_is_left_alone(tmp_path: Path) 
     assert PROJECT_PACKAGE in report.registered
 
 
+# Indexes and ROS tools in child processes.
+@pytest.mark.slow
 def test_index_of_named_distributions_registers_only_them_and_keeps_the_rest(tmp_path: Path) -> None:
     # What a colcon install of the repository runs for its own two distributions.
     site = install_test_plugin(tmp_path / "site", distribution="test-nodes")
@@ -261,6 +265,8 @@ def launched(
         process.close()
 
 
+# ros2 launch in a child process.
+@pytest.mark.slow
 def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
     launched: LoggedProcess, client_node: Node, executor: AsyncioExecutor, tmp_path: Path
 ) -> None:
@@ -299,6 +305,8 @@ def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
     assert "threads left behind" not in launched.output(last=1000)
 
 
+# ros2 launch with a lifecycle manager, in child processes.
+@pytest.mark.slow
 def test_nav2_style_lifecycle_manager_brings_up_the_launched_nodes(
     launched: LoggedProcess, client_node: Node, executor: AsyncioExecutor, tmp_path: Path
 ) -> None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib
 import inspect
 
+import pytest
+
 import container
 
 
@@ -16,6 +18,23 @@ def test_every_exported_name_exists_and_is_documented() -> None:
         for name in container.__all__
         if (inspect.isclass(getattr(container, name)) or inspect.isfunction(getattr(container, name)))
         and not inspect.getdoc(getattr(container, name))
+    ]
+    assert undocumented == []
+
+
+@pytest.mark.parametrize("name", ["container.checks", "container.executor", "container.intra", "container.lifecycle"])
+def test_every_name_a_subpackage_exports_exists_and_is_documented(name: str) -> None:
+    """What other packages import from a subpackage is in its ``__all__`` (tests/test_layout.py): real, documented."""
+    module = importlib.import_module(name)
+    exported: list[str] = module.__all__
+    assert len(exported) == len(set(exported))
+    missing = [export for export in exported if not hasattr(module, export)]
+    assert missing == []
+    undocumented = [
+        export
+        for export in exported
+        if (inspect.isclass(getattr(module, export)) or inspect.isfunction(getattr(module, export)))
+        and not inspect.getdoc(getattr(module, export))
     ]
     assert undocumented == []
 

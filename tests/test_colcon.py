@@ -23,7 +23,9 @@ import pytest
 from tests.container_support import REPO
 from tests.install_support import installed_ros_distro
 
-pytestmark = pytest.mark.timeout(900)
+# Builds: a virtualenv of the ROS wheels and colcon (about 2 minutes, the first
+# test's set-up), then the workspace.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 def _snapshot(root: Path) -> dict[str, float]:

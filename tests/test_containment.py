@@ -21,7 +21,6 @@ from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.node import Node
-from rclpy.publisher import Publisher
 from std_msgs.msg import Int64, String
 
 from container import AsyncioExecutor
@@ -30,9 +29,9 @@ from tests.component_support import (
     graph_nodes,
     load_request,
     parameter,
-    wait_until,
 )
 from tests.container_support import ContainerProcess
+from tests.waiting import wait_until
 
 #: Short timeouts, so that a cut-short transition shows within a test.
 CONTAINER = "container:\n  name: ComponentManager\n  unload_timeout: 1.0\n"
@@ -69,6 +68,8 @@ def state_of(client: ContainerClient, name: str) -> str:
         client.node.destroy_client(getter)
 
 
+# A container process and a transition left hanging.
+@pytest.mark.slow
 @pytest.mark.parametrize("style", ["plain", "async"])
 def test_unload_during_a_transition_cancels_it_and_answers_everyone(
     container: ContainerProcess, client: ContainerClient, executor: AsyncioExecutor, style: str
@@ -78,7 +79,12 @@ def test_unload_during_a_transition_cancels_it_and_answers_everyone(
     changer: Client[Any, Any] = client.node.create_client(ChangeState, "/faulty/change_state")
     assert changer.wait_for_service(timeout_sec=10.0)
     pending = changer.call_async(ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
-    assert wait_until(executor, lambda: state_of(client, "/faulty") == "configuring")
+    wait_until(
+        lambda: state_of(client, "/faulty") == "configuring",
+        "/faulty in configuring",
+        timeout=20.0,
+        executor=executor,
+    )
     unloaded = client.unload(loaded.unique_id)
     assert unloaded.success
     assert "cancelled" in unloaded.error_message
@@ -93,13 +99,20 @@ def test_unload_during_a_transition_cancels_it_and_answers_everyone(
     assert container.process.poll() is None
 
 
+# A container process and a transition left hanging.
+@pytest.mark.slow
 def test_sigint_during_a_transition_exits_cleanly(container: ContainerProcess, client: ContainerClient) -> None:
     loaded = client.load(faulty("await", "configure", style="async"))
     assert loaded.success
     changer: Client[Any, Any] = client.node.create_client(ChangeState, "/faulty/change_state")
     assert changer.wait_for_service(timeout_sec=10.0)
     changer.call_async(ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
-    assert wait_until(client.executor, lambda: state_of(client, "/faulty") == "configuring")
+    wait_until(
+        lambda: state_of(client, "/faulty") == "configuring",
+        "/faulty in configuring",
+        timeout=20.0,
+        executor=client.executor,
+    )
     code = container.stop(sig=signal.SIGINT)
     output = "\n".join(container.lines)
     assert code == 0, output  # 139 (SIGSEGV) before
@@ -135,10 +148,15 @@ def test_a_constructor_that_fails_leaves_nothing_behind(
     # A parameter of the wrong type: refused by the constructor half way.
     wrong = client.load(load_request(name="talker", parameters=[parameter("rate", 5)]))
     assert not wrong.success
-    assert wait_until(executor, lambda: not {"/faulty", "/talker"} & graph_nodes(client.node))
+    wait_until(
+        lambda: not {"/faulty", "/talker"} & graph_nodes(client.node),
+        "/faulty and /talker gone from the graph",
+        timeout=20.0,
+        executor=executor,
+    )
     right = client.load(load_request(name="talker", parameters=[parameter("rate", 5.0)]))
     assert right.success
-    assert wait_until(executor, lambda: "/talker" in graph_nodes(client.node))
+    wait_until(lambda: "/talker" in graph_nodes(client.node), "/talker in the graph", timeout=20.0, executor=executor)
     names = [name for name, _ in client.node.get_node_names_and_namespaces()]
     assert names.count("talker") == 1
     assert container.process.poll() is None
@@ -197,7 +215,8 @@ def test_removed_node_starts_none_of_its_queued_callbacks(
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     try:
-        assert wait_for_matches(publisher, 2)
+        # Discovery offers no event to wait on (rclpy#929).
+        wait_until(lambda: publisher.get_subscription_count() >= 2, "both subscriptions matched")
         for number in range(10):
             publisher.publish(Int64(data=number))
         assert first.wait(10.0)
@@ -218,15 +237,6 @@ def test_removed_node_starts_none_of_its_queued_callbacks(
         if how == "remove_node":
             listener.destroy_node()
         talker.destroy_node()
-
-
-def wait_for_matches(publisher: Publisher[Any], count: int, *, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while publisher.get_subscription_count() < count:
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.01)  # discovery offers no event to wait on (rclpy#929)
-    return True
 
 
 @pytest.fixture
@@ -330,6 +340,8 @@ nodes:
 """
 
 
+# A container process whose loop stays stuck for seconds.
+@pytest.mark.slow
 @pytest.mark.usefixtures("fault_site")
 def test_a_loop_stuck_in_an_async_callback_stops_neither_plain_nodes_nor_the_exit(
     run_container: Callable[..., ContainerProcess], client_node: Node, executor: AsyncioExecutor
@@ -347,10 +359,13 @@ def test_a_loop_stuck_in_an_async_callback_stops_neither_plain_nodes_nor_the_exi
     assert "hog" in report and "_tick" in report
     # The plain talker keeps its rate, the diagnostics say what is stuck,
     # and the container still answers.
-    assert wait_until(executor, lambda: len(heard) >= 20, timeout=10.0)
+    wait_until(lambda: len(heard) >= 20, "20 messages on /chatter", executor=executor)
     assert max(b - a for a, b in itertools.pairwise(heard[-20:])) < 3 * 0.1
-    assert wait_until(
-        executor, lambda: any(s.level == DiagnosticStatus.ERROR and "stuck" in s.message for s in statuses)
+    wait_until(
+        lambda: any(s.level == DiagnosticStatus.ERROR and "stuck" in s.message for s in statuses),
+        "an error status saying what is stuck",
+        timeout=20.0,
+        executor=executor,
     )
     assert [name for _, name in ContainerClient(client_node, executor).list()] == ["/talker", "/hog"]
     started = time.monotonic()

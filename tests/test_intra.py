@@ -385,6 +385,12 @@ def test_message_info_is_filled_in(nodes: Callable[..., Node], spin: Callable[[]
 def test_unloading_a_subscriber_or_publisher_mid_stream_leaves_no_delivery(
     nodes: Callable[..., Node], spin: Callable[[], None], executor: AsyncioExecutor
 ) -> None:
+    import asyncio
+
+    from rclpy.serialization import serialize_message
+
+    from tests.waiting import wait_until
+
     talker, listener = nodes("talker"), nodes("listener")
     publisher = talker.create_publisher(Int64, "numbers", 10)
     inbox = Inbox()
@@ -393,43 +399,49 @@ def test_unloading_a_subscriber_or_publisher_mid_stream_leaves_no_delivery(
     matched(publisher, 1)
     stop = threading.Event()
     errors: list[BaseException] = []
+    published = [0]  # the next number of the stream
 
     def stream() -> None:
-        value = 0
         while not stop.is_set():
             try:
-                publisher.publish(Int64(data=value))
+                publisher.publish(Int64(data=published[0]))
             except BaseException as exc:
                 errors.append(exc)
                 return
-            value += 1
-            time.sleep(0.001)
+            published[0] += 1
+            time.sleep(0.001)  # pacing the stream, not waiting for anything
 
     streamer = threading.Thread(target=stream, daemon=True)
     streamer.start()
     assert inbox.wait_for(20)
-    # What the container's unload does: retire the node, then destroy it.
-    executor.remove_node(listener)
-    time.sleep(0.1)  # callbacks already running may finish
+    # What the container's unload does: retire the node (remove it, wait for
+    # its callbacks already running), then destroy it.
+    retiring = asyncio.run_coroutine_threadsafe(executor.retire(listener, timeout=TIMEOUT), executor.loop)
+    assert retiring.result(TIMEOUT) == [], "a callback of the removed node kept running"
     listener.destroy_node()
     count = len(inbox.messages)
-    time.sleep(0.3)
-    assert len(inbox.messages) == count, "a callback ran after its node was removed"
-    # A new subscriber still gets the stream; then the publisher goes.
+    # A new subscriber still gets the stream. Its ten messages, all published
+    # after the removal and run by the same executor, mark "after": a callback
+    # of the removed node would have run by then.
     fresh = Inbox()
     subscribe(nodes("fresh"), Int64, "numbers", fresh.plain, 10)
     assert fresh.wait_for(10)
+    assert len(inbox.messages) == count, "a callback ran after its node was removed"
+    # Then the publisher goes. Its last message is sent serialized, which goes
+    # over DDS only (no in-process hand-over); DDS keeps one writer's order,
+    # and in-process deliveries were queued at publish: once it arrives,
+    # everything published before it, and any duplicate DDS carried, has.
     stop.set()
     streamer.join(TIMEOUT)
+    matched(publisher, 1)  # the fresh subscription's DDS reader too
+    last = published[0]
+    publisher.publish(serialize_message(Int64(data=last)))
+    wait_until(lambda: last in fresh.data(), "the publisher's last message, over DDS")
     talker.destroy_publisher(publisher)
-    settle(fresh)
-    count = len(fresh.messages)
-    time.sleep(0.3)
-    assert len(fresh.messages) == count
+    assert fresh.data()[-1] == last, "a message arrived after the publisher's last"
     assert errors == []
     data = fresh.data()
     assert data == sorted(set(data))  # in order, none twice
-
 
 def test_copy_message_shares_nothing_mutable() -> None:
     image = Image(height=1, width=2, encoding="mono8", step=2)

@@ -79,6 +79,8 @@ def test_the_profile_variable_is_the_one_this_fast_dds_reads() -> None:
         pytest.skip(f"no Fast DDS library in {lib}")
 
 
+# A container process.
+@pytest.mark.slow
 def test_the_projects_profile_is_used_quietly_when_the_user_names_none(empty_container: Path) -> None:
     code = (
         "import os; from container._runtime import use_fast_discovery; use_fast_discovery();"
@@ -91,6 +93,8 @@ def test_the_projects_profile_is_used_quietly_when_the_user_names_none(empty_con
     assert not [line for line in lines if "deprecated" in line or "PROFILES_FILE" in line], lines
 
 
+# A container process.
+@pytest.mark.slow
 @pytest.mark.parametrize("variable", PROFILE_VARIABLES)
 def test_a_users_own_profile_always_wins(variable: str, empty_container: Path, tmp_path: Path) -> None:
     if fast_dds_major() < 3 and variable != profile_variable():
@@ -128,6 +132,8 @@ def test_setup_refuses_a_distribution_it_has_no_table_for_in_one_line(tmp_path: 
     assert not (tmp_path / "venv" / "bin").exists()
 
 
+# Runs .ci/setup.
+@pytest.mark.slow
 @pytest.mark.parametrize("python", ["python3.10", "/nonexistent/python3"])
 def test_setup_refuses_a_python_it_does_not_support_in_one_line(python: str, tmp_path: Path) -> None:
     result = _setup(tmp_path, PYTHON=python)

@@ -16,9 +16,10 @@ from rclpy.client import Client
 from rclpy.node import Node
 
 from container import AsyncioExecutor
-from tests.component_support import ContainerClient, load_request, parameter, wait_until
+from tests.component_support import ContainerClient, load_request, parameter
 from tests.container_support import REPO, ContainerProcess
 from tests.process_support import LoggedProcess
+from tests.waiting import wait_until
 
 DEMO = """
 nodes:
@@ -159,9 +160,11 @@ def test_without_a_file_an_empty_container_takes_its_ros_arguments_like_rclcpps(
         def topics(name: str, namespace: str) -> list[str]:
             return [topic for topic, _ in client_node.get_subscriber_names_and_types_by_node(name, namespace)]
 
-        assert wait_until(
-            executor,
+        wait_until(
             lambda: "/chatter" in topics("plain", "/") and "/global_chatter" in topics("forwarded", "/ns"),
+            "both subscriptions, remapped, in the graph",
+            timeout=20.0,
+            executor=executor,
         )
         assert proc.stop() == 0
     finally:

@@ -13,6 +13,7 @@ import xml.etree.ElementTree as ElementTree
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
 from rclpy.node import Node
 
 from tests.container_support import REPO, ContainerProcess
@@ -54,6 +55,8 @@ def _graph(observer: Node, node: str, namespace: str) -> dict[str, set[str]]:
     }
 
 
+# A container process with a LiDAR.
+@pytest.mark.slow
 def test_the_policy_names_every_service_and_topic_of_the_lidar_container(
     run_container: Callable[..., ContainerProcess], client_node: Node
 ) -> None:

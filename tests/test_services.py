@@ -22,9 +22,9 @@ from tests.component_support import (
     graph_nodes,
     load_request,
     parameter,
-    wait_until,
 )
 from tests.container_support import ContainerProcess
+from tests.waiting import wait_until
 
 EMPTY = "container:\n  name: ComponentManager\n"
 
@@ -48,13 +48,16 @@ def test_load_list_unload_round_trip(
     assert (response.success, response.error_message) == (True, "")
     assert (response.unique_id, response.full_node_name) == (1, "/talker")
     assert client.list() == [(1, "/talker")]
-    assert wait_until(executor, lambda: "/talker" in graph_nodes(client_node))
+    wait_until(lambda: "/talker" in graph_nodes(client_node), "/talker in the graph", timeout=20.0, executor=executor)
 
     response = client.unload(1)
     assert (response.success, response.error_message) == (True, "")
     assert client.list() == []
-    assert wait_until(executor, lambda: "/talker" not in graph_nodes(client_node)), graph_nodes(
-        client_node
+    wait_until(
+        lambda: "/talker" not in graph_nodes(client_node),
+        lambda: f"/talker gone from the graph: {sorted(graph_nodes(client_node))}",
+        timeout=20.0,
+        executor=executor,
     )
 
 
@@ -73,14 +76,16 @@ def test_load_honours_name_namespace_remaps_parameters_and_extras(
     )
     assert response.success, response.error_message
     assert response.full_node_name == "/demo/ear"
-    assert wait_until(
-        executor,
+    wait_until(
         lambda: "/demo/ear" in graph_nodes(client_node)
         and any(
             topic == "/elsewhere"
             for topic, _ in client_node.get_subscriber_names_and_types_by_node("ear", "/demo")
         ),
-    ), "the remapped subscription never showed up"
+        "the remapped subscription in the graph",
+        timeout=20.0,
+        executor=executor,
+    )
 
     response = client.load(
         load_request(name="speaker", parameters=[parameter("message", "Remote"), parameter("rate", 7.5)])
@@ -207,6 +212,9 @@ def test_autostart_extra_argument_brings_the_node_to_active(
     assert client.unload(2).success
 
 
+# A load test: 500 requests in flight; answers awaited up to 120 s.
+@pytest.mark.slow
+@pytest.mark.timeout(150)
 def test_a_burst_of_requests_is_answered_to_the_last(
     container: ContainerProcess, client_node: Node, executor: AsyncioExecutor
 ) -> None:
@@ -230,10 +238,12 @@ def test_a_burst_of_requests_is_answered_to_the_last(
             )
             futures.append((loads, caller.call_async(request)))
 
-    answered = wait_until(executor, lambda: all(f.done() for _, f in futures), timeout=120.0)
-
-    done = sum(f.done() for _, f in futures)
-    assert answered, f"{done} of {len(futures)} answered\n{container.output()}"
+    wait_until(
+        lambda: all(f.done() for _, f in futures),
+        lambda: f"every call answered: {sum(f.done() for _, f in futures)} of {len(futures)}\n{container.output()}",
+        timeout=120.0,
+        executor=executor,
+    )
     results: list[tuple[bool, Any]] = [(loads, f.result()) for loads, f in futures]
     assert all(r.success for loads, r in results if loads)
     assert all(

@@ -158,6 +158,8 @@ def test_a_plugins_own_suite_gets_the_fixtures_from_the_entry_point(tmp_path: Pa
     assert "1 passed" in result.stdout
 
 
+# Installs the example with pip and runs its suite in a child pytest.
+@pytest.mark.slow
 def test_the_example_plugins_own_suite_passes(thirdparty_site: Path) -> None:
     # examples/thirdparty_plugin/tests, run as its author would after
     # `pip install ./examples/thirdparty_plugin`: its own directory, no conftest.

@@ -30,6 +30,9 @@ import pytest
 
 from tests.process_support import LoggedProcess, log_time
 
+# Two network namespaces, a container and a manager process in them, a cut link.
+pytestmark = pytest.mark.slow
+
 #: Manager settings: Nav2's names; a short bond timeout keeps the test short.
 BOND_TIMEOUT = 1.0
 RESPAWN_MAX_DURATION = 30.0

@@ -24,7 +24,8 @@ from container._ament import EXECUTABLES
 from container._registry import PluginRegistry
 from tests.container_support import REPO
 
-pytestmark = pytest.mark.timeout(900)
+# Builds: the wheels (over a minute, the first test's set-up), a virtualenv to install them into.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 INDEX = Path("share") / "ament_index" / "resource_index"
 

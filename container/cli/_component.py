@@ -334,11 +334,11 @@ async def _call(client: Client[Any, Any], request: Any) -> Any:
     ready = await _poll(lambda: True if client.service_is_ready() else None, timeout=_RESPONSE_TIMEOUT_S)
     if ready is None:
         raise _Failure(f"No '{client.srv_name}' service found")
-    from ..executor import _bridge as bridge
+    from ..executor import result as future_result
 
     future = client.call_async(request)
     try:
-        return await bridge.result(future, timeout=_RESPONSE_TIMEOUT_S)
+        return await future_result(future, timeout=_RESPONSE_TIMEOUT_S)
     except TimeoutError:
         client.remove_pending_request(future)
         raise _Failure(

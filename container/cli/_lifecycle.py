@@ -115,7 +115,7 @@ async def _find(node: Any, args: argparse.Namespace) -> str | None:
 
 
 def _client(node: Any, name: str) -> Any:
-    from ..lifecycle._client import LifecycleClient
+    from ..lifecycle import LifecycleClient
 
     return LifecycleClient(node, name, service_timeout=5.0)
 

@@ -9,7 +9,23 @@ package depends on rclpy and :mod:`container._compat` only, never on the
 rest of the container.
 """
 
+from ._bridge import Escaped, contained, in_thread, result
+from ._entries import describe
 from ._executor import AsyncioExecutor, CallbackErrorHandler, ExecutorState
 from ._message_info import HAS_PUBLISHER_GID, publisher_gid
 
-__all__ = ["HAS_PUBLISHER_GID", "AsyncioExecutor", "CallbackErrorHandler", "ExecutorState", "publisher_gid"]
+# The executor's API, then what the rest of the container shares with it:
+# running plugin code (``Escaped``, ``contained``, ``in_thread``), awaiting
+# an rclpy future (``result``) and naming a callback in a log (``describe``).
+__all__ = [
+    "HAS_PUBLISHER_GID",
+    "AsyncioExecutor",
+    "CallbackErrorHandler",
+    "Escaped",
+    "ExecutorState",
+    "contained",
+    "describe",
+    "in_thread",
+    "publisher_gid",
+    "result",
+]

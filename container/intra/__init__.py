@@ -4,6 +4,10 @@ A node joins with ``use_intra_process_comms`` (a LoadNode extra argument, a
 node's ``extra_arguments`` in the container file, ``container.
 use_intra_process_comms`` as the file's default, ``LifecycleNode(...,
 use_intra_process_comms=True)`` or :func:`enable_intra_process` in code).
+Its class does the joining: :class:`IntraProcessNode` (which
+:class:`~container.LifecycleNode` is) creates its publishers and
+subscriptions in the context's domain; the container hosts any other node
+class as its :func:`intra_process_class`.
 Between such nodes a message is copied once (:func:`copy_message`, about a
 tenth of a serialisation) and shared read-only by every subscription in
 process; :func:`hand_over` shares the object itself. Everyone else gets it
@@ -14,6 +18,13 @@ over DDS, and no subscription gets a message twice. The README's
 from __future__ import annotations
 
 from ._copy import copy_message
-from ._domain import enable_intra_process, hand_over, intra_process_enabled
+from ._node import IntraProcessNode, enable_intra_process, hand_over, intra_process_class, intra_process_enabled
 
-__all__ = ["copy_message", "enable_intra_process", "hand_over", "intra_process_enabled"]
+__all__ = [
+    "IntraProcessNode",
+    "copy_message",
+    "enable_intra_process",
+    "hand_over",
+    "intra_process_class",
+    "intra_process_enabled",
+]

@@ -1,8 +1,9 @@
 """Intra-process delivery between the nodes of one process that enable it.
 
 Every rclpy context has one *domain*: the publishers and subscriptions of
-its intra-process nodes, by resolved topic name. A publish from such a node
-goes, in the publishing thread:
+its intra-process nodes, by resolved topic name, each with its record here
+(the node class that puts them there is in ``_node``). A publish from such
+a node goes, in the publishing thread:
 
 1. to each registered subscription on the same topic, of the same type, whose
    QoS DDS would match (``rclpy.qos.qos_check_compatible``), and whose node
@@ -33,27 +34,27 @@ overtake DDS copies still in flight, and per-publisher order must hold.
 from __future__ import annotations
 
 import collections
+import contextlib
 import inspect
 import threading
 import time
 import weakref
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any
 
 from rclpy.lifecycle import LifecyclePublisher
 from rclpy.node import Node
 from rclpy.publisher import Publisher
-from rclpy.qos import DurabilityPolicy, QoSCompatibility, qos_check_compatible
+from rclpy.qos import DurabilityPolicy, QoSCompatibility, QoSProfile, qos_check_compatible
 from rclpy.subscription import Subscription
 
-from .._compat import subscription_wants_info
 from ..executor import AsyncioExecutor, publisher_gid
 from ._copy import copy_message
 
 if TYPE_CHECKING:
     from rclpy.context import Context
 
-__all__ = ["domain_of", "enable_intra_process", "hand_over", "intra_process_enabled"]
+__all__ = ["Domain", "PublisherRecord", "SubscriptionRecord", "domain_of"]
 
 #: Notes kept per publisher for one subscription (KEEP_ALL and deep histories).
 _MAX_NOTES = 1024
@@ -79,28 +80,58 @@ class _Note:
         return self.after <= stamp and (self.before is None or stamp <= self.before)
 
 
-class _Sub:
-    """A subscription of an intra-process node."""
+def _takes_info(callback: Callable[..., Any]) -> bool:
+    """Whether a subscription ``callback`` takes ``(message, message_info)``.
 
-    def __init__(self, node: Node, subscription: Subscription[Any]) -> None:
+    rclpy's rule (``Subscription.callback``): by the signature, one argument
+    if it accepts one, else two.
+
+    :raises RuntimeError: it accepts neither, as rclpy's ``create_subscription`` would.
+    """
+    signature = inspect.signature(callback)
+    for arguments in (1, 2):
+        with contextlib.suppress(TypeError):
+            signature.bind(*(object(),) * arguments)
+            return arguments == 2
+    raise RuntimeError(
+        f"subscription callback {callback!r} must accept one argument (the message) "
+        "or two (the message and its info)"
+    )
+
+
+class SubscriptionRecord:
+    """A subscription of an intra-process node: its callback, reached in process and over DDS.
+
+    Made before the subscription, whose callback is :attr:`from_dds`; the
+    domain fills in the rest when the subscription joins it.
+    """
+
+    #: Set when the subscription joins the domain (:meth:`Domain.add_subscription`).
+    subscription: Subscription[Any]
+    topic: str
+    msg_type: Any
+    qos: QoSProfile
+    max_notes: int
+
+    def __init__(self, node: Node, callback: Callable[..., Any]) -> None:
         self.node = node
+        self.callback = callback
+        self.wants_info = _takes_info(callback)
+        self.is_async = inspect.iscoroutinefunction(callback)
+        self.alive = True
+        self._lock = threading.Lock()
+        self._notes: dict[PublisherRecord, collections.deque[_Note]] = {}
+        #: What rclpy calls with every message taken from rcl: the check, then the callback.
+        self.from_dds: Callable[[Any, Any], Any] = self._from_dds_async if self.is_async else self._from_dds
+        self.call: Callable[..., Any] = self._call_async if self.is_async else self._call
+
+    def attach(self, subscription: Subscription[Any]) -> None:
         self.subscription = subscription
-        self.topic: str = subscription.topic_name
+        self.topic = subscription.topic_name
         self.msg_type = subscription.msg_type
         self.qos = subscription.qos_profile
-        self.callback: Callable[..., Any] = subscription.callback
-        self.wants_info = subscription_wants_info(subscription)
-        self.is_async = inspect.iscoroutinefunction(self.callback)
-        self.alive = True
         depth = self.qos.depth
         self.max_notes = 4 * depth + 16 if depth > 0 else _MAX_NOTES
-        self._lock = threading.Lock()
-        self._notes: dict[_Pub, collections.deque[_Note]] = {}
-        # The DDS path: every message taken from rcl passes the check first.
-        from_dds = self._from_dds_async if self.is_async else self._from_dds
-        # rclpy 9 annotates subscription callbacks as plain; its executors and ours await an async one.
-        subscription.callback = cast("Callable[[Any, Any], None]", from_dds)
-        self.call: Callable[..., Any] = self._call_async if self.is_async else self._call
 
     # -- in process ------------------------------------------------------------
     def executor(self) -> AsyncioExecutor | None:
@@ -108,7 +139,7 @@ class _Sub:
         executor = self.node.executor
         return executor if self.alive and isinstance(executor, AsyncioExecutor) else None
 
-    def note(self, publisher: _Pub, note: _Note) -> None:
+    def note(self, publisher: PublisherRecord, note: _Note) -> None:
         with self._lock:
             notes = self._notes.get(publisher)
             if notes is None:
@@ -169,10 +200,13 @@ class _Sub:
             self._notes.clear()
 
 
-class _Pub:
-    """A publisher of an intra-process node."""
+class PublisherRecord:
+    """A publisher of an intra-process node: where its messages go.
 
-    def __init__(self, domain: _Domain, node: Node, publisher: Publisher[Any]) -> None:
+    :param write: publishes a message over DDS, as the publisher's rclpy class does.
+    """
+
+    def __init__(self, domain: Domain, node: Node, publisher: Publisher[Any], write: Callable[[Any], None]) -> None:
         self.domain = domain
         self.node = node
         self.publisher = publisher
@@ -183,20 +217,21 @@ class _Pub:
         # in process it would arrive out of order with the new messages.
         self.dds_only = self.qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
         self.alive = True
-        self._write = publisher.publish
+        self._write = write
+        #: Set for a lifecycle publisher, which publishes only while activated.
+        self._managed = publisher if isinstance(publisher, LifecyclePublisher) else None
         self._lock = threading.Lock()
         self._sequence = 0
         #: Its gid where rclpy's message info carries one (rclpy 9).
         self._gid = publisher_gid(publisher)
         self._writes = 0
-        self._targets: tuple[int, list[_Sub], int] = (-1, [], 0)
+        self._targets: tuple[int, list[SubscriptionRecord], int] = (-1, [], 0)
         self._dds_for_all = False
         #: The graph's last answer (see ``_graph_knows_more``): for how many known, until when, what.
         self._graph_answer: tuple[int, int, bool] = (-1, 0, False)
 
     def publish(self, message: Any, *, handed_over: bool = False) -> None:
-        publisher = self.publisher
-        if isinstance(publisher, LifecyclePublisher) and not publisher.is_activated:
+        if self._managed is not None and not self._managed.is_activated:
             self._write(message)  # rclpy's no-op (and its warning, if any)
             return
         if not isinstance(message, self.msg_type):
@@ -285,7 +320,7 @@ class _Pub:
         self._graph_answer = (known, now + _GRAPH_RECHECK_NS, more)
         return more
 
-    def targets(self) -> tuple[list[_Sub], int]:
+    def targets(self) -> tuple[list[SubscriptionRecord], int]:
         """The compatible subscriptions, and how many on the topic DDS would not serve."""
         version, targets, served = self._targets
         current = self.domain.version
@@ -309,150 +344,69 @@ def _incompatible(offered: Any, requested: Any) -> bool:
     return bool(compatibility == QoSCompatibility.ERROR)
 
 
-class _Domain:
+class Domain:
     """The intra-process publishers and subscriptions of one context."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._subs: dict[str, tuple[_Sub, ...]] = {}
+        self._subs: dict[str, tuple[SubscriptionRecord, ...]] = {}
         self._pub_counts: dict[str, int] = {}
-        self._by_entity: dict[int, _Sub | _Pub] = {}
+        self._by_subscription: dict[int, SubscriptionRecord] = {}
         #: Bumped whenever a subscription comes or goes.
         self.version = 0
 
-    def subscriptions(self, topic: str) -> tuple[_Sub, ...]:
+    def subscriptions(self, topic: str) -> tuple[SubscriptionRecord, ...]:
         return self._subs.get(topic, ())
 
     def publisher_count(self, topic: str) -> int:
         return self._pub_counts.get(topic, 0)
 
-    def add_publisher(self, node: Node, publisher: Publisher[Any]) -> _Pub:
+    def add_publisher(self, node: Node, publisher: Publisher[Any], write: Callable[[Any], None]) -> PublisherRecord:
+        record = PublisherRecord(self, node, publisher, write)
         with self._lock:
-            found = self._by_entity.get(id(publisher))
-            if isinstance(found, _Pub) and found.publisher is publisher:
-                return found
-            record = _Pub(self, node, publisher)
-            self._by_entity[id(publisher)] = record
             self._pub_counts[record.topic] = self._pub_counts.get(record.topic, 0) + 1
-        setattr(publisher, "publish", record.publish)  # noqa: B010 (an instance attribute)
         return record
 
-    def add_subscription(self, node: Node, subscription: Subscription[Any]) -> _Sub | None:
-        if subscription.raw:
-            return None  # wants serialized bytes: DDS only
+    def remove_publisher(self, record: PublisherRecord) -> None:
         with self._lock:
-            found = self._by_entity.get(id(subscription))
-            if isinstance(found, _Sub) and found.subscription is subscription:
-                return found
-            record = _Sub(node, subscription)
-            self._by_entity[id(subscription)] = record
+            count = self._pub_counts.get(record.topic, 1) - 1
+            if count:
+                self._pub_counts[record.topic] = count
+            else:
+                self._pub_counts.pop(record.topic, None)
+        record.close()
+
+    def add_subscription(self, record: SubscriptionRecord, subscription: Subscription[Any]) -> None:
+        """Let ``subscription`` (whose callback is ``record.from_dds``) receive in process."""
+        record.attach(subscription)
+        with self._lock:
+            self._by_subscription[id(subscription)] = record
             self._subs[record.topic] = (*self._subs.get(record.topic, ()), record)
             self.version += 1
-        return record
 
-    def remove(self, entity: object) -> None:
+    def remove_subscription(self, subscription: Subscription[Any]) -> None:
         with self._lock:
-            record = self._by_entity.get(id(entity))
-            if record is None:
+            record = self._by_subscription.get(id(subscription))
+            if record is None or record.subscription is not subscription:
                 return
-            if isinstance(record, _Sub):
-                if record.subscription is not entity:
-                    return
-                del self._by_entity[id(entity)]
-                rest = tuple(sub for sub in self._subs.get(record.topic, ()) if sub is not record)
-                if rest:
-                    self._subs[record.topic] = rest
-                else:
-                    self._subs.pop(record.topic, None)
-                self.version += 1
+            del self._by_subscription[id(subscription)]
+            rest = tuple(sub for sub in self._subs.get(record.topic, ()) if sub is not record)
+            if rest:
+                self._subs[record.topic] = rest
             else:
-                if record.publisher is not entity:
-                    return
-                del self._by_entity[id(entity)]
-                count = self._pub_counts.get(record.topic, 1) - 1
-                if count:
-                    self._pub_counts[record.topic] = count
-                else:
-                    self._pub_counts.pop(record.topic, None)
+                self._subs.pop(record.topic, None)
+            self.version += 1
         record.close()
 
 
-_domains: weakref.WeakKeyDictionary[Context, _Domain] = weakref.WeakKeyDictionary()
+_domains: weakref.WeakKeyDictionary[Context, Domain] = weakref.WeakKeyDictionary()
 _domains_lock = threading.Lock()
-_enabled: weakref.WeakSet[Node] = weakref.WeakSet()
 
 
-def domain_of(context: Context) -> _Domain:
+def domain_of(context: Context) -> Domain:
     """The intra-process domain of ``context`` (one per process, normally)."""
     with _domains_lock:
         domain = _domains.get(context)
         if domain is None:
-            domain = _domains[context] = _Domain()
+            domain = _domains[context] = Domain()
         return domain
-
-
-def intra_process_enabled(node: Node) -> bool:
-    """Whether :func:`enable_intra_process` was called for ``node``."""
-    return node in _enabled
-
-
-def enable_intra_process(node: Node) -> None:
-    """Let ``node`` exchange messages in process with the other such nodes of its context.
-
-    Publishers and subscriptions the node has already, and every one it
-    creates later, join; destroying one (or the node) leaves. Delivery in
-    process needs the subscribing node to run on an
-    :class:`~container.AsyncioExecutor`; everything else goes over DDS as
-    before. Idempotent.
-    """
-    if node in _enabled:
-        return
-    domain = domain_of(node.context)
-    cls = type(node)
-
-    def create_publisher(*args: Any, **kwargs: Any) -> Publisher[Any]:
-        publisher: Publisher[Any] = cls.create_publisher(node, *args, **kwargs)
-        domain.add_publisher(node, publisher)
-        return publisher
-
-    def create_subscription(*args: Any, **kwargs: Any) -> Subscription[Any]:
-        subscription: Subscription[Any] = cls.create_subscription(node, *args, **kwargs)
-        domain.add_subscription(node, subscription)
-        return subscription
-
-    def destroy_publisher(publisher: Publisher[Any]) -> bool:
-        domain.remove(publisher)
-        return bool(cls.destroy_publisher(node, publisher))
-
-    def destroy_subscription(subscription: Subscription[Any]) -> bool:
-        domain.remove(subscription)
-        return bool(cls.destroy_subscription(node, subscription))
-
-    for name, method in (
-        ("create_publisher", create_publisher),
-        ("create_subscription", create_subscription),
-        ("destroy_publisher", destroy_publisher),
-        ("destroy_subscription", destroy_subscription),
-    ):
-        setattr(node, name, method)
-    _enabled.add(node)
-    for publisher in list(node.publishers):
-        domain.add_publisher(node, publisher)
-    for subscription in list(node.subscriptions):
-        domain.add_subscription(node, subscription)
-
-
-def hand_over(publisher: Publisher[Any], message: Any) -> None:
-    """Publish ``message`` and give it up: subscribers in process get the object itself.
-
-    The zero-copy publish, like rclcpp's ``publish(std::unique_ptr<T>)``:
-    the caller must not touch ``message`` afterwards, and subscribers must
-    treat it as read-only (they may share it). On a publisher without
-    intra-process this is ``publisher.publish(message)``.
-    """
-    # An intra-process publisher's ``publish`` is its record's (see add_publisher).
-    record = getattr(vars(publisher).get("publish"), "__self__", None)
-    if isinstance(record, _Pub) and record.publisher is publisher:
-        record.publish(message, handed_over=True)
-    else:
-        publisher.publish(message)

@@ -7,8 +7,24 @@ Nav2-compatible :class:`LifecycleManager` (``_manager``) watches and calls.
 Depends on :mod:`container.executor`; the container proper depends on this.
 """
 
+from ._client import LifecycleClient
 from ._faults import contain_fault
 from ._manager import LifecycleManager, ManagerSettings
 from ._node import LifecycleNode
+from ._transitions import bring_down, bring_up, is_lifecycle, state_of, transition
 
-__all__ = ["LifecycleManager", "LifecycleNode", "ManagerSettings", "contain_fault"]
+# The public API, then what the container, its command line and its test
+# fixtures share: driving a node through its services (``LifecycleClient``)
+# or in process (the rest).
+__all__ = [
+    "LifecycleClient",
+    "LifecycleManager",
+    "LifecycleNode",
+    "ManagerSettings",
+    "bring_down",
+    "bring_up",
+    "contain_fault",
+    "is_lifecycle",
+    "state_of",
+    "transition",
+]

@@ -4,7 +4,7 @@ The lifecycle manager and ``container lifecycle`` drive nodes they may not
 host (another process, a C++ node), so both go through the services every
 lifecycle node serves. Everything here runs on the executor's event loop;
 rclpy futures are awaited through the executor's bridge
-(:mod:`container.executor._bridge`), never directly, which would busy-wait
+(:func:`container.executor.result`), never directly, which would busy-wait
 outside the executor's own callbacks.
 """
 
@@ -18,7 +18,7 @@ from lifecycle_msgs.msg import Transition, TransitionDescription
 from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 
 from .._errors import TransitionError
-from ..executor import _bridge as bridge
+from ..executor import result as future_result
 
 if TYPE_CHECKING:
     from rclpy.callback_groups import CallbackGroup
@@ -132,7 +132,7 @@ class LifecycleClient:
                 wait = _RESEND_S if wait is None else min(wait, _RESEND_S)
             future = client.call_async(request)
             try:
-                return await bridge.result(future, timeout=wait)
+                return await future_result(future, timeout=wait)
             except TimeoutError:
                 client.remove_pending_request(future)
                 if give_up is not None and time.monotonic() >= give_up:

@@ -27,8 +27,7 @@ from rclpy.lifecycle import (
 )
 
 from .._compat import managed_entities, state_machine
-from ..executor import AsyncioExecutor
-from ..executor._dispatch import describe
+from ..executor import AsyncioExecutor, describe
 from ._node import LifecycleNode
 from ._transitions import state_of
 

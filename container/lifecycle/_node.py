@@ -32,7 +32,7 @@ import threading
 import traceback
 import weakref
 from collections.abc import AsyncIterator, Callable
-from typing import Any
+from typing import Any, cast
 
 import lifecycle_msgs.msg
 import lifecycle_msgs.srv
@@ -48,8 +48,8 @@ from rclpy.timer import Timer
 from .._compat import change_state_service, managed_entities, query_services, state_machine
 from .._errors import TransitionError
 from .._text import clip
-from ..executor._bridge import Escaped, contained, in_thread
-from ..intra import enable_intra_process
+from ..executor import Escaped, contained, in_thread
+from ..intra import IntraProcessNode
 from ._base import LifecycleNodeBase
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, MIN_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
 
@@ -80,7 +80,7 @@ _FAIL_BACK_S = 1.0
 _PUBLISHING = {"activating", "active"}
 
 
-class LifecycleNode(LifecycleNodeBase):
+class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
     """A lifecycle node whose transition callbacks may be coroutines.
 
     Override ``on_configure``, ``on_activate``, ... as in rclpy, with
@@ -100,7 +100,8 @@ class LifecycleNode(LifecycleNodeBase):
     :param transition_timeout: default of the ``transition_timeout`` parameter.
     :param heartbeat_period: default of the ``bond_heartbeat_period`` parameter.
     :param use_intra_process_comms: exchange messages in process with the
-        other such nodes of the context (:mod:`container.intra`).
+        other such nodes of the context (:mod:`container.intra`); every
+        publisher and subscription of the node takes part.
     """
 
     def __init__(
@@ -115,7 +116,7 @@ class LifecycleNode(LifecycleNodeBase):
         # Node.__init__ creates /parameter_events through create_publisher;
         # that one, and anything rclpy creates for itself, stays always-on.
         self._entities_follow_state = False
-        super().__init__(node_name, **kwargs)
+        super().__init__(node_name, use_intra_process_comms=use_intra_process_comms, **kwargs)
         self._managed_timers: set[Timer] = set()
         self._paused_timers: set[Timer] = set()
         self._transition_lock = asyncio.Lock()
@@ -159,8 +160,6 @@ class LifecycleNode(LifecycleNodeBase):
             else:
                 self._heartbeat = HeartbeatPublisher(self, period=period)
         self._entities_follow_state = True
-        if use_intra_process_comms:
-            enable_intra_process(self)
 
     def _declare_seconds(self, name: str, default: float, description: str) -> float:
         # dynamic_typing: a YAML ``5`` (an integer) must be accepted for seconds.
@@ -544,11 +543,19 @@ class LifecycleNode(LifecycleNodeBase):
         return super().create_publisher(msg_type, topic, qos_profile, **kwargs)
 
     def create_lifecycle_publisher(self, *args: Any, **kwargs: Any) -> LifecyclePublisher[Any]:
-        publisher: LifecyclePublisher[Any] = super().create_lifecycle_publisher(*args, **kwargs)
+        if "publisher_class" in kwargs:
+            raise TypeError("create_lifecycle_publisher() got an unexpected keyword argument 'publisher_class'")
+        # rclpy's own calls Node.create_publisher by name, past the intra-process hooks.
+        created = super().create_publisher(*args, publisher_class=LifecyclePublisher, **kwargs)
+        publisher = cast("LifecyclePublisher[Any]", created)
+        self.add_managed_entity(publisher)
         state = self.lifecycle_state
         if state.label in _PUBLISHING:
             publisher.on_activate(state)
         return publisher
+
+    def destroy_lifecycle_publisher(self, publisher: LifecyclePublisher[Any]) -> bool:
+        return self.destroy_publisher(publisher)
 
     def destroy_publisher(self, publisher: Publisher[Any]) -> bool:
         managed_entities(self).discard(publisher)

@@ -35,6 +35,7 @@ _FAIL_BACK_MARGIN_S = 1.0
 
 
 def is_lifecycle(node: Node) -> bool:
+    """Whether ``node`` has lifecycle states (ours or any rclpy lifecycle node): the container drives it."""
     return isinstance(node, LifecycleNodeMixin)
 
 

@@ -31,6 +31,8 @@ def container_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.C
     )
 
 
+# A container process and nine command-line processes.
+@pytest.mark.slow
 def test_load_list_unload_like_ros2_component(run_container: Callable[..., ContainerProcess]) -> None:
     run_container(EMPTY)
     result = container_cli("list")
@@ -71,6 +73,8 @@ def test_load_list_unload_like_ros2_component(run_container: Callable[..., Conta
     assert (result.returncode, result.stdout) == (0, "2  /demo/ear\n"), result.stderr
 
 
+# A container process and six command-line processes.
+@pytest.mark.slow
 def test_load_names_the_node_after_its_remap_rules_and_takes_rclcpp_extras(
     run_container: Callable[..., ContainerProcess],
 ) -> None:
@@ -104,6 +108,8 @@ def test_load_names_the_node_after_its_remap_rules_and_takes_rclcpp_extras(
     assert not any("lifecycle_container::lifecycle_container" in line for line in proc.lines), proc.lines
 
 
+# A container process and five command-line processes.
+@pytest.mark.slow
 def test_refusals_print_the_reason_and_exit_1(run_container: Callable[..., ContainerProcess]) -> None:
     proc = run_container(EMPTY)
     result = container_cli("load", "/ComponentManager", "no_such_package", "no_such_package::X")
@@ -137,8 +143,9 @@ def test_refusals_print_the_reason_and_exit_1(run_container: Callable[..., Conta
 @pytest.mark.parametrize(
     "args",
     [
-        ("load", "/x", "lifecycle_container", "Talker"),
-        ("unload", "/x", "1"),
+        # A second of discovery each: one of them in the fast lane.
+        pytest.param(("load", "/x", "lifecycle_container", "Talker"), marks=pytest.mark.slow),
+        pytest.param(("unload", "/x", "1"), marks=pytest.mark.slow),
         ("list", "/x"),
     ],
 )
@@ -164,6 +171,8 @@ def test_types_lists_the_installed_plugins() -> None:
     ) in result.stdout
 
 
+# Installs the third-party example with pip.
+@pytest.mark.slow
 def test_pip_installed_plugin_appears_in_types_and_loads_from_the_command_line(
     thirdparty_site: Path,
     run_container: Callable[..., ContainerProcess],
@@ -187,6 +196,8 @@ def test_pip_installed_plugin_appears_in_types_and_loads_from_the_command_line(
     proc.wait_for_line("Unloaded '/greeter'")
 
 
+# Installs the third-party example with pip.
+@pytest.mark.slow
 def test_a_running_container_follows_installs_and_uninstalls(
     thirdparty_site: Path,
     run_container: Callable[..., ContainerProcess],

@@ -41,6 +41,8 @@ def lifecycle(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str,
     return code, out, err
 
 
+# A container process and a command-line call per verb.
+@pytest.mark.slow
 def test_lifecycle_verbs_match_ros2_lifecycle(
     run_container: Callable[..., ContainerProcess], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -68,6 +70,8 @@ def test_lifecycle_verbs_match_ros2_lifecycle(
     )
 
 
+# A container process and command-line processes.
+@pytest.mark.slow
 def test_failed_transition_and_unknown_node_exit_non_zero(
     run_container: Callable[..., ContainerProcess], capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 
 import pytest
@@ -14,6 +13,7 @@ from rclpy.node import Node
 
 from container._session import Session, run_session
 from tests.container_support import REPO
+from tests.waiting import wait_until
 
 
 @pytest.fixture
@@ -24,13 +24,13 @@ def observer(context: Context) -> Iterator[Node]:
 
 
 def wait_for_node(observer: Node, predicate: str, *, timeout: float = 20.0) -> None:
-    """Poll the ROS graph until a node whose name contains ``predicate`` shows up."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if any(predicate in name for name, _ in observer.get_node_names_and_namespaces()):
-            return
-        time.sleep(0.02)  # graph discovery offers no event to wait on (rclpy#929)
-    raise AssertionError(f"no node named like {predicate!r} within {timeout} s")
+    """Poll the ROS graph (discovery offers no event to wait on: rclpy#929) until a
+    node whose name contains ``predicate`` shows up."""
+    wait_until(
+        lambda: any(predicate in name for name, _ in observer.get_node_names_and_namespaces()),
+        f"a node named like {predicate!r}",
+        timeout=timeout,
+    )
 
 
 def start(*args: str) -> subprocess.Popen[str]:

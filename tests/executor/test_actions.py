@@ -160,6 +160,8 @@ def _send(client: ActionClient[Any, Any, Any], target: int, feedback: Feedback) 
     return client.send_goal_async(CountTo.Goal(target=target), feedback_callback=feedback)
 
 
+# The seed's counter as written: a second per step.
+@pytest.mark.slow
 def test_seed_counter_runs_as_written(context: Context, spinning: AsyncioExecutor) -> None:
     server = CounterActionServer(context=context)
     caller = Node("counter_caller", context=context)
@@ -245,6 +247,8 @@ async def _server_ready(client: ActionClient[Any, Any, Any]) -> None:
         await asyncio.sleep(0.02)
 
 
+# A container process and a client process, a second per step.
+@pytest.mark.slow
 def test_counter_in_a_container_driven_from_another_process(
     run_container: Callable[..., ContainerProcess], tmp_path: Path
 ) -> None:

@@ -229,6 +229,8 @@ def spliced_capture(capture: Path, tmp_path: Path) -> Path:
     return path
 
 
+# Replays seconds of a real capture at the device's pace.
+@pytest.mark.slow
 @pytest.mark.asyncio
 @pytest.mark.parametrize("rate", [1.0, 3.0])
 async def test_replayed_scans_keep_pace_across_gaps_and_clock_jumps(capture: Path, tmp_path: Path, rate: float) -> None:
@@ -340,6 +342,8 @@ async def test_lidar_reopens_after_unplug() -> None:
     assert re.search(r"reconnected after 0\.\d s \(\d+ attempt\(s\)\)", events[1][1])
 
 
+# A stall of 0.4 s, and the scans around it.
+@pytest.mark.slow
 @pytest.mark.asyncio
 @pytest.mark.parametrize("poll", [0.02, None], ids=["polled", "on-arrival"])
 async def test_a_short_stall_is_reported_with_its_length(poll: float | None) -> None:
@@ -395,6 +399,8 @@ async def test_close_during_a_read_ends_scans_without_reopening() -> None:
     assert lidar.reopens == 0
 
 
+# Waits out the reopen back-off.
+@pytest.mark.slow
 @pytest.mark.asyncio
 async def test_reopen_attempts_back_off_up_to_the_maximum(monkeypatch: pytest.MonkeyPatch) -> None:
     async with asyncio.timeout(LIMIT), Emulator() as emu:
@@ -484,6 +490,8 @@ async def test_polled_source_reads_early_when_something_is_due() -> None:
     assert regular >= 0.45
 
 
+# Seconds of revolutions at the device's pace.
+@pytest.mark.slow
 @pytest.mark.asyncio
 async def test_polled_lidar_yields_each_revolution_soon_after_it_completes() -> None:
     """Polling every 30 ms, a turn still comes out within a few ms of its last packet."""

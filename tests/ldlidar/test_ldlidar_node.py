@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import math
 import os
 import subprocess
@@ -30,6 +29,7 @@ from ldlidar import Emulator
 from ldlidar.plugin import SCAN_QOS, LdLidarNode, find_serial_ports
 from tests.container_support import REPO, ContainerProcess
 from tests.lifecycle_support import run
+from tests.waiting import wait_until_async
 
 EXAMPLE = REPO / "examples" / "lidar.yaml"
 ROSOUT_QOS = QoSProfile(
@@ -76,16 +76,6 @@ class Recorder:
             return [item.msg for item in self.items]
 
 
-async def until(predicate: Callable[[], bool], what: str, *, timeout: float = 10.0) -> None:
-    """Wait on the executor's loop until ``predicate()`` holds; fail after ``timeout``."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not predicate():
-        if loop.time() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        await asyncio.sleep(0.01)
-
-
 def logged(rosout: Recorder, node: str) -> list[str]:
     return [msg.msg for msg in rosout.messages() if msg.name == node]
 
@@ -122,6 +112,8 @@ def test_plugin_is_found_through_its_entry_point() -> None:
 
 
 # -- the lifecycle -------------------------------------------------------------------------------
+# Seconds of scans at 10 Hz.
+@pytest.mark.slow
 def test_full_lifecycle_streams_ten_hertz_and_deactivate_keeps_reading(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
@@ -135,14 +127,14 @@ def test_full_lifecycle_streams_ten_hertz_and_deactivate_keeps_reading(
             lidar = node.lidar
             assert lidar is not None and lidar.state == "open" and node.port == emu.link
             assert node.emulator is None
-            await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+            await wait_until_async(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
             # Reading starts at configure, publishing only at activate.
             start = lidar.stats.packets
-            await until(lambda: lidar.stats.packets > start + 100, "packets while inactive")
+            await wait_until_async(lambda: lidar.stats.packets > start + 100, "packets while inactive")
             assert len(scans) == 0 and node.scans_published == 0
 
             assert await node.transition("activate")
-            await until(lambda: len(scans) >= 21, "21 scans", timeout=5)
+            await wait_until_async(lambda: len(scans) >= 21, "21 scans", timeout=5)
             first = scans.since(0)[:21]
             rate = 20 / (first[-1].at - first[0].at)
             assert rate == pytest.approx(10.0, rel=0.15)
@@ -155,20 +147,20 @@ def test_full_lifecycle_streams_ten_hertz_and_deactivate_keeps_reading(
             assert lidar.state == "open"
             mark = lidar.stats.packets
             # Anything published before the deactivation has landed by now.
-            await until(lambda: lidar.stats.packets > mark + 40, "packets after deactivate")
+            await wait_until_async(lambda: lidar.stats.packets > mark + 40, "packets after deactivate")
             held, published = len(scans), node.scans_published
-            await until(lambda: lidar.stats.packets > mark + 230, "half a second of packets")
+            await wait_until_async(lambda: lidar.stats.packets > mark + 230, "half a second of packets")
             assert len(scans) == held and node.scans_published == published
             assert lidar.stats.crc_errors == 0
 
             assert await node.transition("activate")
-            await until(lambda: len(scans) >= held + 5, "scans after reactivation", timeout=5)
+            await wait_until_async(lambda: len(scans) >= held + 5, "scans after reactivation", timeout=5)
             check_scan_fields([r.msg for r in scans.since(held)][:5])
 
             assert await node.transition("deactivate")
             assert await node.transition("cleanup")
             assert node.lidar is None and lidar.closed
-            await until(lambda: scans.subscription.get_publisher_count() == 0, "the publisher to go")
+            await wait_until_async(lambda: scans.subscription.get_publisher_count() == 0, "the publisher to go")
             assert await node.transition("shutdown")
             assert node.lifecycle_state.label == "finalized"
 
@@ -187,14 +179,14 @@ def test_configure_fails_on_a_missing_port_and_can_be_retried(
         node: LdLidarNode = host(
             LdLidarNode, "nowhere", parameter_overrides=lidar_parameters("/dev/ttyUSB-does-not-exist")
         )
-        await until(lambda: change.service_is_ready() and get.service_is_ready(), "the lifecycle services")
+        await wait_until_async(lambda: change.service_is_ready() and get.service_is_ready(), "the lifecycle services")
         # Asked the way `ros2 lifecycle set` asks.
         response = await change.call_async(ChangeState.Request(transition=Transition(label="configure")))
         assert response.success is False
         state = await get.call_async(GetState.Request())
         assert state.current_state.label == "unconfigured"
         assert node.lidar is None and node.emulator is None  # an explicit port never falls back
-        await until(
+        await wait_until_async(
             lambda: any(
                 "'/dev/ttyUSB-does-not-exist': cannot open: No such file" in m for m in logged(rosout, "nowhere")
             ),
@@ -238,7 +230,7 @@ def test_configure_refuses_a_bad_parameter_naming_it(
         assert not await node.transition("configure")
         assert node.lifecycle_state.label == "unconfigured"
         assert node.lidar is None and node.emulator is None  # refused before opening anything
-        await until(
+        await wait_until_async(
             lambda: any(f"parameter {parameter!r}" in m and words in m for m in logged(rosout, name)),
             f"a log line naming {parameter}",
         )
@@ -276,7 +268,7 @@ def test_configure_times_out_on_a_silent_port(executor: AsyncioExecutor, host: C
         elapsed = time.monotonic() - began
         assert node.lifecycle_state.label == "unconfigured" and node.lidar is None
         assert openers(os.ttyname(slave)) == 1  # the test's own: the node closed its port
-        await until(
+        await wait_until_async(
             lambda: any("silent: not one byte within 0.3 s" in m for m in logged(rosout, "silent")),
             "the reason, which is not a wrong baud rate",
         )
@@ -350,9 +342,11 @@ def test_auto_without_a_device_runs_the_emulator_until_cleanup(
         running = emulator.state
         assert node.port == emulator.link and os.path.exists(emulator.link)
         assert await node.transition("activate")
-        await until(lambda: node.scans_published >= 3, "scans from the emulator")
+        await wait_until_async(lambda: node.scans_published >= 3, "scans from the emulator")
         # Simulated scans are never OK: a robot must not mistake them for its surroundings.
-        await until(lambda: any("publishing" in s.message for s in statuses()), "an active status", timeout=5)
+        await wait_until_async(
+            lambda: any("publishing" in s.message for s in statuses()), "an active status", timeout=5
+        )
         active = [s for s in statuses() if s.message.endswith(", publishing")]
         assert active and all(s.level == DiagnosticStatus.WARN and "simulated" in s.message for s in active)
         assert await node.transition("deactivate")
@@ -409,7 +403,7 @@ def test_a_vendor_parameter_file_is_taken_with_notices_and_unknown_names_are_rep
             values = {name: node.get_parameter(name).value for name in ("lidar.frame_id", "lidar.rot_verse")}
             assert values == {"lidar.frame_id": "base_laser", "lidar.rot_verse": "CW"}
             assert node.get_parameter("lidar.enable_angle_crop").value is True
-            await until(
+            await wait_until_async(
                 lambda: any("Unknown parameter 'lidar.bin'" in m for m in logged(rosout, "migrated")),
                 "the unknown parameter reported",
             )
@@ -419,7 +413,9 @@ def test_a_vendor_parameter_file_is_taken_with_notices_and_unknown_names_are_rep
             assert any("did you mean 'lidar.bins'?" in m for m in lines)
             assert await node.transition("activate")
             # general.debug_mode (the community driver's) is honoured: a debug line per revolution.
-            await until(lambda: any(m.startswith("scan ") for m in logged(rosout, "migrated")), "debug lines")
+            await wait_until_async(
+                lambda: any(m.startswith("scan ") for m in logged(rosout, "migrated")), "debug lines"
+            )
             assert await node.transition("deactivate")
             assert await node.transition("cleanup")
 
@@ -441,7 +437,9 @@ def test_scan_qos_is_overridden_the_ros_way(executor: AsyncioExecutor, host: Cal
                 ],
             )
             assert await node.transition("configure")
-            await until(lambda: bool(observer.get_publishers_info_by_topic("/besteffort/scan")), "the publisher")
+            await wait_until_async(
+                lambda: bool(observer.get_publishers_info_by_topic("/besteffort/scan")), "the publisher"
+            )
             [info] = observer.get_publishers_info_by_topic("/besteffort/scan")
             assert info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
             assert node.get_parameter("qos_overrides./besteffort/scan.publisher.depth").value == 3
@@ -477,10 +475,10 @@ def test_publish_when_subscribed_builds_scans_only_for_a_listener(
             lidar = node.lidar
             assert lidar is not None
             mark = lidar.stats.packets
-            await until(lambda: lidar.stats.packets > mark + 200, "half a second of packets")
+            await wait_until_async(lambda: lidar.stats.packets > mark + 200, "half a second of packets")
             assert node.scans_published == 0
             scans = Recorder(observer, LaserScan, "/lazy/scan", SCAN_QOS)
-            await until(lambda: len(scans) >= 3, "scans once someone listens")
+            await wait_until_async(lambda: len(scans) >= 3, "scans once someone listens")
             assert await node.transition("deactivate")
             assert await node.transition("cleanup")
 
@@ -488,6 +486,8 @@ def test_publish_when_subscribed_builds_scans_only_for_a_listener(
 
 
 # -- trouble while active ----------------------------------------------------------------------
+# Seconds of scans around an unplug and the reopen.
+@pytest.mark.slow
 @pytest.mark.parametrize("poll_msec", [10, 0], ids=["polled", "on-arrival"])
 def test_unplug_while_active_reports_an_error_then_resumes(
     executor: AsyncioExecutor, host: Callable[..., Any], poll_msec: int
@@ -511,29 +511,29 @@ def test_unplug_while_active_reports_an_error_then_resumes(
                 parameter_overrides=lidar_parameters(emu.link, comm__timeout_msec=500, comm__poll_msec=poll_msec),
             )
             assert await node.transition("configure")
-            await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+            await wait_until_async(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
             assert await node.transition("activate")
-            await until(lambda: len(scans) >= 3, "scans before the unplug")
+            await wait_until_async(lambda: len(scans) >= 3, "scans before the unplug")
             assert node.reconnects == 0
 
             await emu.unplug()
             lidar = node.lidar
             assert lidar is not None
-            await until(lambda: lidar.state == "reconnecting", "the node to notice")
+            await wait_until_async(lambda: lidar.state == "reconnecting", "the node to notice")
             seen = len(statuses())
-            await until(
+            await wait_until_async(
                 lambda: any(s.level == DiagnosticStatus.ERROR for s in statuses()[seen:]),
                 "an ERROR diagnostic while unplugged",
                 timeout=5,
             )
             held = len(scans)
             await emu.replug()
-            await until(lambda: node.reconnects == 1, "the reopen", timeout=5)
-            await until(lambda: len(scans) >= held + 5, "scans after the replug", timeout=5)
+            await wait_until_async(lambda: node.reconnects == 1, "the reopen", timeout=5)
+            await wait_until_async(lambda: len(scans) >= held + 5, "scans after the replug", timeout=5)
             check_scan_fields([r.msg for r in scans.since(held)][1:5])
             assert lidar.state == "open"
             seen = len(statuses())
-            await until(
+            await wait_until_async(
                 lambda: any(
                     s.level == DiagnosticStatus.OK
                     and dict((v.key, v.value) for v in s.values)["reconnects"] == "1"
@@ -544,7 +544,7 @@ def test_unplug_while_active_reports_an_error_then_resumes(
                 timeout=5,
             )
             # Never only on /diagnostics: the log says it too.
-            await until(lambda: any("reconnected after" in m for m in warnings()), "a WARN on reconnecting")
+            await wait_until_async(lambda: any("reconnected after" in m for m in warnings()), "a WARN on reconnecting")
             assert any("device lost (port" in m for m in warnings()), warnings()
             assert await node.transition("deactivate")
             assert await node.transition("cleanup")
@@ -560,7 +560,7 @@ def test_a_reader_failure_while_active_goes_through_error_processing(
             node: LdLidarNode = host(LdLidarNode, "fragile", parameter_overrides=lidar_parameters(emu.link))
             assert await node.transition("configure")
             assert await node.transition("activate")
-            await until(lambda: node.scans_published >= 2, "scans")
+            await wait_until_async(lambda: node.scans_published >= 2, "scans")
             lidar = node.lidar
             assert lidar is not None
 
@@ -568,7 +568,7 @@ def test_a_reader_failure_while_active_goes_through_error_processing(
                 raise RuntimeError("injected")
 
             monkeypatch.setattr(node, "_on_scan", boom)
-            await until(lambda: node.lifecycle_state.label == "unconfigured", "error processing")
+            await wait_until_async(lambda: node.lifecycle_state.label == "unconfigured", "error processing")
             assert lidar.closed and node.lidar is None
             monkeypatch.undo()
             assert await node.transition("configure")  # recovered: the node can start over
@@ -577,6 +577,8 @@ def test_a_reader_failure_while_active_goes_through_error_processing(
     run(executor, scenario())
 
 
+# Rates measured over seconds of scans.
+@pytest.mark.slow
 def test_diagnostics_report_rates_and_state(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
     observer = host(Node, "observer")
     diagnostics = Recorder(observer, DiagnosticArray, "/diagnostics", 10)
@@ -593,13 +595,13 @@ def test_diagnostics_report_rates_and_state(executor: AsyncioExecutor, host: Cal
         async with Emulator() as emu:
             node: LdLidarNode = host(LdLidarNode, "healthy", parameter_overrides=lidar_parameters(emu.link))
             assert await node.transition("configure")
-            await until(
+            await wait_until_async(
                 lambda: len(values_of(DiagnosticStatus.OK, "not publishing (node inactive)")) >= 2,
                 "diagnostics while inactive",
                 timeout=5,
             )
             assert await node.transition("activate")
-            await until(
+            await wait_until_async(
                 lambda: len(values_of(DiagnosticStatus.OK, "streaming, publishing")) >= 2,
                 "diagnostics while active",
                 timeout=5,
@@ -613,7 +615,7 @@ def test_diagnostics_report_rates_and_state(executor: AsyncioExecutor, host: Cal
 
             emu.inject_garbage(300, seed=3)
             emu.inject(b"\x54\x2c" + bytes(45))  # a data packet's header, then a bad CRC
-            await until(
+            await wait_until_async(
                 lambda: bool(values_of(DiagnosticStatus.WARN, "line noise")), "a WARN for line noise", timeout=5
             )
             warned = values_of(DiagnosticStatus.WARN, "line noise")[-1]
@@ -625,6 +627,8 @@ def test_diagnostics_report_rates_and_state(executor: AsyncioExecutor, host: Cal
     run(executor, scenario(), timeout=30)
 
 
+# A 3 s window of scans.
+@pytest.mark.slow
 def test_blocking_neighbour_does_not_delay_scans(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
     """A plain callback that blocks for 1 s, in the same container, costs the LiDAR nothing."""
     observer = host(Node, "observer")
@@ -641,13 +645,13 @@ def test_blocking_neighbour_does_not_delay_scans(executor: AsyncioExecutor, host
         async with Emulator() as emu:
             node: LdLidarNode = host(LdLidarNode, "steady", parameter_overrides=lidar_parameters(emu.link))
             assert await node.transition("configure")
-            await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+            await wait_until_async(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
             assert await node.transition("activate")
-            await until(lambda: len(scans) >= 2, "the first scans")
+            await wait_until_async(lambda: len(scans) >= 2, "the first scans")
             blocker.create_timer(0.05, block)
-            await until(lambda: len(blocks) >= 1, "the first blocking callback", timeout=5)
+            await wait_until_async(lambda: len(blocks) >= 1, "the first blocking callback", timeout=5)
             window_start = blocks[0][0]
-            await until(lambda: time.monotonic() > window_start + 3.0, "a 3 s window", timeout=6)
+            await wait_until_async(lambda: time.monotonic() > window_start + 3.0, "a 3 s window", timeout=6)
             window_end = time.monotonic()
             assert await node.transition("deactivate")
             assert await node.transition("cleanup")
@@ -664,6 +668,8 @@ def test_blocking_neighbour_does_not_delay_scans(executor: AsyncioExecutor, host
 
 
 # -- across processes and from a capture --------------------------------------------------------
+# A container process and a listener process.
+@pytest.mark.slow
 def test_container_run_example_streams_scans_to_another_process(
     run_container: Callable[..., ContainerProcess],
     executor: AsyncioExecutor,
@@ -677,7 +683,7 @@ def test_container_run_example_streams_scans_to_another_process(
     scans = Recorder(observer, LaserScan, "/ldlidar/scan", 10)
 
     async def scenario() -> None:
-        await until(lambda: len(scans) >= 26, "26 scans from the container process", timeout=20)
+        await wait_until_async(lambda: len(scans) >= 26, "26 scans from the container process", timeout=20)
 
     run(executor, scenario(), timeout=30)
     # The last 21: over the first few revolutions the device-to-host clock
@@ -696,6 +702,8 @@ def test_container_run_example_streams_scans_to_another_process(
     assert "threads left behind" not in output
 
 
+# Replays seconds of a real capture at the device's pace.
+@pytest.mark.slow
 @pytest.mark.shared
 def test_replay_of_a_real_capture_through_the_node(
     executor: AsyncioExecutor, host: Callable[..., Any], capture: Path
@@ -706,14 +714,14 @@ def test_replay_of_a_real_capture_through_the_node(
     async def scenario() -> int:
         node: LdLidarNode = host(LdLidarNode, "replay", parameter_overrides=lidar_parameters(f"file://{capture}"))
         assert await node.transition("configure")
-        await until(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
+        await wait_until_async(lambda: scans.subscription.get_publisher_count() == 1, "the scan publisher")
         assert await node.transition("activate")
         lidar = node.lidar
         assert lidar is not None
-        await until(lambda: lidar.closed, "the end of the capture", timeout=10)  # 2.3 s of device time
+        await wait_until_async(lambda: lidar.closed, "the end of the capture", timeout=10)  # 2.3 s of device time
         assert lidar.stats.packets == 863 and lidar.stats.crc_errors == 0
         published = node.scans_published
-        await until(lambda: len(scans) == published, "every published scan")
+        await wait_until_async(lambda: len(scans) == published, "every published scan")
         assert await node.transition("deactivate")
         assert await node.transition("cleanup")
         return published

@@ -84,6 +84,8 @@ def listener() -> Iterator[socket.socket]:
     server.close()
 
 
+# A container process, asked by a peer for every kind of port.
+@pytest.mark.slow
 def test_a_peer_cannot_make_the_container_open_what_the_operator_did_not_allow(
     run_container: Callable[..., ContainerProcess],
     tmp_path: Path,
@@ -139,6 +141,8 @@ def test_a_peer_cannot_make_the_container_open_what_the_operator_did_not_allow(
     proc.wait_for_line("Unloaded '/talker'")
 
 
+# A container process with a LiDAR.
+@pytest.mark.slow
 def test_what_the_container_file_allows_opens(
     run_container: Callable[..., ContainerProcess], tmp_path: Path
 ) -> None:

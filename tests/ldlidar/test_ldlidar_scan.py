@@ -143,6 +143,8 @@ def test_every_ray_is_where_and_when_the_message_says(
             assert len(scan.ranges) == 450  # the native resolution
 
 
+# Every ray of the whole real capture.
+@pytest.mark.slow
 @pytest.mark.shared
 @pytest.mark.parametrize("direction", ["ccw", "cw"])
 @pytest.mark.parametrize("bins", [455, 0])

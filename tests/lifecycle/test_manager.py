@@ -254,6 +254,8 @@ def managed_system(
         observer.destroy_node()
 
 
+# Container processes, one killed and respawned.
+@pytest.mark.slow
 def test_killed_node_in_another_process_resets_the_rest_and_respawn_restarts_them(
     run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
 ) -> None:
@@ -377,6 +379,8 @@ def test_heartbeat_periods_below_10_ms_are_refused() -> None:
     assert ManagerSettings.from_mapping({"bond_heartbeat_period": 0.01}).parameters["bond_heartbeat_period"] == 0.01
 
 
+# A container process, a node killed, the bond timeout waited out.
+@pytest.mark.slow
 def test_a_heartbeat_from_another_instance_never_hides_a_crash(
     run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
 ) -> None:
@@ -395,6 +399,8 @@ def test_a_heartbeat_from_another_instance_never_hides_a_crash(
         assert time.monotonic() - killed_at < BOND_TIMEOUT + MARGIN + 0.5
 
 
+# A container process, a node killed, the respawn window waited out.
+@pytest.mark.slow
 def test_a_node_back_after_the_respawn_window_is_reset_like_its_peers(
     run_container: Callable[..., ContainerProcess], context: Context, executor: AsyncioExecutor
 ) -> None:

@@ -21,6 +21,7 @@ from container import AsyncioExecutor
 from container._errors import TransitionError
 from container.lifecycle._node import LifecycleNode
 from tests.lifecycle_support import TransitionLog, run
+from tests.waiting import wait_until_async
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
@@ -316,18 +317,14 @@ def test_heartbeats_go_out_only_while_something_listens(
     assert heartbeat is not None
     listener = host(Node, "ear")
 
-    async def until(predicate: Callable[[], bool]) -> None:
-        while not predicate():
-            await asyncio.sleep(0.01)
-
     async def scenario() -> tuple[int, bool]:
         # Unheard, it stops (another test's listener may linger in discovery a moment).
-        await until(lambda: not heartbeat.beating)
+        await wait_until_async(lambda: not heartbeat.beating, "the unheard heartbeat stopped")
         seen: list[Any] = []
         subscription = listener.create_subscription(bond.Status, "/bond", seen.append, 100)
-        await until(lambda: sum(1 for s in seen if s.id == "/lonely") >= 3)
+        await wait_until_async(lambda: sum(1 for s in seen if s.id == "/lonely") >= 3, "3 heartbeats heard")
         listener.destroy_subscription(subscription)
-        await until(lambda: not heartbeat.beating)
+        await wait_until_async(lambda: not heartbeat.beating, "the heartbeat stopped once unheard again")
         return len(seen), heartbeat.beating
 
     heard, after = run(executor, scenario(), timeout=15.0)

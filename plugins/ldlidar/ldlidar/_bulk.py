@@ -32,12 +32,12 @@ from typing import TYPE_CHECKING, NamedTuple, TypeVar, cast
 
 import numpy as np
 
+from ._crc import crc_ok, position_tables
 from ._errors import DeviceError
 from ._parser import MAX_SPAN, ParserStats
 from ._protocol import (
     ANGLE_UNITS,
     BOUNDARY,
-    CRC_TABLE,
     HEADER,
     HEALTH_SIZE,
     HEALTH_TYPE,
@@ -57,7 +57,7 @@ if TYPE_CHECKING:
     # Only for annotations: importing numpy.typing costs start-up time.
     from numpy.typing import NDArray
 
-__all__ = ["DecodedStream", "crc_ok", "crc_rows", "decode_bytes", "decode_file"]
+__all__ = ["DecodedStream", "crc_rows", "decode_bytes", "decode_file"]
 
 _ROW = PACKET_SIZE + 1
 """Scattered packets are gathered into 48-byte rows so that every u16 field is aligned."""
@@ -84,22 +84,6 @@ _TURN = TURN_SUBUNITS
 _T = TypeVar("_T")
 
 
-def _single_tables() -> NDArray[np.uint8]:
-    """Return the ``(48, 256)`` CRC contribution of each byte value at each position of a packet.
-
-    The CRC is linear over GF(2): the CRC of bytes 0..45 is the XOR of rows
-    0..45 looked up at each byte. Row 46 is the CRC byte itself, row 47 zero.
-    """
-    table = np.array(CRC_TABLE, dtype=np.uint8)
-    single = np.zeros((_ROW, 256), dtype=np.uint8)
-    cur = np.arange(256, dtype=np.uint8)
-    single[PACKET_SIZE - 1] = cur
-    for i in range(PACKET_SIZE - 2, -1, -1):
-        cur = table[cur]
-        single[i] = cur
-    return single
-
-
 def _pair_tables() -> NDArray[np.uint8]:
     """Return the ``(24, 65536)`` CRC contribution of each aligned byte pair of a packet.
 
@@ -110,7 +94,7 @@ def _pair_tables() -> NDArray[np.uint8]:
     pair (64 KB, contiguous) is used one at a time, column by column, so it
     stays in cache.
     """
-    single = _single_tables()
+    single = position_tables()
     # Pair value w = lo | hi << 8 sits at [hi, lo] of a 256 x 256 outer XOR.
     pairs = single[1::2, :, None] ^ single[0::2, None, :]
     return pairs.reshape(_ROW // 2, 1 << 16)
@@ -195,25 +179,6 @@ def _valid(buf: NDArray[np.uint8], base: int, stride: int, count: int) -> NDArra
     end -= start
     ok &= end <= MAX_SPAN
     ok &= (end >= 0) | (end <= MAX_SPAN - ANGLE_UNITS)
-    return ok
-
-
-_BYTE_TABLE: NDArray[np.uint8] | None = None
-_BYTE_BASE = (np.arange(PACKET_SIZE - 1, dtype=np.intp) << 8)
-
-
-def crc_ok(rows: NDArray[np.uint8]) -> NDArray[np.bool_]:
-    """Return which of the ``(n, 47)`` rows carry a correct CRC.
-
-    For a handful of packets at a time (the streaming parser's fast path):
-    one gather from the per-byte tables (12 KB, which stay in cache between
-    revolutions, unlike the 1.5 MB pair tables), whatever the number of rows.
-    """
-    global _BYTE_TABLE
-    if _BYTE_TABLE is None:
-        _BYTE_TABLE = _single_tables()[: PACKET_SIZE - 1].ravel()
-    crc = np.bitwise_xor.reduce(_BYTE_TABLE.take(rows[:, : PACKET_SIZE - 1] + _BYTE_BASE), axis=1)
-    ok: NDArray[np.bool_] = crc == rows[:, PACKET_SIZE - 1]
     return ok
 
 

@@ -171,7 +171,7 @@ class StreamParser:
         """
         import numpy as np
 
-        from ._bulk import crc_ok
+        from ._crc import crc_ok
 
         self._buf += data
         buf = self._buf

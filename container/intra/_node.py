@@ -139,9 +139,17 @@ class IntraProcessNode(Node):
         if domain is None or kwargs.get("raw", False):
             return super().create_subscription(msg_type, topic, callback, qos_profile, **kwargs)
         record = SubscriptionRecord(self, callback)
+        # Joins before its DDS reader exists (see SubscriptionRecord).
+        qos = qos_profile if isinstance(qos_profile, QoSProfile) else QoSProfile(depth=qos_profile)
+        record.expect(self.resolve_topic_name(topic), msg_type, qos)
+        domain.add_subscription(record)
         from_dds: Any = record.from_dds  # rclpy's annotation knows neither message info nor coroutines
-        subscription = super().create_subscription(msg_type, topic, from_dds, qos_profile, **kwargs)
-        domain.add_subscription(record, subscription)
+        try:
+            subscription = super().create_subscription(msg_type, topic, from_dds, qos_profile, **kwargs)
+        except BaseException:
+            domain.discard(record)
+            raise
+        domain.attach(record, subscription)
         return subscription
 
     def destroy_subscription(self, subscription: Subscription[Any]) -> bool:

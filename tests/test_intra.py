@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import array
+import itertools
 import subprocess
 import sys
 import textwrap
@@ -20,6 +21,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from rclpy.subscription import Subscription
 from sensor_msgs.msg import Image
 from std_msgs.msg import Int64
@@ -31,6 +33,8 @@ from tests.component_support import ContainerClient, load_request, parameter
 from tests.container_support import ContainerProcess
 
 TIMEOUT = 10.0
+#: A value no test sends: "everything sent before this has arrived".
+MARK = -(2**62)
 
 
 class Inbox:
@@ -55,6 +59,19 @@ class Inbox:
     def data(self) -> list[Any]:
         with self._changed:
             return [message.data for message in self.messages]
+
+    def wait_for_marks(self, count: int = 1, timeout: float = TIMEOUT) -> bool:
+        """Wait for ``count`` marks (:data:`MARK`), then forget them: what is left came before."""
+        def marks() -> int:
+            return sum(message.data == MARK for message in self.messages)
+
+        with self._changed:
+            arrived = self._changed.wait_for(lambda: marks() >= count, timeout)
+            kept = [index for index, message in enumerate(self.messages) if message.data != MARK]
+            if len(self.infos) == len(self.messages):
+                self.infos = [self.infos[index] for index in kept]
+            self.messages = [self.messages[index] for index in kept]
+            return arrived
 
     def wait_for(self, count: int, timeout: float = TIMEOUT) -> bool:
         with self._changed:
@@ -122,16 +139,37 @@ def matched(publisher: Publisher[Any], count: int, *, publishers: int | None = 1
         time.sleep(0.01)
 
 
-def settle(*inboxes: Inbox, quiet: float = 0.3) -> None:
-    """Wait until nothing more arrives for ``quiet`` seconds (duplicates would)."""
-    sizes: list[int] = []
-    deadline = time.monotonic() + TIMEOUT
-    while time.monotonic() < deadline:
-        now = [len(inbox.messages) for inbox in inboxes]
-        if now == sizes:
-            return
-        sizes = now
-        time.sleep(quiet)
+def flush(publisher: Publisher[Any], *inboxes: Inbox) -> None:
+    """Wait until everything ``publisher`` sent has reached ``inboxes``, any duplicate included.
+
+    A mark sent after it, serialized (so over DDS only: never handed over in
+    process), must arrive: DDS keeps one writer's order, and what was
+    delivered in process was queued in the subscription's lane at publish,
+    before the mark, which that lane runs after it.
+    """
+    publisher.publish(serialize_message(Int64(data=MARK)))
+    for inbox in inboxes:
+        assert inbox.wait_for_marks(), f"the mark on {publisher.topic_name} never arrived"
+
+
+_markers = itertools.count()
+
+
+def flush_unreached(
+    make: Callable[..., Node], inbox: Inbox, topic: str, qos: QoSProfile | int, **node_kwargs: Any
+) -> None:
+    """Wait until anything handed to ``inbox``'s subscription in process so far has run.
+
+    For a subscription the publisher under test must never reach (DDS would
+    not match it either): a plain node's publisher that does match it sends
+    a mark, which the subscription's lane runs after whatever a wrong
+    in-process hand-over (made at publish, before) queued there.
+    """
+    marker = make(f"marker_{next(_markers)}", intra=False, **node_kwargs)
+    publisher = marker.create_publisher(Int64, topic, qos)
+    matched(publisher, 1, publishers=None)
+    publisher.publish(Int64(data=MARK))
+    assert inbox.wait_for_marks(), f"the mark on {publisher.topic_name} never arrived"
 
 
 def test_in_process_and_dds_subscribers_each_get_every_message_once(
@@ -150,7 +188,7 @@ def test_in_process_and_dds_subscribers_each_get_every_message_once(
     for message in sent:
         hand_over(publisher, message)
     assert in_process.wait_for(50) and in_process_async.wait_for(50) and over_dds.wait_for(50)
-    settle(in_process, in_process_async, over_dds)
+    flush(publisher, in_process, in_process_async, over_dds)
     expected = list(range(50))
     assert in_process.data() == expected
     assert in_process_async.data() == expected
@@ -210,7 +248,7 @@ def test_node_without_the_option_gets_messages_over_dds_only(
     sent = Int64(data=7)
     hand_over(publisher, sent)
     assert inbox.wait_for(1)
-    settle(inbox)
+    flush(publisher, inbox)
     assert inbox.data() == [7]
     assert inbox.messages[0] is not sent
     assert not intra_process_enabled(talker)
@@ -274,7 +312,7 @@ def test_keep_last_depth_bounds_what_waits(nodes: Callable[..., Node], spin: Cal
         publisher.publish(Int64(data=value))
     gate.set()
     assert inbox.wait_for(6)
-    settle(inbox)
+    flush(publisher, inbox)
     # The one running, then the last five: keep-last 5, as DDS would keep.
     assert inbox.data() == [0, 15, 16, 17, 18, 19]
 
@@ -295,7 +333,8 @@ def test_remapped_and_namespaced_topics_meet_by_resolved_name(
     sent = Int64(data=1)
     hand_over(publisher, sent)
     assert heard.wait_for(1)
-    settle(heard)
+    flush(publisher, heard)
+    flush_unreached(nodes, not_heard, "chatter", 10, namespace="/robot")
     assert heard.messages == [sent] and heard.messages[0] is sent
     assert not_heard.messages == []
 
@@ -322,8 +361,16 @@ def test_qos_mismatch_is_not_delivered(nodes: Callable[..., Node], spin: Callabl
     for value in range(5):
         publisher.publish(Int64(data=value))
     assert compatible.wait_for(5)
-    settle(compatible, wants_reliable, wants_durable)
+    flush(publisher, compatible)
     assert compatible.data() == [0, 1, 2, 3, 4]
+    # The marks' publishers reach the compatible subscription too: asked above already.
+    flush_unreached(nodes, wants_reliable, "numbers", 10)
+    flush_unreached(
+        nodes,
+        wants_durable,
+        "numbers",
+        QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.TRANSIENT_LOCAL),
+    )
     assert wants_reliable.messages == [] and wants_durable.messages == []
 
 
@@ -342,7 +389,8 @@ def test_a_publisher_outside_the_domain_on_the_same_topic_never_causes_duplicate
         ours.publish(Int64(data=value))
         theirs.publish(Int64(data=100 + value))
     assert in_process.wait_for(40) and over_dds.wait_for(40)
-    settle(in_process, over_dds)
+    flush(ours, in_process, over_dds)
+    flush(theirs, in_process, over_dds)
     for inbox in (in_process, over_dds):
         data = inbox.data()
         assert sorted(data) == sorted([*range(20), *range(100, 120)])
@@ -362,7 +410,7 @@ def test_transient_local_late_joiner_gets_the_last_messages_once(
     assert late.wait_for(3)
     publisher.publish(Int64(data=5))
     assert late.wait_for(4)
-    settle(late)
+    flush(publisher, late)
     assert late.data() == [2, 3, 4, 5]
 
 

@@ -40,7 +40,7 @@ from .._compat import (
     loop_ready_queue,
     subscription_wants_info,
 )
-from ._entries import KINDS, WOKEN, Entry, describe, entities_of, express_work, format_error
+from ._entries import KINDS, WOKEN, Entry, describe, entities_of, express_work
 from ._fastpath import (
     Express,
     Notifier,
@@ -56,7 +56,7 @@ if TYPE_CHECKING:
     from rclpy.context import Context
     from rclpy.executors import Executor
 
-__all__ = ["WOKEN", "Dispatcher", "describe", "format_error"]
+__all__ = ["Dispatcher"]
 
 _log = logging.getLogger(__name__)
 

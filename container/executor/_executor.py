@@ -41,7 +41,8 @@ from rclpy.task import Future as RclFuture
 from .._compat import executor_guards, loop_is_idle, running_loop, runs_plain_callback, wraps_an_awaitable
 from .._errors import ExecutorError
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
-from ._dispatch import WOKEN, Dispatcher, describe, format_error
+from ._dispatch import Dispatcher
+from ._entries import WOKEN, describe, format_error
 from ._fastpath import Work
 from ._inbox import Inbox, Post
 from ._lanes import Lane

@@ -29,6 +29,7 @@ from ._errors import (
     TransitionError,
 )
 from ._hookspecs import RegisterNodeType, hookimpl, hookspec
+from ._throttle import Throttle
 
 if TYPE_CHECKING:
     from ._container import ComponentManager, LoadedNode, LoadRequest
@@ -58,6 +59,7 @@ __all__ = [
     "PluginError",
     "PluginRegistry",
     "RegisterNodeType",
+    "Throttle",
     "TransitionError",
     "contain_fault",
     "copy_message",

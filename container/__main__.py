@@ -1,13 +1,31 @@
-"""``python -m container`` and the ``container`` console script."""
+"""``python -m container`` and the ``container`` console script.
+
+A signal before the command's session handles signals itself (while Python
+imports the command line, rclpy and the plugins, while rcl starts) ends the
+process quietly with ``128 + signal``, as a shell reports a process a signal
+killed: Ctrl-C in the first half second must not print a
+``KeyboardInterrupt`` traceback from the middle of an import. This module
+imports nothing but the standard library until that is in place; what
+``container/__init__.py`` imports runs before it, and stays small.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
 import sys
 import threading
 
-from .cli import main as _main
-
 __all__ = ["main"]
+
+
+def _exit_quietly(signum: int, frame: object) -> None:
+    # Runs between any two bytecodes: only what is safe there.
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(128 + signum)
 
 
 def main() -> int:
@@ -17,8 +35,16 @@ def main() -> int:
     and never ended would keep the process alive after the container is
     gone. The session has already named them in the log; here the process
     ends with its exit code regardless.
+
+    SIGINT and SIGTERM end the process at once until the session installs
+    its own handlers, and again after a session that no signal stopped (the
+    session restores them), to the end of the process.
     """
-    code = _main()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _exit_quietly)
+    from .cli import main as run_command
+
+    code = run_command()
     if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
         from ._session import exit_now  # rclpy only loads when a session ran
 

@@ -17,13 +17,13 @@ from rclpy.context import Context
 from rclpy.exceptions import ParameterException
 
 from ._config import ContainerConfig
-from ._container import ComponentManager, requests_from_specs, type_label
+from ._container import ComponentManager, entry_label, requests_from_specs
 from ._diagnostics import LoopDiagnostics
 from ._errors import ContainerError
 from ._params import node_parameters
 from ._registry import PluginRegistry
 from ._services import ContainerServices
-from ._session import EXIT_OK, EXIT_USAGE, Session, run_session
+from ._session import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, Session, run_session
 from .devices import set_device_policy
 from .executor import AsyncioExecutor
 from .lifecycle import LifecycleManager, ManagerSettings, contain_fault
@@ -70,6 +70,7 @@ class ContainerApp:
                 context=context,
                 reentrant_limit=config.reentrant_limit,
                 on_callback_error=contain_fault,
+                stall_after=config.watchdog_threshold,
             )
         namespace = config.namespace if config.namespace.startswith("/") else f"/{config.namespace}"
         manager = ComponentManager(
@@ -87,35 +88,69 @@ class ContainerApp:
         )
         services = ContainerServices(manager)
         diagnostics = LoopDiagnostics(manager, executor)
+        # The registry has logged each plugin it skipped, once.
         executor.add_node(manager)
-        for failure in registry.failures:
-            manager.get_logger().error(f"Plugin skipped: {failure}")
         return cls(config, context, registry, executor, manager, services, diagnostics)
 
     async def serve(
-        self, *, extensions: tuple[Extension, ...] = (), stopping: asyncio.Event | None = None
-    ) -> None:
-        """Load the configured nodes, run until :meth:`stop` (or ``stopping``), then unload all."""
+        self,
+        *,
+        extensions: tuple[Extension, ...] = (),
+        stopping: asyncio.Event | None = None,
+        on_ready: Callable[[], None] | None = None,
+        exit_on_failure: bool | None = None,
+    ) -> list[str]:
+        """Load the configured nodes, run until :meth:`stop` (or ``stopping``), then unload all.
+
+        A stop requested while the nodes load ends the loading: what loaded
+        is unloaded, and ``on_ready`` is never called.
+
+        :param on_ready: called once every listed node was tried.
+        :param exit_on_failure: stop at once, right after ready, when a listed
+            node failed (default: the file's ``on_failure``).
+        :return: the listed nodes that failed, one line each
+            (``nodes[3] (name: front_lidar): reason``).
+        """
         if stopping is not None:
             self.stopping = stopping
+        if exit_on_failure is None:
+            exit_on_failure = self.config.on_failure == "exit"
         log = self.manager.get_logger()
-        for request in requests_from_specs(self.config.nodes):
+        failures: list[str] = []
+        failed: list[str] = []
+        specs = self.config.nodes
+        for index, request in enumerate(requests_from_specs(specs)):
+            if self.stopping.is_set():
+                break
+            entry = entry_label(index, request)
             try:
                 await self.manager.load_and_start(request, timeout=self.config.unload_timeout)
             except ContainerError as exc:
                 # A bad entry costs that node only; the container serves on.
-                log.error(f"Could not start {type_label(request.package, request.plugin)}: {exc}")
-        running = [asyncio.ensure_future(extension(self)) for extension in extensions]
-        log.info(
-            f"Container '{self.manager.get_fully_qualified_name()}' ready with "
-            f"{len(self.manager.loaded())} node(s)"
-        )
-        await self.stopping.wait()
+                log.error(f"Could not start {entry}: {exc}")
+                failed.append(entry)
+                failures.append(f"{entry}: {exc}")
+        running: list[asyncio.Future[None]] = []
+        if not self.stopping.is_set():
+            running = [asyncio.ensure_future(extension(self)) for extension in extensions]
+            loaded = len(self.manager.loaded())
+            log.info(f"Container '{self.manager.get_fully_qualified_name()}' ready with {loaded} node(s)")
+            if failures:
+                log.error(
+                    f"{len(failures)} of the {len(specs)} node(s) the file lists failed: "
+                    + ", ".join(failed)
+                    + (" (on_failure: exit, so the container stops)" if exit_on_failure else "")
+                )
+            if on_ready is not None:
+                on_ready()
+            if not (failures and exit_on_failure):
+                await self.stopping.wait()
         log.info("Shutting down")
         for task in running:
             task.cancel()
         await asyncio.gather(*running, return_exceptions=True)
         await self.manager.unload_all()
+        return failures
 
     def stop(self) -> None:
         self.stopping.set()
@@ -129,13 +164,20 @@ class ContainerApp:
 
 
 def run_container(
-    config: ContainerConfig, *, extensions: tuple[Extension, ...] = (), ros_args: Sequence[str] = ()
+    config: ContainerConfig,
+    *,
+    extensions: tuple[Extension, ...] = (),
+    ros_args: Sequence[str] = (),
+    exit_on_failure: bool | None = None,
 ) -> int:
     """Run a container process until SIGINT or SIGTERM; return the exit code.
 
     :param ros_args: the command line's ROS arguments; rcl applies them to
         the container node (its name, namespace, parameters, remaps) and to
         logging, not to the nodes it loads unless a load forwards them.
+    :param exit_on_failure: exit 1 right after start-up when a listed node
+        failed to load or start (default: the file's ``on_failure``, whose
+        default ``continue`` serves on and exits 0, as rclcpp's container).
     """
 
     async def main(session: Session) -> int:
@@ -146,10 +188,16 @@ def run_container(
             print(f"container run: {' '.join(str(exc).split())}", file=sys.stderr)
             return EXIT_USAGE
         try:
-            await app.serve(extensions=extensions, stopping=session.stopping)
+            failures = await app.serve(
+                extensions=extensions,
+                stopping=session.stopping,
+                on_ready=session.mark_ready,
+                exit_on_failure=exit_on_failure,
+            )
         finally:
             app.close()
-        return EXIT_OK
+        exits = exit_on_failure if exit_on_failure is not None else config.on_failure == "exit"
+        return EXIT_FAILURE if failures and exits else EXIT_OK
 
     return run_session(
         main,
@@ -158,6 +206,7 @@ def run_container(
             "reentrant_limit": config.reentrant_limit,
             "on_callback_error": contain_fault,
             "shutdown_timeout": config.shutdown_timeout,
+            "stall_after": config.watchdog_threshold,
         },
         ros_args=ros_args,
     )
@@ -203,6 +252,7 @@ def run_manager(settings: ManagerSettings, *, ros_args: Sequence[str] = ()) -> i
             print(f"container manager: {' '.join(str(exc).split())}", file=sys.stderr)
             return EXIT_USAGE
         session.executor.add_node(manager)
+        session.mark_ready()
         running = asyncio.ensure_future(manager.run())
         try:
             await session.stopping.wait()

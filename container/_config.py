@@ -16,6 +16,8 @@
       unload_timeout: 5.0           # seconds each step of taking a node down may take
       load_timeout: 10.0            # seconds a node's constructor may take
       shutdown_timeout: 5.0         # seconds a stuck event loop may hold up SIGINT/SIGTERM
+      watchdog_threshold: 1.0       # seconds a plugin may hold the event loop before it is reported
+      on_failure: continue          # a listed node that fails to load or start: continue | exit
       use_intra_process_comms: false  # the default of the nodes' extra argument
     nodes:
       - package: lifecycle_container
@@ -51,7 +53,7 @@ from ._params import ParameterSource
 from ._yaml import read_yaml
 from .devices import DevicePolicy
 
-__all__ = ["ContainerConfig", "NodeSpec", "load_config", "parse_config", "read_yaml"]
+__all__ = ["ON_FAILURE", "ContainerConfig", "NodeSpec", "load_config", "parse_config", "read_yaml"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +86,8 @@ class ContainerConfig:
     unload_timeout: float = 5.0
     load_timeout: float = 10.0
     shutdown_timeout: float = 5.0
+    watchdog_threshold: float = 1.0
+    on_failure: str = "continue"
     use_intra_process_comms: bool = False
     nodes: tuple[NodeSpec, ...] = ()
     manager: Mapping[str, Any] | None = None
@@ -106,8 +110,16 @@ _CONTAINER_KEYS = {
     "unload_timeout",
     "load_timeout",
     "shutdown_timeout",
+    "watchdog_threshold",
+    "on_failure",
     "use_intra_process_comms",
 }
+
+#: What ``container run`` does when a node its file lists fails to load or
+#: start: serve on with the others (rclcpp's container never exits for a
+#: failed load), or take everything down and exit 1 (for a launch file or a
+#: systemd unit that must notice).
+ON_FAILURE = ("continue", "exit")
 _NODE_KEYS = {
     "package",
     "plugin",
@@ -169,6 +181,10 @@ def parse_config(
         shutdown_timeout=_positive_float(
             container.get("shutdown_timeout", 5.0), f"{source}: container.shutdown_timeout"
         ),
+        watchdog_threshold=_positive_float(
+            container.get("watchdog_threshold", 1.0), f"{source}: container.watchdog_threshold"
+        ),
+        on_failure=_choice(container.get("on_failure", "continue"), ON_FAILURE, f"{source}: container.on_failure"),
         use_intra_process_comms=_bool(
             container.get("use_intra_process_comms", False), f"{source}: container.use_intra_process_comms"
         ),
@@ -302,6 +318,13 @@ def _bool(value: Any, where: str) -> bool:
 
 def _positive_int(value: Any, where: str) -> int:
     return checks.integer(value, where=where, minimum=1)
+
+
+def _choice(value: Any, choices: Sequence[str], where: str) -> str:
+    text = checks.string(value, where=where)
+    if text not in choices:
+        raise ConfigError(f"expected one of {', '.join(choices)}, not {text!r}", source=where)
+    return text
 
 
 def _positive_float(value: Any, where: str) -> float:

@@ -11,12 +11,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import os
 import re
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import (
     InvalidNamespaceException,
     InvalidNodeNameException,
@@ -27,12 +29,13 @@ from rclpy.parameter import Parameter
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
+from . import checks
 from ._compat import InvalidROSArgsError, is_built, state_machine, state_machine_if_built
 from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
 from ._text import clip
-from .executor import Escaped, in_thread
+from .executor import Escaped, format_plugin_frames, in_thread
 from .intra import intra_process_class
 from .lifecycle import LifecycleNode, bring_down, bring_up, is_lifecycle
 
@@ -41,7 +44,7 @@ if TYPE_CHECKING:
 
     from .executor import AsyncioExecutor
 
-__all__ = ["ComponentManager", "LoadRequest", "LoadedNode", "type_label"]
+__all__ = ["ComponentManager", "LoadRequest", "LoadedNode", "entry_label", "type_label"]
 
 #: The rclpy parameter that starts a node's ~/get_type_description service.
 TYPE_DESCRIPTION_SERVICE = "start_type_description_service"
@@ -55,6 +58,14 @@ _EXTRA_ARGUMENTS: dict[str, type] = {
     "forward_global_arguments": bool,
     "autostart": bool,
 }
+
+#: What ``thread_num`` means here (``ros2 param describe``; docs/guide/launch.md).
+THREAD_NUM_DESCRIPTION = (
+    "Accepted as rclcpp's component_container_mt reads it (default: the number of CPUs). "
+    "Here every node's plain callbacks run on worker threads of their own lanes, started when "
+    "needed and ended when idle, so no callback waits for a thread another node holds; "
+    "thread_num does not cap them."
+)
 
 #: How rclcpp names the types in its refusals.
 _TYPE_WORDS: dict[type, str] = {bool: "boolean"}
@@ -145,12 +156,20 @@ class ComponentManager(Node):
         )
         self.registry = registry
         self._host = executor
+        # rclcpp's containers declare it (component_container_mt reads it), so
+        # launch files pass it and `ros2 param get` expects it.
+        self.thread_num = self.declare_parameter(
+            "thread_num",
+            os.cpu_count() or 1,
+            ParameterDescriptor(description=THREAD_NUM_DESCRIPTION, read_only=True),
+        ).value
         self.unload_timeout = unload_timeout
         self.load_timeout = load_timeout
         self.use_intra_process_comms = use_intra_process_comms
         self._background: set[asyncio.Task[None]] = set()
         self._ids = itertools.count(1)
         self._loaded: dict[int, LoadedNode] = {}
+        self._ignored_arguments: set[str] = set()
 
     # -- queries ------------------------------------------------------------------
     def loaded(self) -> list[LoadedNode]:
@@ -178,6 +197,13 @@ class ComponentManager(Node):
         """
         node_type = self.registry.resolve(request.package, request.plugin)
         forward_global_arguments = _check_extra_arguments(request.extra_arguments)
+        for key in _ignored_extra_arguments(request.extra_arguments):
+            if key not in self._ignored_arguments:
+                self._ignored_arguments.add(key)
+                self.get_logger().warning(
+                    f"Extra component argument '{clip(key)}' is not used by this container: ignored "
+                    "(as rclcpp's container does); logged once"
+                )
         if request.log_level not in _LOG_LEVELS:
             raise LoadError(f"Invalid log_level {request.log_level}: expected one of 0, 10, 20, 30, 40, 50")
         remaps = [_check_remap(rule) for rule in request.remap_rules]
@@ -257,6 +283,11 @@ class ComponentManager(Node):
         except BaseException as exc:  # sys.exit() in a constructor ends only that load
             _discard(built)
             error = exc.error if isinstance(exc, Escaped) else exc
+            # The answer carries one line; the log, where it came from.
+            self.get_logger().error(
+                f"Component constructor of {node_type.full_name} ('{clip(full_name)}') raised "
+                f"{_one_line(error)}\n{format_plugin_frames(error.__traceback__, innermost_first=False)}"
+            )
             raise LoadError(f"Component constructor threw an exception: {_one_line(error)}") from exc
         loaded = LoadedNode(next(self._ids), node, node_type, request, node.get_fully_qualified_name())
         self._loaded[loaded.unique_id] = loaded
@@ -264,6 +295,10 @@ class ComponentManager(Node):
         self.get_logger().info(
             f"Loaded {node_type.full_name} as '{loaded.full_name}' (unique_id {loaded.unique_id})"
         )
+        if not isinstance(node, LifecycleNode):
+            # Ours check after their first configure, when all is declared.
+            for warning in checks.unread_parameters(node, [parameter.name for parameter in overrides]):
+                node.get_logger().warning(warning)
         return loaded
 
     def _refuse_duplicate(self, full_name: str) -> None:
@@ -384,16 +419,23 @@ def _destroy(node: Node) -> None:
 
 
 def _check_extra_arguments(arguments: Mapping[str, Any]) -> bool:
-    """Check the extra arguments; return ``forward_global_arguments`` (rclcpp's default: false)."""
+    """Check the extra arguments this container reads; return ``forward_global_arguments`` (rclcpp's default: false).
+
+    Others are not refused: rclcpp's container ignores extra arguments it
+    does not know, and launch files written for it pass some
+    (``enable_rosout``); the manager logs each such name once.
+    """
     for key, value in arguments.items():
         expected = _EXTRA_ARGUMENTS.get(key)
-        if expected is None:
-            raise LoadError(f"Extra component argument '{clip(key)}' is not supported")
-        if not isinstance(value, expected):
+        if expected is not None and not isinstance(value, expected):
             raise LoadError(
                 f"Extra component argument '{key}' must be a {_TYPE_WORDS[expected]}"
             )
     return arguments.get("forward_global_arguments") is True
+
+
+def _ignored_extra_arguments(arguments: Mapping[str, Any]) -> list[str]:
+    return [key for key in arguments if key not in _EXTRA_ARGUMENTS]
 
 
 def _remapped_name(name: str, namespace: str, rules: Sequence[str]) -> str:
@@ -490,6 +532,16 @@ def _overrides(request: LoadRequest, full_name: str) -> list[Parameter[Any]]:
 def _one_line(exc: BaseException) -> str:
     text = clip(" ".join(str(exc).split()))
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def entry_label(index: int, request: LoadRequest) -> str:
+    """How logs name the ``index``-th node of a container file: ``nodes[3] (name: front_lidar)``.
+
+    Two entries of one type are told apart by their name; an unnamed
+    entry by its type.
+    """
+    what = f"name: {request.name}" if request.name else f"type: {type_label(request.package, request.plugin)}"
+    return f"nodes[{index}] ({clip(what)})"
 
 
 def requests_from_specs(specs: Iterable[Any]) -> list[LoadRequest]:

@@ -5,6 +5,12 @@ level OK while the loop is free, WARN once it has been stuck, ERROR while it
 is stuck now (with what it is stuck in), and the counts. The timer callback
 is plain, so the report goes out from its lane's thread even while an
 ``async def`` callback holds the loop.
+
+Every stall counts here, the container's own included: the watchdog logs
+only stalls in a plugin's work (the container's start-up on a loaded
+machine is no plugin's fault), but a loop stuck in our own code still
+holds every ``async def`` callback back, which is what this status says.
+``whose`` tells the two apart.
 """
 
 from __future__ import annotations
@@ -48,6 +54,7 @@ class LoopDiagnostics:
             "stalls": str(stalls),
             "longest stall (s)": f"{longest:.1f}",
             "stuck in": stall.what if stall is not None else "nothing",
+            "whose": ("plugin" if stall.plugin else "container") if stall is not None else "nobody",
             "watchdog": "on" if watchdog is not None else "off",
         }
         return DiagnosticStatus(

@@ -8,21 +8,33 @@ of them start ROS and end alike:
   (the ``--ros-args ... [--]`` sections, :func:`container.cli.split_ros_args`),
   which rcl parses with its own semantics; the command's own ``-p
   name:=value`` is never read by rcl as a remap rule;
-* rclpy's signal handlers off, and SIGINT/SIGTERM handled on the event loop
+* rclpy's signal handlers off, and SIGINT/SIGTERM handled by the session
   (rclpy's would shut the context down under the nodes' feet);
 * the exit code: what ``main`` returns; for a command cut short by a signal,
-  ``128 + signal`` (130 for Ctrl-C), as shells report it; a *server* (a
+  ``128 + signal`` (130 for Ctrl-C), as shells report it. A *server* (a
   container, a manager) treats the first signal as the request to stop and
-  exits with what its orderly shutdown returns; a second signal while it
-  shuts down exits at once (``128 + signal``), without a traceback;
+  exits with what its orderly shutdown returns once it has said it is ready
+  (:meth:`Session.mark_ready`); a signal before that stops the start-up and
+  the process exits ``128 + signal``;
+* repeated signals, as ``ros2 launch`` and rclcpp's container expect: Ctrl-C
+  in a terminal reaches every process of the group and launch forwards one
+  more SIGINT, so a repetition of the *first* signal is absorbed (one line
+  says so); a different signal (launch's SIGTERM after its
+  ``sigterm_timeout``) or a third one ends the process at once with ``128 +
+  signal``, without a traceback, and so does an event loop still stuck
+  ``shutdown_timeout`` after the first signal;
 * the executor shut down and the context with it, whatever happened.
+
+Before the session's handlers are installed, and after a session that no
+signal stopped, the handlers the caller had apply (the ``container`` command
+installs its own first thing: :mod:`container.__main__`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
-import functools
 import logging
 import os
 import signal
@@ -68,11 +80,11 @@ _HARD_STOP_POLL_S = 0.1
 _log = logging.getLogger("container")
 
 
-def _arm_hard_stop(session: Session, signum: int, frame: object) -> None:
-    """Python-level signal handler: make sure a stuck loop cannot keep the process alive.
+def _arm_hard_stop(session: Session, signum: int) -> None:
+    """Make sure a stuck loop cannot keep the process alive after the first signal.
 
     The orderly stop goes through the loop (asyncio's own handling of the
-    same signal). If the loop is stuck in a callback and stays stuck for the
+    signal). If the loop is stuck in a callback and stays stuck for the
     executor's shutdown timeout, this ends the process anyway, naming what
     was stuck.
     """
@@ -103,8 +115,8 @@ def _hard_stop(session: Session, signum: int) -> None:
 def exit_now(code: int) -> NoReturn:
     """End the process at once with ``code``, whatever threads still run.
 
-    For what an orderly exit cannot do: a stuck loop, a second signal,
-    threads a plugin left behind (Python's exit would join them). Logs and
+    For what an orderly exit cannot do: a stuck loop, a signal that
+    escalates, threads a plugin left behind (Python's exit would join them). Logs and
     standard streams are flushed first.
     """
     with contextlib.suppress(Exception):
@@ -147,6 +159,17 @@ class Session:
     signal: int | None = None
     #: Started by the first signal: ends the process if the loop stays stuck.
     hard_stop: threading.Thread | None = None
+    #: Set by :meth:`mark_ready`.
+    ready: bool = False
+
+    def mark_ready(self) -> None:
+        """Say the server has started: a signal from now on is the ordinary way to stop it.
+
+        A server a signal stopped that never got here (its start-up cut
+        short) exits ``128 + signal``, whatever ``main`` returns; one that
+        did, with what ``main`` returns.
+        """
+        self.ready = True
 
     @contextlib.contextmanager
     def client_node(self, name: str) -> Iterator[Node]:
@@ -186,6 +209,7 @@ def run_session(
     # creation; the failure itself is reported (ros_failure), once.
     warnings.filterwarnings("ignore", message="Failed to fini rosout publisher", category=RuntimeWarning)
     before = set(threading.enumerate())
+    previous = {signum: signal.getsignal(signum) for signum in _SIGNALS}
     context = Context()
     try:
         # Only the ROS sections: rcl would read the command's own arguments
@@ -196,11 +220,15 @@ def run_session(
     code = EXIT_FAILURE
     clean = False
     try:
-        executor = AsyncioExecutor(context=context, **(executor_options or {}))
+        # A client command's output is read by scripts: its own loop
+        # stalls (an import, the first log call) are never reported there.
+        options = {"watchdog_reports": server, **(executor_options or {})}
+        executor = AsyncioExecutor(context=context, **options)
         session = Session(context, executor)
         try:
             codes: list[int] = []
-            executor.spin_until_future_complete(_guarded(main, session, server=server, codes=codes))
+            signals = _Signals(session, server=server)
+            executor.spin_until_future_complete(_guarded(main, session, signals, codes=codes))
             if codes:
                 code = codes[0]
             elif session.signal is not None:
@@ -209,6 +237,15 @@ def run_session(
             clean = executor.shutdown()
             if session.hard_stop is not None:
                 session.hard_stop.join(1.0)
+            if session.signal is None:
+                # A session no signal stopped leaves the caller's handlers;
+                # one a signal stopped keeps its own: the process is on its
+                # way out, and a repetition is still absorbed until it is gone.
+                for signum, handler in previous.items():
+                    if handler is not None:
+                        signal.signal(signum, handler)
+            else:
+                atexit.register(signals.hand_over)
     except KeyboardInterrupt:
         code = exit_code_for(signal.SIGINT)
     finally:
@@ -221,43 +258,136 @@ def run_session(
     return code
 
 
+class _Signals:
+    """What SIGINT and SIGTERM mean to one session, from its loop's start to the process's end.
+
+    Two handlers see each signal. Python's (:meth:`on_signal_now`) runs in
+    the main thread between two bytecodes, even while the event loop is
+    stuck in a callback, so it does only what is safe at any point of any
+    code: it records the signal, starts the hard stop, writes straight to
+    file descriptor 2 and ends the process. asyncio's (:meth:`on_signal`,
+    while the loop's handlers are installed) runs on the loop, after it, and
+    starts the orderly stop and logs.
+    """
+
+    def __init__(self, session: Session, *, server: bool) -> None:
+        self.session = session
+        self.server = server
+        #: The loop's handlers are installed (they log the repetition).
+        self.on_loop = False
+        #: The first signal came again, and was absorbed.
+        self.repeated = False
+        self._stop_started = False
+        self._repeat_logged = False
+        self._task: asyncio.Task[None] | None = None
+
+    def install(self, loop: asyncio.AbstractEventLoop, task: asyncio.Task[None]) -> None:
+        """Handle the signals on ``loop``, a client's first cancelling ``task``."""
+        self._task = task
+        for signum in _SIGNALS:
+            # asyncio's handler wakes the loop through its wake-up descriptor
+            # and runs on it; the Python-level one replaces asyncio's no-op.
+            loop.add_signal_handler(signum, self.on_signal, signum)
+            signal.signal(signum, self.on_signal_now)
+        self.on_loop = True
+
+    def uninstall(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Leave the loop; the Python-level handler goes on to the end of the session."""
+        self.on_loop = False
+        for signum in _SIGNALS:
+            loop.remove_signal_handler(signum)  # restores Python's defaults...
+            signal.signal(signum, self.on_signal_now)  # ...which would raise or kill
+
+    def hand_over(self) -> None:
+        """Leave the signals' meaning to the kernel for the process's last moments.
+
+        Python runs no signal handler once it finalizes (it puts back the
+        default dispositions), and the teardown of rcl and the DDS
+        participant takes a while then (0.1-0.2 s). So from the last
+        ``atexit`` callback on: the first signal's repetition is ignored
+        until it has come, any other signal ends the process at once (killed
+        by it, which shells report as ``128 + signal`` too).
+        """
+        for signum in _SIGNALS:
+            absorb = signum == self.session.signal and not self.repeated
+            signal.signal(signum, signal.SIG_IGN if absorb else signal.SIG_DFL)
+
+    def on_signal_now(self, signum: int, frame: object) -> None:
+        """Python's handler: record the first signal; absorb its repetition; escalate."""
+        if self._record(signum):
+            return
+        first = self.session.signal
+        assert first is not None
+        name = signal.Signals(signum).name
+        if signum == first and not self.repeated:
+            self.repeated = True
+            if not self.on_loop:
+                _write_stderr(_absorbed(name))
+            return
+        again = "a third time" if signum == first else f"after {signal.Signals(first).name}"
+        _write_stderr(f"{name} {again}: exiting at once")
+        exit_now(exit_code_for(signum))
+
+    def on_signal(self, signum: int) -> None:
+        """asyncio's handler, on the loop: start the orderly stop, or log the repetition."""
+        self._record(signum)  # normally done: Python's handler runs first
+        first = self.session.signal
+        assert first is not None
+        name = signal.Signals(first).name
+        if not self._stop_started:
+            self._stop_started = True
+            if self.server:
+                _log.info(f"{name} received: shutting down")
+                self.session.stopping.set()
+            elif self._task is not None:
+                self._task.cancel()
+        elif self.repeated and not self._repeat_logged:
+            self._repeat_logged = True
+            _log.warning(_absorbed(name))
+
+    def _record(self, signum: int) -> bool:
+        """Take ``signum`` as the session's signal if it has none yet; whether it did."""
+        session = self.session
+        if session.signal is not None:
+            return False
+        session.signal = signum
+        if self.on_loop:
+            _arm_hard_stop(session, signum)
+        return True
+
+
+def _absorbed(name: str) -> str:
+    return f"{name} again: already shutting down; a third signal exits at once"
+
+
+def _write_stderr(line: str) -> None:
+    """Write ``line`` from a signal handler: past the buffers the interrupted code may be using."""
+    with contextlib.suppress(OSError):
+        os.write(2, f"{line}\n".encode())
+
+
 async def _guarded(
-    main: Callable[[Session], Awaitable[int]], session: Session, *, server: bool, codes: list[int]
+    main: Callable[[Session], Awaitable[int]], session: Session, signals: _Signals, *, codes: list[int]
 ) -> None:
     loop = asyncio.get_running_loop()
     task = asyncio.current_task()
     assert task is not None
-
-    def on_signal(signum: int) -> None:
-        if session.signal is not None:
-            # A second signal: the user wants out now, whatever is still running.
-            name = signal.Signals(signum).name
-            print(f"{name} again: exiting at once", file=sys.stderr, flush=True)
-            exit_now(exit_code_for(signum))
-        session.signal = signum
-        if server:
-            _log.info(f"{signal.Signals(signum).name} received: shutting down")
-            session.stopping.set()
-        else:
-            task.cancel()
-
-    for signum in _SIGNALS:
-        loop.add_signal_handler(signum, on_signal, signum)
-        # asyncio runs on_signal on the loop, which an async def callback may
-        # hold for good; this runs in the main thread whatever it executes.
-        signal.signal(signum, functools.partial(_arm_hard_stop, session))
+    signals.install(loop, task)
     try:
-        codes.append(await main(session))
+        code = await main(session)
     except asyncio.CancelledError:
         if session.signal is None:
             raise
         task.uncancel()
+        code = exit_code_for(session.signal)
     except RCLError as exc:
         # ROS itself refused (a node could not be created, most often): a
         # user's environment problem, said in one line, not a traceback.
         print(f"container: {ros_failure(exc)}", file=sys.stderr, flush=True)
-        codes.append(EXIT_FAILURE)
+        code = EXIT_FAILURE
+    else:
+        if signals.server and session.signal is not None and not session.ready:
+            code = exit_code_for(session.signal)
     finally:
-        if not server or session.signal is None:
-            for signum in _SIGNALS:
-                loop.remove_signal_handler(signum)
+        signals.uninstall(loop)
+    codes.append(code)

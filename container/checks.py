@@ -11,13 +11,14 @@ came from (``where``) and whose ``reason`` says what is wrong with it::
 
 from __future__ import annotations
 
+import difflib
 import math
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Iterable, Sequence
+from typing import Any, Protocol
 
 from ._errors import ConfigError
 
-__all__ = ["boolean", "integer", "number", "string", "strings"]
+__all__ = ["boolean", "integer", "number", "string", "strings", "unread_parameters"]
 
 
 def string(value: Any, *, where: str, empty: bool = False) -> str:
@@ -79,3 +80,33 @@ def _bounds(value: float, minimum: float | None, maximum: float | None, where: s
         raise ConfigError(f"must be >= {minimum:g}, not {value:g}", source=where)
     if maximum is not None and value > maximum:
         raise ConfigError(f"must be <= {maximum:g}, not {value:g}", source=where)
+
+
+class _DeclaresParameters(Protocol):
+    def has_parameter(self, name: str) -> bool: ...
+
+    def get_parameters_by_prefix(self, prefix: str) -> dict[str, Any]: ...
+
+
+#: Parameters rclpy declares on every node, whoever overrides them.
+_ROS_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+
+
+def unread_parameters(node: _DeclaresParameters, names: Iterable[str]) -> list[str]:
+    """A warning for each of ``names`` (parameter overrides given to ``node``) that no declared parameter takes.
+
+    rclpy keeps an override nobody declares without a word, so ``rat: 5.0``
+    for ``rate`` runs on the default. Call it once the node has declared
+    what it reads (after its constructor; a lifecycle node after configure).
+    Each warning offers the closest declared name, if one is close.
+    """
+    unread = [name for name in dict.fromkeys(names) if name not in _ROS_PARAMETERS and not node.has_parameter(name)]
+    if not unread:
+        return []
+    declared = [name for name in node.get_parameters_by_prefix("") if name not in _ROS_PARAMETERS]
+    warnings = []
+    for name in unread:
+        close = difflib.get_close_matches(name, declared, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        warnings.append(f"Unknown parameter {name!r} ignored: this node does not read it{hint}")
+    return warnings

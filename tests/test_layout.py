@@ -160,18 +160,18 @@ def test_public_names_are_exactly_these() -> None:
         "ConfigError", "ContainerError", "ContainerServices", "DeviceError", "ExecutorError",
         "LifecycleManager", "LifecycleNode", "LoadError", "LoadRequest", "LoadedNode",
         "ManagerSettings", "NodeType", "PluginError", "PluginRegistry", "RegisterNodeType",
-        "TransitionError", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
+        "Throttle", "TransitionError", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
         "hookimpl", "hookspec",
     ])  # fmt: skip
     assert container.executor.__all__ == [
         "HAS_PUBLISHER_GID", "AsyncioExecutor", "CallbackErrorHandler", "Escaped", "ExecutorState", "contained",
-        "describe", "in_thread", "publisher_gid", "result",
+        "describe", "format_plugin_frames", "in_thread", "publisher_gid", "result", "working_for",
     ]  # fmt: skip
     assert container.lifecycle.__all__ == [
         "LifecycleClient", "LifecycleManager", "LifecycleNode", "ManagerSettings", "bring_down", "bring_up",
         "contain_fault", "is_lifecycle", "state_of", "transition",
     ]  # fmt: skip
-    assert container.checks.__all__ == ["boolean", "integer", "number", "string", "strings"]
+    assert container.checks.__all__ == ["boolean", "integer", "number", "string", "strings", "unread_parameters"]
     assert container.intra.__all__ == [
         "IntraProcessNode", "copy_message", "enable_intra_process", "hand_over", "intra_process_class",
         "intra_process_enabled",

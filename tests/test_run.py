@@ -49,19 +49,56 @@ def test_container_runs_demo_and_exits_cleanly_on_signal(
     assert "threads left behind" not in output
 
 
-def test_bad_entry_is_reported_and_the_rest_still_runs(
-    run_container: Callable[..., ContainerProcess],
+def test_failed_entries_are_named_and_summed_up_and_the_rest_still_runs(
+    run_container: Callable[..., ContainerProcess], see_plugin: Callable[..., None]
 ) -> None:
+    see_plugin()  # test_nodes::Exploding
     proc = run_container(
         DEMO
         + """
   - package: no_such_package
     plugin: no_such_package::Nothing
+  - package: test_nodes
+    plugin: test_nodes::Exploding
+    name: boom
+  - package: lifecycle_container
+    plugin: lifecycle_container::Talker
+    name: typo
+    parameters: [{rat: 5.0}]
+    autostart: true
 """
     )
-    proc.wait_for_line("Could not find requested resource in ament index")
+    proc.wait_for_line(
+        "Could not start nodes[2] (type: no_such_package::Nothing): Could not find requested resource in ament index"
+    )
+    proc.wait_for_line("Could not start nodes[3] (name: boom): Component constructor threw an exception")
+    # The constructor's traceback, trimmed to the plugin's own frames.
+    proc.wait_for_line('component_support.py", line')
+    assert not any("rclpy/node.py" in line for line in proc.lines), proc.output()
+    proc.wait_for_line(
+        "2 of the 5 node(s) the file lists failed: nodes[2] (type: no_such_package::Nothing), nodes[3] (name: boom)"
+    )
+    proc.wait_for_line("[typo]: Unknown parameter 'rat' ignored: this node does not read it (did you mean 'rate'?)")
     proc.wait_for_line("I heard: [Hello World:")
     assert proc.stop() == 0
+
+
+def test_on_failure_exit_takes_the_container_down_with_exit_1(
+    run_container: Callable[..., ContainerProcess],
+) -> None:
+    proc = run_container(
+        "container: {on_failure: exit}\n"
+        + DEMO
+        + "  - {package: no_such_package, plugin: no_such_package::Nothing, name: missing}\n",
+        ready=False,
+    )
+    assert proc.process.wait(30) == 1, proc.output()
+    proc.close()
+    output = "\n".join(proc.lines)
+    assert "1 of the 3 node(s) the file lists failed: nodes[2] (name: missing) (on_failure: exit" in output
+    # What did load went down its lifecycle first.
+    ready = output.index("ready with 2 node(s)")
+    assert ready < output.index("Unloaded '/listener'") < output.index("Unloaded '/talker'")
 
 
 def test_parameters_from_a_ros_parameter_file(
@@ -107,6 +144,8 @@ BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\
         ("container:\n  unload_timeout: .nan\n", "container.unload_timeout: must be a finite number"),
         ("container:\n  unload_timeout: .inf\n", "container.unload_timeout: must be a finite number"),
         ("container:\n  load_timeout: -1\n", "container.load_timeout: must be positive"),
+        ("container:\n  watchdog_threshold: 0\n", "container.watchdog_threshold: must be positive"),
+        ("container:\n  on_failure: stop\n", "container.on_failure: expected one of continue, exit, not 'stop'"),
         ("nodes: []\nnodes: []\n", "key 'nodes' appears twice (line 2"),
         ("a: &a [*a]\n", "an alias refers to itself"),
         (BILLION_LAUGHS, "expands to more than 100,000 values"),
@@ -134,7 +173,8 @@ def test_without_a_file_an_empty_container_takes_its_ros_arguments_like_rclcpps(
 ) -> None:
     proc = LoggedProcess([
         sys.executable, "-m", "container", "run",
-        "--ros-args", "-r", "__node:=named", "-r", "__ns:=/ns", "-p", "use_sim_time:=true",
+        "--use_multi_threaded_executor",  # rclcpp's component_container_isolated's
+        "--ros-args", "-r", "__node:=named", "-r", "__ns:=/ns", "-p", "use_sim_time:=true", "-p", "thread_num:=2",
         "-r", "chatter:=/global_chatter", "--",
         "--verbose",  # after "--": the command's own again
     ])
@@ -143,7 +183,9 @@ def test_without_a_file_an_empty_container_takes_its_ros_arguments_like_rclcpps(
         client = ContainerClient(client_node, executor, "/ns/named")
         get: Client[Any, Any] = client_node.create_client(GetParameters, "/ns/named/get_parameters")
         assert get.wait_for_service(timeout_sec=20.0)
-        assert client.call(get, GetParameters.Request(names=["use_sim_time"])).values[0].bool_value is True
+        values = client.call(get, GetParameters.Request(names=["use_sim_time", "thread_num"])).values
+        # thread_num is declared, as component_container_mt's, and takes -p.
+        assert (values[0].bool_value, values[1].integer_value) == (True, 2)
         # The container's ROS arguments are its own; a load forwards them only when asked.
         forward = [parameter("forward_global_arguments", True)]
         plain = client.load(load_request(plugin="lifecycle_container::Listener", name="plain"))

@@ -123,8 +123,6 @@ BAD_LOADS = [
     ("the container's own name", load_request(name="ComponentManager"), "is the container itself"),
     ("parameter of the wrong type", load_request(name="typed", parameters=[parameter("rate", "fast")]),
      "InvalidParameterTypeException"),
-    ("unknown extra argument", load_request(name="extra", extra_arguments=[parameter("bogus", True)]),
-     "Extra component argument 'bogus' is not supported"),
     ("extra argument of the wrong type",
      load_request(name="extra", extra_arguments=[parameter("use_intra_process_comms", 1)]),
      "Extra component argument 'use_intra_process_comms' must be a boolean"),
@@ -164,6 +162,18 @@ def test_every_bad_request_is_refused_and_the_container_keeps_serving(
     assert good_ids == list(range(1, len(BAD_LOADS) + 2))
     assert [uid for uid, _ in client.list()] == good_ids
     assert container.process.poll() is None
+
+
+def test_unknown_extra_arguments_are_ignored_and_logged_once_as_rclcpp_does(
+    client: ContainerClient, container: ContainerProcess
+) -> None:
+    start = len(container.lines)
+    for name in ("extra1", "extra2"):
+        response = client.load(load_request(name=name, extra_arguments=[parameter("enable_rosout", False)]))
+        assert (response.success, response.error_message) == (True, "")
+    container.wait_for_line("Loaded lifecycle_container::Talker as '/extra2'", start=start)
+    ignored = [line for line in container.lines[start:] if "'enable_rosout' is not used by this container" in line]
+    assert len(ignored) == 1, container.lines[start:]
 
 
 def test_unknown_unique_id_is_refused_with_rclcpp_wording(client: ContainerClient) -> None:

@@ -9,6 +9,13 @@ There is no ros2 daemon here, so each command discovers the graph itself,
 bounded by ``--spin-time``. rclpy exposes no graph-change event (rclpy#929),
 so discovery is polled at a short interval until what the command needs has
 appeared, not slept through.
+
+No verb waits forever: ros2cli waits for a container's service and for its
+answer without a limit; here ``--timeout`` (default 10 s) bounds each of
+those waits, so a container that is gone but still in discovery, or stuck,
+costs a one-line error naming the service, exit code 1. An unload runs the
+node's lifecycle down, each step bounded by the container's
+``unload_timeout``: give a node with slow transitions a longer ``--timeout``.
 """
 
 from __future__ import annotations
@@ -46,9 +53,8 @@ _POLL_S = 0.02
 #: ``list`` without a container stops once the set of containers has been
 #: stable this long (it cannot know how many to expect).
 _SETTLE_S = 0.5
-#: How long a container may take to answer one request; an unload runs the
-#: node's lifecycle down, each step bounded by the container's own timeout.
-_RESPONSE_TIMEOUT_S = 60.0
+#: Default of ``--timeout``: seconds to wait for a service, and for its answer.
+_TIMEOUT_S = 10.0
 
 
 def add_parser(subparsers: SubParsers) -> None:
@@ -120,6 +126,21 @@ def _add_spin_time(parser: argparse.ArgumentParser) -> None:
         "--spin-time", type=float, default=2.0,
         help="seconds to wait for discovery of the container (default: %(default)s)",
     )
+    parser.add_argument(
+        "--timeout", type=_seconds, default=_TIMEOUT_S, metavar="SECONDS",
+        help="seconds to wait for the container's service, and for each answer (default: %(default)s)",
+    )
+
+
+def _seconds(text: str) -> float:
+    """A positive number of seconds (``--timeout``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, not {text!r}")
+    return value
 
 
 def _log_level(text: str) -> int:
@@ -164,7 +185,7 @@ def _run_load(args: argparse.Namespace) -> int:
         client = await _container_client(node, container, "load_node", LoadNode, args.spin_time)
         if client is None:
             return _fail(f"Unable to find container node '{container}'")
-        response = await _call(client, request)
+        response = await _call(client, request, timeout=args.timeout)
         if not response.success:
             return _fail(f"Failed to load component: {response.error_message}")
         if args.quiet:
@@ -188,7 +209,7 @@ def _run_unload(args: argparse.Namespace) -> int:
         if client is None:
             return _fail(f"Unable to find container node '{container}'")
         for uid in args.component_uid:
-            response = await _call(client, UnloadNode.Request(unique_id=uid))
+            response = await _call(client, UnloadNode.Request(unique_id=uid), timeout=args.timeout)
             if not response.success:
                 return _fail(
                     f"Failed to unload component {uid} from '{container}' container node\n"
@@ -206,7 +227,7 @@ def _run_list(args: argparse.Namespace) -> int:
     async def components(node: Node, container: str) -> list[str]:
         client: Client[Any, Any] = node.create_client(ListNodes, f"{_full_name(container)}/_container/list_nodes")
         try:
-            response = await _call(client, ListNodes.Request())
+            response = await _call(client, ListNodes.Request(), timeout=args.timeout)
         finally:
             node.destroy_client(client)
         return [f"{uid}  {name}" for uid, name in zip(response.unique_ids, response.full_node_names, strict=True)]
@@ -326,24 +347,23 @@ async def _settled_containers(node: Node, spin_time: float) -> list[str]:
     return seen
 
 
-async def _call(client: Client[Any, Any], request: Any) -> Any:
+async def _call(client: Client[Any, Any], request: Any, *, timeout: float) -> Any:
     """Send ``request`` once the server is matched; wait for its response.
 
+    :param timeout: seconds to wait for the server, then for the response.
     :raises _Failure: no server, or no response in time.
     """
-    ready = await _poll(lambda: True if client.service_is_ready() else None, timeout=_RESPONSE_TIMEOUT_S)
+    ready = await _poll(lambda: True if client.service_is_ready() else None, timeout=timeout)
     if ready is None:
-        raise _Failure(f"No '{client.srv_name}' service found")
+        raise _Failure(f"No '{client.srv_name}' service found within {timeout:g} s")
     from ..executor import result as future_result
 
     future = client.call_async(request)
     try:
-        return await future_result(future, timeout=_RESPONSE_TIMEOUT_S)
+        return await future_result(future, timeout=timeout)
     except TimeoutError:
         client.remove_pending_request(future)
-        raise _Failure(
-            f"No response from '{client.srv_name}' within {_RESPONSE_TIMEOUT_S:g} s"
-        ) from None
+        raise _Failure(f"No response from '{client.srv_name}' within {timeout:g} s") from None
 
 
 class _Failure(Exception):

@@ -46,10 +46,11 @@ def add_parser(subparsers: SubParsers) -> None:
 def _run(args: argparse.Namespace) -> int:
     from .._ament import write_index
     from .._registry import PluginRegistry, ros_package_name
+    from .._runtime import configure_logging
 
+    # The registry logs each plugin it skips (once), with the reason.
+    configure_logging()
     registry = PluginRegistry()
-    for failure in registry.failures:
-        print(f"container index: plugin skipped: {failure}", file=sys.stderr)
     prefix: Path = args.prefix.absolute()
     types = list(registry.types.values())
     if args.distribution:

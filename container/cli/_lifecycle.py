@@ -2,7 +2,11 @@
 
 Same arguments and output as ros2cli's, so scripts written for one work with
 the other; errors go to stderr with exit code 1, as ros2cli's do. Unlike
-ros2cli, a transition that fails also exits 1.
+ros2cli, a transition that fails also exits 1, and no verb waits forever:
+ros2cli waits for a node's services and for their answers without a limit
+(a node that is gone but still in discovery, or stuck, holds it for good),
+here ``--timeout`` (default 10 s) bounds each of those waits, and the error
+names the node and the service it waited for.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ __all__ = ["add_parser"]
 _GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 #: How long a listing must stay unchanged to count as discovered.
 _SETTLE_S = 0.5
+#: Default of ``--timeout``: seconds to wait for a service, and for its answer.
+_TIMEOUT_S = 10.0
 
 
 def add_parser(subparsers: SubParsers) -> None:
@@ -58,7 +64,26 @@ def add_parser(subparsers: SubParsers) -> None:
     list_.add_argument(
         "-a", "--all", action="store_true", help="display all existing transitions"
     )
+    for calling in (get, set_, list_):
+        calling.add_argument(
+            "--timeout",
+            type=_seconds,
+            default=_TIMEOUT_S,
+            metavar="SECONDS",
+            help="seconds to wait for the node's services, and for each answer (default: %(default)s)",
+        )
     parser.set_defaults(handler=lambda args: _usage(parser))
+
+
+def _seconds(text: str) -> float:
+    """A positive number of seconds (``--timeout``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, not {text!r}")
+    return value
 
 
 def _usage(parser: argparse.ArgumentParser) -> int:
@@ -114,10 +139,10 @@ async def _find(node: Any, args: argparse.Namespace) -> str | None:
         await asyncio.sleep(0.05)
 
 
-def _client(node: Any, name: str) -> Any:
+def _client(node: Any, name: str, args: argparse.Namespace) -> Any:
     from ..lifecycle import LifecycleClient
 
-    return LifecycleClient(node, name, service_timeout=5.0)
+    return LifecycleClient(node, name, service_timeout=args.timeout)
 
 
 def _error(message: str) -> int:
@@ -147,7 +172,7 @@ def _get(args: argparse.Namespace) -> int:
             names = await _discover(node, args)
         for name in names:
             try:
-                state_id, label = await _client(node, name).get_state()
+                state_id, label = await _client(node, name, args).get_state()
             except TransitionError as exc:
                 return _error(str(exc))
             print(f"{label} [{state_id}]" if args.node_name else f"{name}: {label} [{state_id}]")
@@ -168,7 +193,7 @@ def _list(args: argparse.Namespace) -> int:
         if name is None:
             return _error("Node not found")
         try:
-            transitions = await _client(node, name).available_transitions(graph=args.all)
+            transitions = await _client(node, name, args).available_transitions(graph=args.all)
         except TransitionError as exc:
             return _error(str(exc))
         for transition in transitions:
@@ -187,7 +212,7 @@ def _set(args: argparse.Namespace) -> int:
         name = await _find(node, args)
         if name is None:
             return _error("Node not found")
-        client = _client(node, name)
+        client = _client(node, name, args)
         try:
             transitions = await client.available_transitions()
             for described in transitions:
@@ -198,8 +223,9 @@ def _set(args: argparse.Namespace) -> int:
                     "Unknown transition requested, available ones are:"
                     + "".join(f"\n{_describe(t)}" for t in transitions)
                 )
-            # No deadline of our own: the node bounds its transitions itself.
-            ok = await client.change_state(described.transition, timeout=None)
+            # The node bounds its transitions itself, but a node that is
+            # stuck, or gone and still in discovery, never answers.
+            ok = await client.change_state(described.transition, timeout=args.timeout)
         except TransitionError as exc:
             return _error(str(exc))
         if not ok:

@@ -37,6 +37,16 @@ def add_parser(subparsers: SubParsers) -> None:
     )
     parser.add_argument("config", nargs="?", help="the container's YAML file (see examples/); none: empty")
     parser.add_argument("--verbose", action="store_true", help="log plugin loading in detail")
+    parser.add_argument(
+        "--exit-on-failure", action="store_true", default=None,
+        help="exit 1 right after start-up when a node the file lists fails to load or start "
+        "(default: the file's container.on_failure, 'continue': serve on and exit 0)",
+    )
+    parser.add_argument(
+        "--use_multi_threaded_executor", action="store_true",
+        help="accepted for rclcpp's component_container_isolated; no effect: every node "
+        "already has its own callback lanes on the one executor",
+    )
     parser.set_defaults(handler=_run)
 
 
@@ -58,4 +68,6 @@ def _run(args: argparse.Namespace) -> int:
     from .._app import manager_extension, run_container
 
     extensions = () if settings is None else (manager_extension(settings),)
-    return run_container(config, extensions=extensions, ros_args=getattr(args, "ros_args", ()))
+    return run_container(
+        config, extensions=extensions, ros_args=getattr(args, "ros_args", ()), exit_on_failure=args.exit_on_failure
+    )

@@ -10,13 +10,17 @@ rest of the container.
 """
 
 from ._bridge import Escaped, contained, in_thread, result
+from ._culprit import working_for
 from ._entries import describe
 from ._executor import AsyncioExecutor, CallbackErrorHandler, ExecutorState
+from ._frames import format_plugin_frames
 from ._message_info import HAS_PUBLISHER_GID, publisher_gid
 
 # The executor's API, then what the rest of the container shares with it:
 # running plugin code (``Escaped``, ``contained``, ``in_thread``), awaiting
-# an rclpy future (``result``) and naming a callback in a log (``describe``).
+# an rclpy future (``result``), naming a callback in a log (``describe``) and
+# showing a plugin's own frames of a stack (``format_plugin_frames``) and
+# counting loop work as a node's for the watchdog (``working_for``).
 __all__ = [
     "HAS_PUBLISHER_GID",
     "AsyncioExecutor",
@@ -25,7 +29,9 @@ __all__ = [
     "ExecutorState",
     "contained",
     "describe",
+    "format_plugin_frames",
     "in_thread",
     "publisher_gid",
     "result",
+    "working_for",
 ]

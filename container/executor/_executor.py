@@ -41,6 +41,7 @@ from rclpy.task import Future as RclFuture
 from .._compat import executor_guards, loop_is_idle, running_loop, runs_plain_callback, wraps_an_awaitable
 from .._errors import ExecutorError
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
+from ._culprit import Culprit, TaskOrigins
 from ._dispatch import Dispatcher
 from ._entries import WOKEN, describe, format_error
 from ._fastpath import Work
@@ -111,8 +112,11 @@ class AsyncioExecutor(Executor):
     :param shutdown_timeout: seconds :meth:`shutdown` waits for running
         callbacks by default.
     :param stall_after: seconds the loop thread may spend in one callback
-        before the watchdog reports it and waits in rcl in its place
-        (``None``: no watchdog).
+        before the watchdog counts it as stuck, waits in rcl in its place and,
+        for a plugin's work, reports it (``None``: no watchdog).
+    :param watchdog_reports: whether the watchdog logs stalls of plugin
+        work (``False``: it still relieves the loop and counts stalls for
+        diagnostics, but logs nothing; for a command whose output is read).
     :param num_threads: ``MultiThreadedExecutor``'s keyword, so code written
         for it runs unchanged: here it sets ``reentrant_limit`` (plain
         callbacks of different groups always run on threads of their own).
@@ -126,6 +130,7 @@ class AsyncioExecutor(Executor):
         on_callback_error: CallbackErrorHandler | None = None,
         shutdown_timeout: float = 5.0,
         stall_after: float | None = 1.0,
+        watchdog_reports: bool = True,
         num_threads: int | None = None,
     ) -> None:
         super().__init__(context=context)
@@ -141,6 +146,9 @@ class AsyncioExecutor(Executor):
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout
         self._stall_after = stall_after
+        self._watchdog_reports = watchdog_reports
+        #: Which plugin callback each task on the loop came from, for the watchdog.
+        self._origins = TaskOrigins(self._runner_work)
         #: The loop watchdog while the owned loop spins (see ``watchdog``).
         self._watchdog: LoopWatchdog | None = None
         #: Its thread, started by the first spin and parked between spins.
@@ -632,6 +640,7 @@ class AsyncioExecutor(Executor):
                 rewake=self._guard_trigger,
                 describe=self._describe_loop_work,
                 stall_after=self._stall_after,
+                reports=self._watchdog_reports,
             )
         watchdog.resume()
         self._watchdog = watchdog
@@ -651,25 +660,29 @@ class AsyncioExecutor(Executor):
         of other awaitables, run under :func:`adapt` instead, as callbacks do.
         """
         if is_adapted(coro) or not (isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro)):
-            return asyncio.Task(coro, loop=loop, **kwargs)
+            task = asyncio.Task(coro, loop=loop, **kwargs)
+            self._origins.note(task, asyncio.current_task(loop))
+            return task
         # Before 3.12 ``coro`` may be asyncio's wrapper generator, which adapt drives alike.
-        task: asyncio.Task[T] = asyncio.Task(self.adapt(coro), loop=loop, **kwargs)  # type: ignore[arg-type, unused-ignore]
+        task = asyncio.Task(self.adapt(coro), loop=loop, **kwargs)  # type: ignore[arg-type, unused-ignore]
+        self._origins.note(task, asyncio.current_task(loop))
         # Cancelled before its first step, the wrapper never starts ``coro``,
         # which would then warn "coroutine ... was never awaited": closed
         # here (a no-op once it ran).
         task.add_done_callback(lambda _: coro.close())
         return task
 
-    def _describe_loop_work(self) -> str:
-        """What the loop thread runs now: which node's which callback, if a lane's."""
-        task = asyncio.current_task(self._loop)
-        if task is None:
-            return "a callback outside any task"
-        described = self._dispatcher.describe_task(task)
-        if described is not None:
-            return described
-        coro = task.get_coro()
-        return f"task {task.get_name()!r} ({getattr(coro, '__qualname__', coro)})"
+    def _describe_loop_work(self) -> Culprit:
+        """What the loop thread runs now: which node's which callback, and whether a plugin's."""
+        return self._origins.culprit(asyncio.current_task(self._loop))
+
+    def _runner_work(self, task: asyncio.Task[Any]) -> Work | None:
+        """The work ``task`` carries if it is a lane's runner."""
+        for lane in self._dispatcher.lanes():
+            work = lane.work_of(task)
+            if work is not None:
+                return work
+        return None
 
     def _make_dispatcher(self, loop: asyncio.AbstractEventLoop) -> Dispatcher:
         return Dispatcher(

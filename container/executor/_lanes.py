@@ -31,6 +31,13 @@ not even woken for such a message while it wakes soon anyway (see
 worker's own lane counts it as away, so its next work gets a thread of its
 own: a carried callback that blocks delays nobody else.
 
+A worker thread left idle for :data:`WORKER_IDLE_S` exits, and the next
+plain work of its lane starts a new one: a container of a hundred nodes
+keeps threads only for the groups that ran plain callbacks lately, not one
+per group that ever did. Nothing caps how many threads a lane may start
+up to its limit, so a callback that blocks for good never holds up another
+group's work.
+
 Work waiting for a busy lane is kept per entity with a bound, like a DDS
 keep-last history: a subscription keeps its QoS depth of messages, a timer
 or a guard condition at most one pending firing. Without that bound a
@@ -54,6 +61,9 @@ from ._fastpath import Lock, Runner, Slots, Work, first_step, mark_carrier
 from ._hooks import LaneHooks
 
 __all__: list[str] = []
+
+#: Seconds a lane's worker thread waits for more work before it exits.
+WORKER_IDLE_S = 3.0
 
 
 class _Carrier(threading.local):
@@ -154,6 +164,11 @@ class Lane:
     def _closed(self) -> bool:
         return self._slots.closed
 
+    @property
+    def closed(self) -> bool:
+        """Whether the lane was closed (its group left the executor): it starts nothing more."""
+        return self._slots.closed
+
     # -- submission -------------------------------------------------------
     def submit(self, work: Work) -> None:
         """Start ``work`` now if the group allows it, else keep it pending."""
@@ -234,8 +249,14 @@ class Lane:
     def _worker(self) -> None:
         if self._carries:
             mark_carrier()  # its publishes to plain callbacks need not wake the loop
+        inbox = self._inbox
         while True:
-            work = self._inbox.get()
+            try:
+                work = inbox.get(timeout=WORKER_IDLE_S)
+            except queue.Empty:
+                if self._retire_idle_thread():
+                    return
+                continue
             if work is None:
                 return
             self._run_plain(work)
@@ -245,6 +266,16 @@ class Lane:
                 if self._closed:
                     return
                 self._idle_threads += 1
+
+    def _retire_idle_thread(self) -> bool:
+        """This worker waited :data:`WORKER_IDLE_S` for nothing: end it, unless
+        work was handed to it meanwhile (the count says so under the lock)."""
+        with self._lock:
+            if self._idle_threads <= 0:
+                return False  # work is on its way to this thread: take it
+            self._idle_threads -= 1
+            self._threads.remove(threading.current_thread())
+            return True
 
     def _run_plain(self, work: Work | None) -> None:
         """Run plain ``work`` (its slot taken) and the lane's pending work after it, on this thread."""

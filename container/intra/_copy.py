@@ -6,14 +6,17 @@ the setters' checks, which for a sequence field walk every element; array
 fields (``array.array``, NumPy arrays) are copied with one ``memcpy``.
 Immutable values (numbers, strings, ``bytes``) are shared. A 1080p rgb8
 image copies in about 0.6 ms here, against 6.4 ms to serialise it.
+
+NumPy is not imported here: a message holds a NumPy array only if NumPy
+was imported already (by its message module), and importing it costs a
+container's start-up a tenth of a second.
 """
 
 from __future__ import annotations
 
 import array
+import sys
 from typing import Any, TypeVar
-
-import numpy
 
 __all__ = ["copy_message", "is_message"]
 
@@ -53,12 +56,13 @@ def copy_message(message: M) -> M:
 def _copy_value(value: Any) -> Any:
     if isinstance(value, array.array):
         return value[:]
-    if isinstance(value, numpy.ndarray):
-        return value.copy()
     if isinstance(value, list):
         if value and not isinstance(value[0], _SHARED):
             return [_copy_value(item) for item in value]
         return list(value)
+    numpy = sys.modules.get("numpy")
+    if numpy is not None and isinstance(value, numpy.ndarray):
+        return value.copy()
     if is_message(value):
         return copy_message(value)
     if isinstance(value, _SHARED):

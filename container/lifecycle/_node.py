@@ -45,10 +45,11 @@ from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile
 from rclpy.timer import Timer
 
+from .. import checks
 from .._compat import change_state_service, managed_entities, query_services, state_machine
 from .._errors import TransitionError
 from .._text import clip
-from ..executor import Escaped, contained, in_thread
+from ..executor import Escaped, contained, in_thread, working_for
 from ..intra import IntraProcessNode
 from ._base import LifecycleNodeBase
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, MIN_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
@@ -116,6 +117,11 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         # Node.__init__ creates /parameter_events through create_publisher;
         # that one, and anything rclpy creates for itself, stays always-on.
         self._entities_follow_state = False
+        # What it was given to read, checked once its first configure has
+        # declared everything (checks.unread_parameters).
+        self._unread_check: tuple[str, ...] | None = tuple(
+            getattr(p, "name", "") for p in kwargs.get("parameter_overrides") or ()
+        )
         super().__init__(node_name, use_intra_process_comms=use_intra_process_comms, **kwargs)
         self._managed_timers: set[Timer] = set()
         self._paused_timers: set[Timer] = set()
@@ -356,6 +362,8 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
                 )
                 outcome = FAILURE
             self._machine("trigger_transition_by_label", outcome.to_label(), True)
+            if outcome == SUCCESS and middle.state_id == State.TRANSITION_STATE_CONFIGURING:
+                self._warn_unread_parameters()
             if outcome == ERROR:
                 recovery = await self._invoke(
                     self.lifecycle_state, start, timeout=timeout, inline=inline
@@ -368,6 +376,12 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         finally:
             self._follow_state(self.lifecycle_state)
         return outcome
+
+    def _warn_unread_parameters(self) -> None:
+        """Once, after the first configure: overrides no declared parameter takes (a typo)."""
+        names, self._unread_check = self._unread_check, None
+        for warning in checks.unread_parameters(self, names or ()):
+            self.get_logger().warning(warning)
 
     def _fail_back(self) -> None:
         if self.lifecycle_state.state_id >= State.TRANSITION_STATE_CONFIGURING:
@@ -501,7 +515,10 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             task = asyncio.current_task()
             if task is not None:  # named for the loop watchdog's report
                 task.set_name(f"transition {clip(repr(wanted))} of {self.get_fully_qualified_name()}")
-            return await self._request(wanted, timeout=None, abandoned=abandoned)
+            # Posted from the service's thread, so no callback of the node
+            # created it: the watchdog is told whose work this is.
+            with working_for(self, change_state_service(self)):
+                return await self._request(wanted, timeout=None, abandoned=abandoned)
 
         abandoned = threading.Event()
         pending = asyncio.run_coroutine_threadsafe(requested(), loop)

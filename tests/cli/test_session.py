@@ -1,10 +1,14 @@
-"""Every command starts ROS and ends alike: one session runner (``container._session``)."""
+"""Every command starts ROS and ends alike: one session runner (``container._session``).
+
+And no client command waits forever for a node that is gone or stuck.
+"""
 
 from __future__ import annotations
 
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -12,7 +16,8 @@ from rclpy.context import Context
 from rclpy.node import Node
 
 from container._session import Session, run_session
-from tests.container_support import REPO
+from container.cli import main
+from tests.container_support import REPO, LoggedProcess
 from tests.waiting import wait_until
 
 
@@ -98,3 +103,86 @@ def test_command_line_arguments_are_not_ros_arguments(monkeypatch: pytest.Monkey
 
     assert run_session(main) == 7
     assert topics == ["/chatter"]
+
+
+#: A node that is in discovery and serves the lifecycle and container services,
+#: but never answers ``change_state`` or the container's requests: a stuck
+#: process, or one that is gone and not yet dropped from discovery.
+STUCK_NODE = """
+import threading
+import rclpy
+from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+from lifecycle_msgs.msg import State, Transition, TransitionDescription
+from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+
+rclpy.init()
+node = rclpy.create_node("stuck")
+group = ReentrantCallbackGroup()
+
+def never(request, response):
+    threading.Event().wait()
+
+def state(request, response):
+    response.current_state = State(id=State.PRIMARY_STATE_UNCONFIGURED, label="unconfigured")
+    return response
+
+def transitions(request, response):
+    response.available_transitions = [TransitionDescription(
+        transition=Transition(id=Transition.TRANSITION_CONFIGURE, label="configure"),
+        start_state=State(id=State.PRIMARY_STATE_UNCONFIGURED, label="unconfigured"),
+        goal_state=State(id=State.PRIMARY_STATE_INACTIVE, label="inactive"))]
+    return response
+
+for srv_type, name, callback in [
+    (GetState, "stuck/get_state", state),
+    (GetAvailableTransitions, "stuck/get_available_transitions", transitions),
+    (GetAvailableTransitions, "stuck/get_transition_graph", transitions),
+    (ChangeState, "stuck/change_state", never),
+    (LoadNode, "stuck/_container/load_node", never),
+    (UnloadNode, "stuck/_container/unload_node", never),
+    (ListNodes, "stuck/_container/list_nodes", never),
+]:
+    node.create_service(srv_type, name, callback, callback_group=group)
+executor = MultiThreadedExecutor(num_threads=8)
+executor.add_node(node)
+print("stuck node up", flush=True)
+executor.spin()
+"""
+
+
+@pytest.fixture
+def stuck_node() -> Iterator[LoggedProcess]:
+    process = LoggedProcess([sys.executable, "-c", STUCK_NODE], name="stuck")
+    try:
+        process.wait_for_line("stuck node up")
+        yield process
+    finally:
+        process.close()
+
+
+def run_command(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, float]:
+    """``container ARGS`` in this process: exit code, stderr and how long it took."""
+    began = time.monotonic()
+    code = main(list(args))
+    return code, capsys.readouterr().err, time.monotonic() - began
+
+
+def test_lifecycle_get_of_a_missing_node_gives_up(capsys: pytest.CaptureFixture[str]) -> None:
+    code, err, took = run_command(capsys, "lifecycle", "get", "/nonexistent", "--timeout", "1")
+    assert (code, err) == (1, "Node not found\n")
+    assert took < 8
+
+
+def test_client_commands_give_up_on_a_node_that_never_answers(
+    stuck_node: LoggedProcess, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, err, took = run_command(capsys, "lifecycle", "set", "/stuck", "configure", "--timeout", "1")
+    assert (code, err) == (
+        1, "/stuck: transition 'configure': /stuck/change_state did not answer within 1.0 s\n"
+    )
+    assert took < 8  # discovery (up to --spin-time, 2 s), a query, then 1 s
+    code, err, took = run_command(capsys, "unload", "/stuck", "1", "--timeout", "1")
+    assert (code, err) == (1, "No response from '/stuck/_container/unload_node' within 1 s\n")
+    assert took < 8

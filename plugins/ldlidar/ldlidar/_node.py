@@ -15,7 +15,6 @@ stalled, its clock jumping) are logged as warnings, not only counted on
 from __future__ import annotations
 
 import asyncio
-import difflib
 from collections.abc import Sequence
 from typing import Any, Final
 
@@ -29,7 +28,7 @@ from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverriding
 from rclpy.timer import Timer
 from sensor_msgs.msg import LaserScan
 
-from container import ConfigError, DeviceError, LifecycleNode
+from container import ConfigError, DeviceError, LifecycleNode, Throttle
 from container.devices import DevicePolicy, PortRefused, device_policy
 
 from ._diagnostics import DIAGNOSTICS_PERIOD, Diagnostics
@@ -70,9 +69,6 @@ SCAN_QOS_OVERRIDES: Final = (
 #: rcutils' DEBUG severity (what ``general.debug_mode`` sets the node's logger to).
 _DEBUG: Final = 10
 
-#: Parameters every node has, set by whoever starts it.
-_ROS_PARAMETERS: Final = frozenset({"use_sim_time", "start_type_description_service"})
-
 #: The node's own emulator writes every so many seconds, as a USB adapter
 #: delivers bursts; finer ticks cost the container CPU for nothing.
 _EMULATOR_TICK: Final = 0.01
@@ -80,6 +76,12 @@ _EMULATOR_TICK: Final = 0.01
 #: First reopen attempt after this many seconds; then doubling up to the max.
 _REOPEN_INTERVAL: Final = 0.1
 _REOPEN_MAX_INTERVAL: Final = 2.0
+
+#: Events that can repeat many times a second (a device whose clock keeps
+#: jumping) are logged at most this often per kind, with a count; the port's
+#: losses and reconnections are state changes, always logged.
+_EVENT_LOG_PERIOD: Final = 10.0
+_THROTTLED_EVENTS: Final = frozenset({"clock_jump", "stalled"})
 
 
 class LdLidarNode(LifecycleNode):
@@ -103,7 +105,6 @@ class LdLidarNode(LifecycleNode):
         given: Sequence[Parameter[Any]] = kwargs.get("parameter_overrides") or ()
         migration = migrate((p.name, p.value) for p in given)
         kwargs["parameter_overrides"] = [Parameter(name, value=value) for name, value in migration.values.items()]
-        self._overridden = tuple(migration.values)
         self._migration_notices = tuple(migration.notices)
         self._refused = tuple(migration.refused)
         super().__init__(node_name, **kwargs)
@@ -127,6 +128,8 @@ class LdLidarNode(LifecycleNode):
         self._scans = 0
         self._published = 0
         self._message: LaserScan | None = None
+        # The diagnostics count every device event; the log gets a readable rate.
+        self._events = Throttle(self.get_logger().warning, period=_EVENT_LOG_PERIOD)
 
     # -- what tests and tools may look at ------------------------------------------
     @property
@@ -179,25 +182,11 @@ class LdLidarNode(LifecycleNode):
             await self._release()
             raise
         assert self._lidar is not None
-        self._report_unknown_parameters()
         log.info(
             f"Configured: {settings.model.name} on {self._lidar.port} at {self._lidar.baudrate} "
             f"baud; publishing on {self._scan_publisher_topic()} once active"
         )
         return SUCCESS
-
-    def _report_unknown_parameters(self) -> None:
-        """Warn of every override this node does not know (a typo, another driver's name)."""
-        unknown = [
-            name for name in self._overridden if name not in _ROS_PARAMETERS and not self.has_parameter(name)
-        ]
-        if not unknown:
-            return
-        known = [name for name, _, _ in PARAMETERS]
-        for name in unknown:
-            close = difflib.get_close_matches(name, known, n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            self.get_logger().warning(f"Unknown parameter {name!r} ignored: this node does not read it{hint}")
 
     async def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start publishing (the managed publisher follows the state)."""
@@ -305,7 +294,10 @@ class LdLidarNode(LifecycleNode):
             raise ConfigError(str(exc), source=f"qos_overrides.{self.resolve_topic_name('~/scan')}") from None
 
     def _device_event(self, kind: EventKind, message: str) -> None:
-        self.get_logger().warning(message)
+        if kind in _THROTTLED_EVENTS:
+            self._events(kind, message)
+        else:
+            self.get_logger().warning(message)
 
     async def _auto_port(self, model: Model) -> str:
         """The first attached device, or the port of a freshly started emulator.

@@ -158,7 +158,7 @@ class ComponentManager(Node):
         self._host = executor
         # rclcpp's containers declare it (component_container_mt reads it), so
         # launch files pass it and `ros2 param get` expects it.
-        self.thread_num = self.declare_parameter(
+        self.thread_num: int = self.declare_parameter(
             "thread_num",
             os.cpu_count() or 1,
             ParameterDescriptor(description=THREAD_NUM_DESCRIPTION, read_only=True),

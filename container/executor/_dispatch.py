@@ -113,6 +113,9 @@ class Dispatcher:
         #: Entity (or node) id -> (the object, its token); see ``_token``.
         self._tokens: dict[int, tuple[object, Token]] = {}
         self._tokens_lock = threading.Lock()
+        #: Entity id -> (the entity, its callback, its entry): entries outlive
+        #: wait-set rebuilds (see :meth:`entry`); written under ``_tokens_lock``.
+        self._entries: dict[int, tuple[object, object, Entry]] = {}
         self._loop_thread: int | None = None
         self._cold_wake = GuardCondition(callback=None, callback_group=None, context=context)
         # Async work submitted on the loop thread, started eagerly once the
@@ -234,6 +237,36 @@ class Dispatcher:
         return tuple(found)
 
     def entry(self, entity: Any, node: Node, kind: str) -> Entry:
+        """The entry of ``entity`` of ``node``, kept across wait-set rebuilds.
+
+        A kept one is used while it still describes the entity: the same
+        object (not another at a reused address), the same callback (whether
+        it is ``async def`` follows from it), the same node, its token
+        not retired (the entity left the executor meanwhile) and its lane
+        not closed (its callback group left, or was replaced).
+        """
+        key = id(entity)
+        group = entity.callback_group
+        # Read without the lock (a dict read is atomic): a rebuild reads one per entity.
+        found = self._entries.get(key)
+        if found is not None:
+            kept, kept_callback, entry = found
+            lane = entry.lane
+            if (
+                kept is entity
+                and kept_callback is getattr(entity, "callback", None)
+                and entry.node is node
+                and not entry.token.retired
+                and not lane.closed
+                and self._lanes.get(id(group), (None, None))[1] is lane
+            ):
+                return entry
+        entry = self._new_entry(entity, node, kind)
+        with self._tokens_lock:
+            self._entries[key] = (entity, getattr(entity, "callback", None), entry)
+        return entry
+
+    def _new_entry(self, entity: Any, node: Node, kind: str) -> Entry:
         if kind == "waitable":
             is_async, depth = True, _WAITABLE_DEPTH
         elif kind == "subscription":
@@ -462,6 +495,8 @@ class Dispatcher:
             for key in gone:
                 _, token = self._tokens.pop(key)
                 token.retired = True
+            for key in [key for key in self._entries if key not in live]:
+                del self._entries[key]
 
     def retire(self, node: Node, *, sweep: bool = True) -> None:
         """Drop and cancel ``node``'s work: it was removed (on the loop thread, or not running).

@@ -215,6 +215,10 @@ class AsyncioExecutor(Executor):
 
     def add_node(self, node: Node) -> bool:
         added = super().add_node(node)
+        if not added:
+            # Already ours: rclpy's own add_node calls this again through
+            # the node's executor setter; nothing changed.
+            return False
         with self._state_changed:
             members = self._removed_idle.pop(node, None)
         if not _same(members, Dispatcher.members(node)):

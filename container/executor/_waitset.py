@@ -221,7 +221,9 @@ class EntityWaitSet:
                             ):
                                 table.express_timers[entity.handle.pointer] = _route(entity.handle.pointer, entry)
                         elif kind == "subscription" and not entity.raw:
-                            entry.taker = taker = _taker(entity)
+                            taker = entry.taker
+                            if taker is None:  # a new entry (entries are kept across rebuilds)
+                                entry.taker = taker = _taker(entity)
                             if taker is not None and entry.is_async and not entry.wants_info:
                                 table.express[entity.handle.pointer] = _route(taker, entry)
             for waitable in list(node.waitables):
@@ -299,6 +301,8 @@ class EntityWaitSet:
         """
         if self._notifier is None:
             return False
+        if pointer in self._watched:
+            return True  # watched since an earlier rebuild (the notifier keeps it)
         try:
             self._notifier.watch(pointer, kind, plain)
         except NotImplementedError:

@@ -288,7 +288,7 @@ def test_repeated_stalls_of_one_callback_are_one_report_and_one_summary(
         wait_until(lambda: stalls() >= n, f"the watchdog to count stall {n}", timeout=5.0)
         finished.append(n)
 
-    guard = node.create_guard_condition(on_trigger)
+    guard = node.create_guard_condition(on_trigger)  # type: ignore[arg-type, unused-ignore]  # Kilted types it plain
     executor.add_node(node)
     spinner = _spin(executor)
     def ended(n: int) -> bool:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import importlib.util
 import os
 import random
@@ -289,6 +290,14 @@ def ros_context() -> Iterator[Context]:
         yield context
     finally:
         try_shutdown(context=context)
+        # Nodes the test left to the garbage collector go now, with the
+        # context's DDS participant. Collected later, in another test, the
+        # participant's destruction can deadlock Fast DDS 2.14 (seen once in
+        # CI): it waits for its discovery listener while holding the mutex
+        # that listener needs, when another participant of the process is
+        # announcing endpoints at that moment; the GIL stays held, so not
+        # even pytest-timeout ends the hang.
+        gc.collect()
 
 
 # The plugin loads in every pytest run of the environment: never break one

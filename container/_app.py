@@ -116,8 +116,7 @@ class ContainerApp:
         if exit_on_failure is None:
             exit_on_failure = self.config.on_failure == "exit"
         log = self.manager.get_logger()
-        failures: list[str] = []
-        failed: list[str] = []
+        failed: list[tuple[str, ContainerError]] = []
         specs = self.config.nodes
         for index, request in enumerate(requests_from_specs(specs)):
             if self.stopping.is_set():
@@ -128,29 +127,28 @@ class ContainerApp:
             except ContainerError as exc:
                 # A bad entry costs that node only; the container serves on.
                 log.error(f"Could not start {entry}: {exc}")
-                failed.append(entry)
-                failures.append(f"{entry}: {exc}")
+                failed.append((entry, exc))
         running: list[asyncio.Future[None]] = []
         if not self.stopping.is_set():
             running = [asyncio.ensure_future(extension(self)) for extension in extensions]
             loaded = len(self.manager.loaded())
             log.info(f"Container '{self.manager.get_fully_qualified_name()}' ready with {loaded} node(s)")
-            if failures:
+            if failed:
                 log.error(
-                    f"{len(failures)} of the {len(specs)} node(s) the file lists failed: "
-                    + ", ".join(failed)
+                    f"{len(failed)} of the {len(specs)} node(s) the file lists failed: "
+                    + ", ".join(entry for entry, _ in failed)
                     + (" (on_failure: exit, so the container stops)" if exit_on_failure else "")
                 )
             if on_ready is not None:
                 on_ready()
-            if not (failures and exit_on_failure):
+            if not (failed and exit_on_failure):
                 await self.stopping.wait()
         log.info("Shutting down")
         for task in running:
             task.cancel()
         await asyncio.gather(*running, return_exceptions=True)
         await self.manager.unload_all()
-        return failures
+        return [f"{entry}: {exc}" for entry, exc in failed]
 
     def stop(self) -> None:
         self.stopping.set()
@@ -187,16 +185,16 @@ def run_container(
             # A container parameter of the wrong type (--params-file, -p, the file).
             print(f"container run: {' '.join(str(exc).split())}", file=sys.stderr)
             return EXIT_USAGE
+        exits = config.on_failure == "exit" if exit_on_failure is None else exit_on_failure
         try:
             failures = await app.serve(
                 extensions=extensions,
                 stopping=session.stopping,
                 on_ready=session.mark_ready,
-                exit_on_failure=exit_on_failure,
+                exit_on_failure=exits,
             )
         finally:
             app.close()
-        exits = exit_on_failure if exit_on_failure is not None else config.on_failure == "exit"
         return EXIT_FAILURE if failures and exits else EXIT_OK
 
     return run_session(

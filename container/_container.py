@@ -158,11 +158,11 @@ class ComponentManager(Node):
         self._host = executor
         # rclcpp's containers declare it (component_container_mt reads it), so
         # launch files pass it and `ros2 param get` expects it.
-        self.thread_num: int = self.declare_parameter(
+        self.declare_parameter(
             "thread_num",
             os.cpu_count() or 1,
             ParameterDescriptor(description=THREAD_NUM_DESCRIPTION, read_only=True),
-        ).value
+        )
         self.unload_timeout = unload_timeout
         self.load_timeout = load_timeout
         self.use_intra_process_comms = use_intra_process_comms

@@ -28,7 +28,7 @@ import time
 from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from ._types import name_value
+from ._types import CLIENT_TIMEOUT_S, name_value, positive_seconds
 
 if TYPE_CHECKING:
     from rclpy.client import Client
@@ -53,8 +53,6 @@ _POLL_S = 0.02
 #: ``list`` without a container stops once the set of containers has been
 #: stable this long (it cannot know how many to expect).
 _SETTLE_S = 0.5
-#: Default of ``--timeout``: seconds to wait for a service, and for its answer.
-_TIMEOUT_S = 10.0
 
 
 def add_parser(subparsers: SubParsers) -> None:
@@ -127,20 +125,9 @@ def _add_spin_time(parser: argparse.ArgumentParser) -> None:
         help="seconds to wait for discovery of the container (default: %(default)s)",
     )
     parser.add_argument(
-        "--timeout", type=_seconds, default=_TIMEOUT_S, metavar="SECONDS",
+        "--timeout", type=positive_seconds, default=CLIENT_TIMEOUT_S, metavar="SECONDS",
         help="seconds to wait for the container's service, and for each answer (default: %(default)s)",
     )
-
-
-def _seconds(text: str) -> float:
-    """A positive number of seconds (``--timeout``)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, not {text!r}")
-    return value
 
 
 def _log_level(text: str) -> int:

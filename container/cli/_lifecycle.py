@@ -22,13 +22,13 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from .._compat import SubParsers
 
+from ._types import CLIENT_TIMEOUT_S, positive_seconds
+
 __all__ = ["add_parser"]
 
 _GET_STATE_TYPE = "lifecycle_msgs/srv/GetState"
 #: How long a listing must stay unchanged to count as discovered.
 _SETTLE_S = 0.5
-#: Default of ``--timeout``: seconds to wait for a service, and for its answer.
-_TIMEOUT_S = 10.0
 
 
 def add_parser(subparsers: SubParsers) -> None:
@@ -67,23 +67,12 @@ def add_parser(subparsers: SubParsers) -> None:
     for calling in (get, set_, list_):
         calling.add_argument(
             "--timeout",
-            type=_seconds,
-            default=_TIMEOUT_S,
+            type=positive_seconds,
+            default=CLIENT_TIMEOUT_S,
             metavar="SECONDS",
             help="seconds to wait for the node's services, and for each answer (default: %(default)s)",
         )
     parser.set_defaults(handler=lambda args: _usage(parser))
-
-
-def _seconds(text: str) -> float:
-    """A positive number of seconds (``--timeout``)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, not {text!r}")
-    return value
 
 
 def _usage(parser: argparse.ArgumentParser) -> int:

@@ -40,7 +40,7 @@ from .._compat import (
     loop_ready_queue,
     subscription_wants_info,
 )
-from ._entries import KINDS, WOKEN, Entry, describe, entities_of, express_work
+from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
 from ._fastpath import (
     Express,
     Notifier,
@@ -190,19 +190,6 @@ class Dispatcher:
             return self.wait_and_dispatch(timeout_ns)
         finally:
             self.relieving = False
-
-    def describe_task(self, task: object) -> str | None:
-        """Which node's which callback a lane's runner task carries, if it is one."""
-        for lane in self.lanes():
-            work = lane.work_of(task)
-            if work is not None:
-                owner = work.token.node if work.token is not None else None
-                try:
-                    name = owner.get_fully_qualified_name() if isinstance(owner, Node) else None
-                except Exception:  # a node destroyed meanwhile
-                    name = None
-                return f"{describe(work.entity)} of node {name}" if name else describe(work.entity)
-        return None
 
     @property
     def loop_thread(self) -> int | None:

@@ -17,7 +17,7 @@ from rclpy.context import Context
 from rclpy.exceptions import ParameterException
 
 from ._config import ContainerConfig
-from ._container import ComponentManager, entry_label, requests_from_specs
+from ._container import ComponentManager, LoadedNode, entry_label, requests_from_specs
 from ._diagnostics import LoopDiagnostics
 from ._errors import ContainerError
 from ._params import node_parameters
@@ -116,18 +116,42 @@ class ContainerApp:
         if exit_on_failure is None:
             exit_on_failure = self.config.on_failure == "exit"
         log = self.manager.get_logger()
-        failed: list[tuple[str, ContainerError]] = []
+        failed: list[tuple[int, str, ContainerError]] = []
         specs = self.config.nodes
-        for index, request in enumerate(requests_from_specs(specs)):
-            if self.stopping.is_set():
-                break
-            entry = entry_label(index, request)
-            try:
-                await self.manager.load_and_start(request, timeout=self.config.unload_timeout)
-            except ContainerError as exc:
-                # A bad entry costs that node only; the container serves on.
-                log.error(f"Could not start {entry}: {exc}")
-                failed.append((entry, exc))
+        # Every listed node is constructed first, in order, then served (see
+        # ComponentManager.load's ``serve``), then brought up.
+        constructed: list[tuple[int, str, LoadedNode]] = []
+        try:
+            for index, request in enumerate(requests_from_specs(specs)):
+                if self.stopping.is_set():
+                    break
+                entry = entry_label(index, request)
+                try:
+                    constructed.append((index, entry, await self.manager.load(request, serve=False)))
+                except ContainerError as exc:
+                    # A bad entry costs that node only; the container serves on.
+                    log.error(f"Could not start {entry}: {exc}")
+                    failed.append((index, entry, exc))
+        finally:
+            self.manager.serve_loaded(node for _, _, node in constructed)
+        # Nav2's bring-up: every node configured, in order, then every node
+        # activated. A node's activation finds the others configured, and
+        # nothing publishes while the rest are still being configured.
+        starting = [item for item in constructed if item[2].request.wants_autostart]
+        for until in ("inactive", "active"):
+            for item in list(starting):
+                index, entry, node = item
+                if self.stopping.is_set():
+                    break
+                if not self.manager.holds(node):
+                    continue
+                try:
+                    await self.manager.start(node, timeout=self.config.unload_timeout, until=until)
+                except ContainerError as exc:
+                    log.error(f"Could not start {entry}: {exc}")
+                    failed.append((index, entry, exc))
+                    starting.remove(item)
+        failed.sort(key=lambda failure: failure[0])
         running: list[asyncio.Future[None]] = []
         if not self.stopping.is_set():
             running = [asyncio.ensure_future(extension(self)) for extension in extensions]
@@ -136,7 +160,7 @@ class ContainerApp:
             if failed:
                 log.error(
                     f"{len(failed)} of the {len(specs)} node(s) the file lists failed: "
-                    + ", ".join(entry for entry, _ in failed)
+                    + ", ".join(entry for _, entry, _ in failed)
                     + (" (on_failure: exit, so the container stops)" if exit_on_failure else "")
                 )
             if on_ready is not None:
@@ -148,7 +172,7 @@ class ContainerApp:
             task.cancel()
         await asyncio.gather(*running, return_exceptions=True)
         await self.manager.unload_all()
-        return [f"{entry}: {exc}" for entry, exc in failed]
+        return [f"{entry}: {exc}" for _, entry, exc in failed]
 
     def stop(self) -> None:
         self.stopping.set()

@@ -54,7 +54,7 @@ from rclpy.utilities import try_shutdown
 
 from ._compat import RCLError
 from ._runtime import use_fast_discovery
-from .executor import AsyncioExecutor
+from .executor import AsyncioExecutor, end_spare_threads
 
 __all__ = [
     "EXIT_FAILURE",
@@ -250,6 +250,7 @@ def run_session(
         code = exit_code_for(signal.SIGINT)
     finally:
         try_shutdown(context=context)
+    end_spare_threads(timeout=1.0)  # idle, not left behind
     leftover = [t.name for t in threading.enumerate() if t not in before]
     if leftover or not clean:
         # Daemon threads would die silently with the process; say so instead.

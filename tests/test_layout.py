@@ -165,7 +165,7 @@ def test_public_names_are_exactly_these() -> None:
     ])  # fmt: skip
     assert container.executor.__all__ == [
         "HAS_PUBLISHER_GID", "AsyncioExecutor", "CallbackErrorHandler", "Escaped", "ExecutorState", "contained",
-        "describe", "format_plugin_frames", "in_thread", "publisher_gid", "result", "working_for",
+        "describe", "end_spare_threads", "format_plugin_frames", "in_thread", "publisher_gid", "result", "working_for",
     ]  # fmt: skip
     assert container.lifecycle.__all__ == [
         "LifecycleClient", "LifecycleManager", "LifecycleNode", "ManagerSettings", "bring_down", "bring_up",

@@ -4,7 +4,8 @@ Start reading at :class:`AsyncioExecutor` (``_executor``). Under it, in the
 order work flows: ``_selector`` (the loop's thread sleeps in ``rcl_wait``),
 ``_dispatch`` (cached wait sets; what is ready goes to a lane), ``_lanes``
 (callback groups: worker threads for plain callbacks, runner tasks for
-``async def`` ones) and ``_bridge`` (rclpy futures seen from asyncio). This
+``async def`` ones) and ``_bridge`` (rclpy futures seen from asyncio;
+``_spare`` keeps the threads its ``in_thread`` calls run on). This
 package depends on rclpy and :mod:`container._compat` only, never on the
 rest of the container.
 """
@@ -15,9 +16,11 @@ from ._entries import describe
 from ._executor import AsyncioExecutor, CallbackErrorHandler, ExecutorState
 from ._frames import format_plugin_frames
 from ._message_info import HAS_PUBLISHER_GID, publisher_gid
+from ._spare import end_spare_threads
 
 # The executor's API, then what the rest of the container shares with it:
-# running plugin code (``Escaped``, ``contained``, ``in_thread``), awaiting
+# running plugin code (``Escaped``, ``contained``, ``in_thread``, and
+# ``end_spare_threads`` for the threads ``in_thread`` keeps), awaiting
 # an rclpy future (``result``), naming a callback in a log (``describe``) and
 # showing a plugin's own frames of a stack (``format_plugin_frames``) and
 # counting loop work as a node's for the watchdog (``working_for``).
@@ -29,6 +32,7 @@ __all__ = [
     "ExecutorState",
     "contained",
     "describe",
+    "end_spare_threads",
     "format_plugin_frames",
     "in_thread",
     "publisher_gid",

@@ -22,7 +22,6 @@ import asyncio
 import contextlib
 import contextvars
 import functools
-import threading
 import time
 import types
 from collections.abc import Awaitable, Callable, Coroutine, Generator
@@ -31,6 +30,7 @@ from typing import Any, TypeVar
 from rclpy.task import Future as RclFuture
 
 from .._compat import running_loop, sleeps_zero
+from ._spare import run_on_spare_thread
 
 __all__ = [
     "Escaped",
@@ -224,36 +224,31 @@ def adapt(
 
 
 async def in_thread(call: Callable[[], T], *, name: str) -> T:
-    """Run ``call`` on a new daemon thread named ``name``; await its outcome.
+    """Run ``call`` on a daemon thread of its own, named ``name``; await its outcome.
 
     A thread of its own, not a pool's: a call that never returns costs one
-    idle thread, never the pool everyone else waits on. If the awaiting
-    coroutine gives up (cancelled, timed out), the call runs on and its
-    outcome is dropped. Any exception, ``SystemExit`` included, is raised
-    to the awaiting coroutine.
+    idle thread, never the pool everyone else waits on (a thread whose
+    call returned is reused: see ``_spare``). If the awaiting coroutine
+    gives up (cancelled, timed out), the call runs on and its outcome is
+    dropped. Any exception, ``SystemExit`` included, is raised to the
+    awaiting coroutine.
     """
     loop = asyncio.get_running_loop()
     outcome: asyncio.Future[T] = loop.create_future()
 
-    def settle(value: T | None, error: BaseException | None) -> None:
+    def settle(value: object, error: BaseException | None) -> None:
         if outcome.done():
             return
         if error is not None:
             outcome.set_exception(as_exception(error))
         else:
-            outcome.set_result(value)  # type: ignore[arg-type]
+            outcome.set_result(value)  # type: ignore[arg-type]  # what call returned
 
-    def run() -> None:
-        value: T | None = None
-        error: BaseException | None = None
-        try:
-            value = call()
-        except BaseException as exc:  # handed to the awaiting coroutine
-            error = exc
+    def deliver(value: object, error: BaseException | None) -> None:
         if not loop.is_closed():
             loop.call_soon_threadsafe(settle, value, error)
 
-    threading.Thread(target=run, name=name, daemon=True).start()
+    run_on_spare_thread(call, deliver, name=name)
     return await outcome
 
 

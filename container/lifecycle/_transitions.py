@@ -29,6 +29,7 @@ __all__ = ["bring_down", "bring_up", "is_lifecycle", "state_of", "transition"]
 #: The transitions a node takes down from each primary state, towards finalized.
 _DOWN = {"active": "deactivate", "inactive": "cleanup", "unconfigured": "shutdown"}
 _UP = {"unconfigured": "configure", "inactive": "activate"}
+_UP_TO = ("inactive", "active")
 
 #: How long past its own timeout a node of our base may take to fail back.
 _FAIL_BACK_MARGIN_S = 1.0
@@ -103,9 +104,17 @@ async def transition(
         )
 
 
-async def bring_up(executor: AsyncioExecutor, node: Node, *, timeout: float) -> None:
-    """Configure and activate, from wherever the node stands."""
-    while (label := _UP.get(state_of(node))) is not None:
+async def bring_up(
+    executor: AsyncioExecutor, node: Node, *, timeout: float, until: str = "active"
+) -> None:
+    """Configure and activate, from wherever the node stands.
+
+    :param until: ``inactive`` stops after configuring (the first of the
+        two phases of a Nav2-style bring-up); ``active`` goes all the way.
+    """
+    if until not in _UP_TO:
+        raise ValueError(f"until must be one of {', '.join(_UP_TO)}, not {until!r}")
+    while (state := state_of(node)) != until and (label := _UP.get(state)) is not None:
         await transition(executor, node, label, timeout=timeout)
 
 

@@ -14,7 +14,16 @@ Each round, for each node mix, the two peers run one after the other:
   ``trigger_activate()`` on each, timed from its start to its last
   activation. It never spins: nothing of its nodes runs (no timer, no
   message, no service), which is the floor a container that serves its
-  nodes while it loads them is compared to.
+  nodes while it loads them is compared to (the ratio printed);
+* ``rclpy+spin``: the same, with a ``SingleThreadedExecutor`` spinning on
+  a thread and each node added to it once created, as a plain rclpy process
+  that serves its nodes does. Shown for reference: Fast DDS creates an
+  endpoint more slowly while a waiting wait set holds many others, which is
+  why the container constructs a file's nodes before it serves them.
+
+Both peers and the container import with a bytecode cache, as an installed
+package does (the first round, which writes it, is a warm-up and not
+counted); ``PYTHONDONTWRITEBYTECODE`` is dropped for the runs.
 
 Mixes: ``idle`` is N ``bench_startup::Idle`` nodes (a
 :class:`container.LifecycleNode` that declares two parameters and creates
@@ -74,7 +83,7 @@ import os, sys
 import rclpy
 from rclpy.parameter import Parameter
 
-mix, count = sys.argv[1], int(sys.argv[2])
+mix, count, spin = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "spin"
 if mix == "idle":
     from bench_startup_nodes import Idle
     classes = [Idle]
@@ -82,16 +91,24 @@ else:
     from container.demo import Listener, Talker
     classes = [Talker, Listener]
 rclpy.init()
+if spin:
+    import threading
+    from rclpy.executors import SingleThreadedExecutor
+    executor = SingleThreadedExecutor()
+    threading.Thread(target=executor.spin, daemon=True).start()
 # What the container gives every node it loads.
 overrides = [Parameter("start_type_description_service", value=False)]
 nodes = []
 for i in range(count):
     node = classes[i % len(classes)](f"n{i}", parameter_overrides=overrides)
+    if spin:
+        executor.add_node(node)
     node.trigger_configure()
     node.trigger_activate()
     nodes.append(node)
 print("ready", len(os.listdir(f"/proc/{os.getpid()}/task")), flush=True)
 sys.stdin.read()
+os._exit(0)  # a spinning executor's thread would hold up the exit
 '''
 
 _MIX_TYPES = {
@@ -103,6 +120,8 @@ _MIX_TYPES = {
 @dataclass
 class Sample:
     seconds: list[float] = field(default_factory=list)
+    #: Per round, the container's time over this peer's, measured back to back.
+    ratios: list[float] = field(default_factory=list)
     threads_ready: list[int] = field(default_factory=list)
     threads_settled: list[int] = field(default_factory=list)
 
@@ -186,10 +205,12 @@ def run_container(python: str, config: Path, env: dict[str, str], settle: float)
         reader.join(5)
 
 
-def run_peer(python: str, peer: Path, mix: str, count: int, env: dict[str, str]) -> tuple[float, int]:
+def run_peer(
+    python: str, peer: Path, mix: str, count: int, env: dict[str, str], *, spin: bool
+) -> tuple[float, int]:
     start = time.monotonic()
     process = subprocess.Popen(
-        [python, str(peer), mix, str(count)],
+        [python, str(peer), mix, str(count), "spin" if spin else "plain"],
         cwd=REPO,
         env=env,
         stdin=subprocess.PIPE,
@@ -232,9 +253,13 @@ def main() -> int:
         env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(site), env.get("PYTHONPATH", "")) if p)
         env["PYTHONUNBUFFERED"] = "1"
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
         configs = {mix: write_config(root, mix, args.nodes) for mix in args.mixes}
         empty = write_config(root, "idle", 0)
         results: dict[tuple[str, str, str], Sample] = {}
+        for python in args.pythons:  # warm-up: writes the bytecode caches
+            run_container(python, configs[args.mixes[0]], env, 0.0)
+            run_peer(python, root / "peer.py", args.mixes[0], args.nodes, env, spin=False)
         for round_ in range(1, args.rounds + 1):
             for mix in args.mixes:
                 for python in args.pythons:
@@ -243,17 +268,18 @@ def main() -> int:
                     sample.seconds.append(seconds)
                     sample.threads_ready.append(ready)
                     sample.threads_settled.append(settled)
-                    peer_seconds, peer_threads = run_peer(python, root / "peer.py", mix, args.nodes, env)
-                    peer = results.setdefault((python, mix, "rclpy"), Sample())
-                    peer.seconds.append(peer_seconds)
-                    peer.threads_ready.append(peer_threads)
-                    print(
-                        f"round {round_} {mix:5} {python}: container {seconds:.2f} s "
-                        f"({ready} threads, {settled} after {args.settle:g} s), "
-                        f"rclpy {peer_seconds:.2f} s ({peer_threads} threads): "
-                        f"{seconds / peer_seconds:.2f}x",
-                        flush=True,
-                    )
+                    line = [f"round {round_} {mix:5} {python}: container {seconds:.2f} s "
+                            f"({ready} threads, {settled} after {args.settle:g} s)"]
+                    for peer_name, spin in (("rclpy", False), ("rclpy+spin", True)):
+                        peer_seconds, peer_threads = run_peer(
+                            python, root / "peer.py", mix, args.nodes, env, spin=spin
+                        )
+                        peer = results.setdefault((python, mix, peer_name), Sample())
+                        peer.seconds.append(peer_seconds)
+                        peer.ratios.append(seconds / peer_seconds)
+                        peer.threads_ready.append(peer_threads)
+                        line.append(f"{peer_name} {peer_seconds:.2f} s ({seconds / peer_seconds:.2f}x)")
+                    print(", ".join(line), flush=True)
             if args.empty:
                 for python in args.pythons:
                     seconds, ready, settled = run_container(python, empty, env, min(args.settle, 1.0))
@@ -262,23 +288,31 @@ def main() -> int:
                     sample.threads_ready.append(ready)
                     sample.threads_settled.append(settled)
                     print(f"round {round_} empty {python}: ready in {seconds:.2f} s ({ready} threads)", flush=True)
-    print(f"\nmedians of {args.rounds} round(s), {args.nodes} nodes; ready: from process start")
-    print("| python | mix | container | rclpy | ratio | threads at ready | threads settled | rclpy threads |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        f"\nmedians of {args.rounds} round(s), {args.nodes} nodes; ready: from process start; "
+        "ratios: the median of each round's ratio (container and peer run back to back)"
+    )
+    print(
+        "| python | mix | container | rclpy | **ratio** | rclpy+spin | ratio | "
+        "threads at ready | threads settled | rclpy threads |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for python in args.pythons:
         for mix in [*args.mixes, *(["empty"] if args.empty else [])]:
             box = results[(python, mix, "container")]
             container_s = median(box.seconds)
             if mix == "empty":
-                print(f"| {python} | {mix} | {container_s:.2f} s | | | "
+                print(f"| {python} | {mix} | {container_s:.2f} s | | | | | "
                       f"{median(box.threads_ready):.0f} | {median(box.threads_settled):.0f} | |")
                 continue
-            peer = results[(python, mix, "rclpy")]
-            peer_s = median(peer.seconds)
+            plain = results[(python, mix, "rclpy")]
+            spun = results[(python, mix, "rclpy+spin")]
+            plain_s, spun_s = median(plain.seconds), median(spun.seconds)
             print(
-                f"| {python} | {mix} | {container_s:.2f} s | {peer_s:.2f} s | **{container_s / peer_s:.2f}x** | "
+                f"| {python} | {mix} | {container_s:.2f} s | {plain_s:.2f} s | **{median(plain.ratios):.2f}x** | "
+                f"{spun_s:.2f} s | {median(spun.ratios):.2f}x | "
                 f"{median(box.threads_ready):.0f} | {median(box.threads_settled):.0f} | "
-                f"{median(peer.threads_ready):.0f} |"
+                f"{median(plain.threads_ready):.0f} |"
             )
     return 0
 

@@ -33,7 +33,7 @@ def test_values_are_converted_to_what_the_device_takes() -> None:
     settings = settings_with(
         comm__serial_port=" /dev/ttyUSB0 ",
         comm__baudrate=921600.0,
-        comm__poll_msec=0,
+        comm__poll_msec=5,
         lidar__model="stl-27l",
         lidar__rot_verse="cw",
         lidar__range_max=12,
@@ -42,7 +42,7 @@ def test_values_are_converted_to_what_the_device_takes() -> None:
         lidar__angle_crop_max=60,
     )
     assert settings.port == "/dev/ttyUSB0" and settings.baudrate == 921600
-    assert settings.poll_interval is None  # read whenever bytes arrive
+    assert settings.poll_interval == pytest.approx(0.005)
     assert settings.model is MODELS["STL27L"] and settings.direction == "cw"
     assert settings.range_max == 12.0
     assert settings.crop == (300.0, 60.0)  # a sector through the front
@@ -56,6 +56,12 @@ def test_values_are_converted_to_what_the_device_takes() -> None:
         ("comm.baudrate", True, "must be an integer, not True"),
         ("comm.timeout_msec", -5, "must be positive, not -5"),
         ("comm.poll_msec", 31, "must be within [0, 30], not 31"),
+        (
+            "comm.poll_msec",
+            0,
+            "0 (read whenever bytes arrive) is not offered: it cost twice the CPU of polling for no lower "
+            "latency, since a revolution is read as soon as its last bytes arrive anyway; use 1-30",
+        ),
         ("lidar.model", "LD99", "unknown LiDAR model 'LD99'; known: LD06, LD19, STL27L"),
         ("lidar.rot_verse", "up", "must be 'CW' or 'CCW', not 'UP'"),
         ("lidar.frame_id", "  ", "must be a non-empty string, not '  '"),

@@ -69,10 +69,6 @@ SCAN_QOS_OVERRIDES: Final = (
 #: rcutils' DEBUG severity (what ``general.debug_mode`` sets the node's logger to).
 _DEBUG: Final = 10
 
-#: The node's own emulator writes every so many seconds, as a USB adapter
-#: delivers bursts; finer ticks cost the container CPU for nothing.
-_EMULATOR_TICK: Final = 0.01
-
 #: First reopen attempt after this many seconds; then doubling up to the max.
 _REOPEN_INTERVAL: Final = 0.1
 _REOPEN_MAX_INTERVAL: Final = 2.0
@@ -309,7 +305,7 @@ class LdLidarNode(LifecycleNode):
         if found:
             self.get_logger().info(f"comm.serial_port 'auto': using {found[0]} (found {', '.join(found)})")
             return found[0]
-        emulator = Emulator(model=model, tick=_EMULATOR_TICK)
+        emulator = Emulator(model=model)
         self._emulator = emulator
         await emulator.start()
         self.get_logger().warning(

@@ -31,10 +31,9 @@ comm.baudrate                      0                   line speed; 0 = the model
 comm.timeout_msec                  1000                ms to wait for a valid packet: at
                                                        configure, and while streaming before the
                                                        port counts as lost and is reopened
-comm.poll_msec                     20                  poll every so many ms until a revolution
-                                                       can be predicted, then read once per
-                                                       revolution when it is due; 0 = read
-                                                       whenever bytes arrive
+comm.poll_msec                     20                  poll every so many ms (1-30) until a
+                                                       revolution can be predicted, then read
+                                                       once per revolution when it is due
 lidar.model                        ``LD06``            ``LD06``, ``LD19``, ``STL27L`` (also
                                                        ``LDLiDAR_LD19``, ``STL-27L``, any case)
 lidar.rot_verse                    ``CCW``             ``CCW`` for a sensor mounted upright,

@@ -383,10 +383,11 @@ class Emulator:
             time.sleep(max(0.0, begin + wake - time.monotonic()))
 
     def _next_end(self) -> float | None:
-        """Seconds from the start at which the next revolution's last packet is due."""
+        """Seconds from the start at which the packet after a revolution's last is due (the next such)."""
         sent = self.generator.count - len(self._pending) // PACKET_SIZE
         ends = self._turn_ends
-        while ends and ends[0] < sent:
+        # Done with an end once the packet after it went out too.
+        while ends and ends[0] + 1 < sent:
             ends.popleft()
         if not ends:
             self._generate(round(self.model.packets_per_second * _BATCH_S))

@@ -27,6 +27,7 @@ __all__ = ["SPARE_IDLE_S", "end_spare_threads", "run_on_spare_thread"]
 SPARE_IDLE_S: Final = 3.0
 
 _Job = tuple[Callable[[], object], Callable[[object, BaseException | None], None], str]
+_Inbox = queue.SimpleQueue[_Job | None]
 #: Put in an idle thread's inbox: end now.
 _END: Final = None
 
@@ -36,8 +37,7 @@ class _SpareThreads:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._idle: list[queue.SimpleQueue[_Job | None]] = []
-        self._threads: dict[queue.SimpleQueue[_Job | None], threading.Thread] = {}
+        self._idle: list[tuple[_Inbox, threading.Thread]] = []
 
     def run(
         self,
@@ -47,37 +47,33 @@ class _SpareThreads:
         name: str,
     ) -> None:
         with self._lock:
-            inbox = self._idle.pop() if self._idle else None
-        if inbox is None:
-            inbox = queue.SimpleQueue()
+            spare = self._idle.pop() if self._idle else None
+        if spare is None:
+            inbox: _Inbox = queue.SimpleQueue()
             inbox.put((call, deliver, name))
-            thread = threading.Thread(target=self._serve, args=(inbox,), name=name, daemon=True)
-            with self._lock:
-                self._threads[inbox] = thread
-            thread.start()
+            threading.Thread(target=self._serve, args=(inbox,), name=name, daemon=True).start()
         else:
-            inbox.put((call, deliver, name))
+            spare[0].put((call, deliver, name))
 
     def end_idle(self, *, timeout: float) -> None:
         """End the threads waiting for a call; wait up to ``timeout`` for them to exit."""
         with self._lock:
             idle, self._idle = self._idle, []
-            threads = [self._threads.pop(inbox) for inbox in idle]
-        for inbox in idle:
+        for inbox, _ in idle:
             inbox.put(_END)
-        for thread in threads:
+        for _, thread in idle:
             thread.join(timeout)
 
-    def _serve(self, inbox: queue.SimpleQueue[_Job | None]) -> None:
+    def _serve(self, inbox: _Inbox) -> None:
         this = threading.current_thread()
+        spare = (inbox, this)
         while True:
             try:
                 job = inbox.get(timeout=SPARE_IDLE_S)
             except queue.Empty:
                 with self._lock:
-                    if inbox in self._idle:
-                        self._idle.remove(inbox)
-                        del self._threads[inbox]
+                    if spare in self._idle:
+                        self._idle.remove(spare)
                         return
                 # Taken off the idle list just now: its call is on the way.
                 continue
@@ -96,7 +92,7 @@ class _SpareThreads:
             # Idle before the outcome is told: the caller's next call (a
             # file's next constructor) finds this thread free.
             with self._lock:
-                self._idle.append(inbox)
+                self._idle.append(spare)
             deliver(value, error)
             del deliver, value, error
 

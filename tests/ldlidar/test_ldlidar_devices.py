@@ -22,9 +22,11 @@ from ldlidar import (
     ReplaySource,
     SerialSource,
     StreamParser,
+    decode_bytes,
     open_source,
 )
 from ldlidar._cli import main
+from ldlidar._protocol import POINTS_PER_PACKET
 
 LIMIT = 10.0  # seconds any one test may take
 
@@ -71,6 +73,19 @@ async def test_emulator_clock_wraps_at_30000_ms() -> None:
             stamps += [p.timestamp for p in parser.feed(await source.read())]
     assert max(stamps) >= 29_900
     assert stamps[-1] < 1000
+
+
+@pytest.mark.parametrize("batch", [7, 188])
+def test_emulator_wakes_for_the_packets_that_end_a_revolution_by_the_decoders_rule(batch: int) -> None:
+    # The emulator writes a revolution's end as soon as it is due (not on
+    # its next tick): it must find the same ends as the decoder, across the
+    # batches it makes packets in (a wrap between two batches included).
+    emu = Emulator(scan_hz=9.3)  # revolutions that start anywhere in a batch
+    while emu.generator.count < 3000:
+        emu._generate(batch)
+    starts = decode_bytes(emu._pending).wraps() // POINTS_PER_PACKET
+    assert len(starts) > 60
+    assert list(emu._turn_ends) == starts.tolist()
 
 
 @pytest.mark.asyncio

@@ -66,6 +66,7 @@ __all__ = [
     "subscription_wants_info",
     "thread_frame",
     "waitable_futures",
+    "wake_guard",
     "wraps_an_awaitable",
 ]
 
@@ -188,6 +189,14 @@ UnknownROSArgsError: type[Exception] = rclpy_implementation.UnknownROSArgsError
 RCLError: type[Exception] = rclpy_implementation.RCLError
 
 # -- executors, entities, futures -------------------------------------------------
+
+
+def wake_guard(executor: Executor) -> GuardCondition:
+    """The guard condition the base class's ``wake()`` triggers (set until it shuts down)."""
+    guard: GuardCondition | None = executor._guard
+    if guard is None:
+        raise RuntimeError("the executor is shut down: it has no wake-up guard")
+    return guard
 
 
 def executor_guards(executor: Executor) -> list[GuardCondition]:

@@ -38,7 +38,14 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.executors import Executor
 from rclpy.task import Future as RclFuture
 
-from .._compat import executor_guards, loop_is_idle, running_loop, runs_plain_callback, wraps_an_awaitable
+from .._compat import (
+    executor_guards,
+    loop_is_idle,
+    running_loop,
+    runs_plain_callback,
+    wake_guard,
+    wraps_an_awaitable,
+)
 from .._errors import ExecutorError
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._culprit import Culprit, TaskOrigins
@@ -157,7 +164,7 @@ class AsyncioExecutor(Executor):
         # (rclpy's base class), a file descriptor is ready (the selector's
         # watcher), a hand-over arrived in the inbox. Each guard condition in
         # the wait set costs on every single wait.
-        self._selector = RclSelector(wake=self._guard_trigger)
+        self._selector = RclSelector(guard=wake_guard(self))
         self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
         #: Every hand-over to a loop's thread: to the owned loop, one guard
         #: trigger instead of call_soon_threadsafe's three wake-ups.
@@ -165,6 +172,8 @@ class AsyncioExecutor(Executor):
         self._loop.set_task_factory(self._make_task)
         self._running_loop: asyncio.AbstractEventLoop | None = None
         self._completion_waiters: list[asyncio.Future[None]] = []
+        #: The loop's next select must look in rcl (a spin_once has begun).
+        self._rcl_turn_owed = False
         #: Nodes removed while nobody spun (and what they had then), retired
         #: when the next spin starts unless added back first (see :meth:`remove_node`).
         self._removed_idle: weakref.WeakKeyDictionary[Node, tuple[object, ...]] = weakref.WeakKeyDictionary()
@@ -246,8 +255,9 @@ class AsyncioExecutor(Executor):
             # removes the node around every call. The next spin retires it
             # unless it is back by then: what was taken for it and is held
             # at spin_once's gate then runs (as rcl keeps what rclpy has not
-            # taken), and an unchanged node costs no rebuild of the wait sets.
-            dispatcher.retire(node, sweep=False)
+            # taken), an async callback parked at an await goes on (as
+            # rclpy's tasks of a node that is back do), and an unchanged
+            # node costs no rebuild of the wait sets.
             with self._state_changed:
                 self._removed_idle[node] = Dispatcher.members(node)
         self._guard_trigger()
@@ -702,6 +712,9 @@ class AsyncioExecutor(Executor):
         return [(guard, WOKEN) for guard in executor_guards(self)]
 
     def _ros_turn_due(self) -> bool:
+        if self._rcl_turn_owed:
+            self._rcl_turn_owed = False
+            return True
         # Hand-overs from other threads (the inbox) run after a wait.
         return bool(self._inbox) or self._dispatcher.ros_turn_due()
 
@@ -725,7 +738,18 @@ class AsyncioExecutor(Executor):
         # rclpy resumes every pending task on each spin: a coroutine parked on
         # a bare yield (an rclpy future) looks again now, not at the next poll.
         self._notify_progress()
+        # What is ready already (a triggered guard condition, a timer due)
+        # runs in this call, also with timeout_sec=0: the loop's first
+        # select looks in rcl however busy asyncio is.
+        self._rcl_turn_owed = True
         await self._bounded(completed, timeout_sec)
+        while not completed.done() and self._dispatcher.gate.permits == 0 and not self._stop_requested():
+            # A callback started within the timeout (a plain one runs on its
+            # group's thread): as in rclpy, where the timeout bounds the wait
+            # for work and not the work, the call returns once it has run.
+            # Looked at again now and then: work that turns out to have
+            # nothing to run gives its permit back without completing.
+            await self._bounded(completed, _RCL_FUTURE_POLL_S)
 
     async def _until_done(
         self,

@@ -5,19 +5,21 @@ per message costs several times a whole round trip here. So the event loop's
 thread itself blocks in ``rcl_wait`` and takes ROS work without any hop;
 asyncio's own file descriptors (serial ports, sockets, the loop's self-pipe
 that ``call_soon_threadsafe`` and signals write to) are watched by a small
-thread that only triggers an rcl guard condition when one becomes readable.
-That thread stays parked while nothing but ROS traffic flows.
+compiled thread (``_fastpath.FdWatcher``) that only triggers an rcl guard
+condition when one becomes readable. That thread stays parked while nothing
+but ROS traffic flows.
 """
 
 from __future__ import annotations
 
-import os
-import select
 import selectors
-import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
+
+from rclpy.guard_condition import GuardCondition
+
+from ._fastpath import FdWatcher
 
 __all__: list[str] = []
 
@@ -29,23 +31,24 @@ WaitAndDispatch = Callable[[int], object]
 class RclSelector(selectors.BaseSelector):
     """Delegate file descriptors to epoll; block in rcl instead of epoll.
 
-    :param wake: triggers a guard condition that the rcl wait set holds.
+    :param guard: the guard condition the rcl wait set holds; kept alive
+        (its handle entered) until :meth:`close`, since a compiled thread
+        triggers it.
     """
 
-    def __init__(self, *, wake: Callable[[], None]) -> None:
+    def __init__(self, *, guard: GuardCondition) -> None:
         self._inner = selectors.DefaultSelector()
-        self._wake = wake
-        self._fds_ready = False
         self._wait: WaitAndDispatch | None = None
         self._idle: Callable[[], bool] | None = None
         self._ros_turn_due: Callable[[], bool] | None = None
-        self._armed = False
-        self._rearm = threading.Event()
-        self._stop_r, self._stop_w = os.pipe()
-        self._watcher = threading.Thread(
-            target=self._watch, name="rcl-selector-fd-watcher", daemon=True
-        )
-        self._watcher.start()
+        self._guard_handle = guard.handle
+        self._guard_handle.__enter__()
+        try:
+            self._watcher = FdWatcher(epoll=self._inner.fileno(), guard=self._guard_handle.pointer)
+        except BaseException:
+            self._guard_handle.__exit__(None, None, None)
+            self._inner.close()
+            raise
 
     def attach(
         self,
@@ -93,16 +96,15 @@ class RclSelector(selectors.BaseSelector):
             return self._inner.select(timeout)
         # While the watcher is armed it would have woken rcl for a ready fd,
         # so pure ROS traffic costs no epoll call at all.
-        ready = [] if self._armed else self._inner.select(0)
+        watcher = self._watcher
+        ready = [] if watcher.armed else self._inner.select(0)
         if ready or (timeout is not None and timeout <= 0):
             # Still give ROS a turn so a busy fd cannot starve it.
             due = self._ros_turn_due
             if due is None or due():
                 wait(0)
             return ready or self._fds_if_woken()
-        if not self._armed:
-            self._armed = True
-            self._rearm.set()
+        watcher.arm()
         idle = self._idle
         if idle is None:
             wait(-1 if timeout is None else int(timeout * 1e9))
@@ -116,35 +118,15 @@ class RclSelector(selectors.BaseSelector):
                 if left <= 0:
                     return []
                 wait(int(left * 1e9))
-            if self._fds_ready or not idle():
+            if watcher.take():
+                return self._inner.select(0)
+            if not idle():
                 return self._fds_if_woken()
 
     def _fds_if_woken(self) -> list[tuple[selectors.SelectorKey, int]]:
-        if not self._fds_ready:
-            return []
-        self._fds_ready = False
-        return self._inner.select(0)
+        return self._inner.select(0) if self._watcher.take() else []
 
     def close(self) -> None:
-        os.write(self._stop_w, b"x")
-        self._rearm.set()
-        self._watcher.join(timeout=5.0)
-        os.close(self._stop_r)
-        os.close(self._stop_w)
+        self._watcher.close()
+        self._guard_handle.__exit__(None, None, None)
         self._inner.close()
-
-    # -- the watcher thread ---------------------------------------------------
-    def _watch(self) -> None:
-        poller = select.poll()
-        poller.register(self._inner.fileno(), select.POLLIN)
-        poller.register(self._stop_r, select.POLLIN)
-        while True:
-            self._rearm.wait()
-            self._rearm.clear()
-            events = poller.poll()
-            if any(fd == self._stop_r for fd, _ in events):
-                return
-            # Disarm before waking the loop so its next select re-arms us.
-            self._armed = False
-            self._fds_ready = True
-            self._wake()

@@ -11,6 +11,7 @@ one), the test says so and the executor's table of differences lists it
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import threading
 import time
@@ -151,6 +152,42 @@ def test_spin_once_returns_as_soon_as_a_callback_ready_before_it_ran(
         executor.spin_once(timeout_sec=TIMEOUT)
         assert len(ran) == round_ + 1
         assert time.monotonic() - started < 1.0, "spin_once waited on after its callback ran"
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+@pytest.mark.parametrize("source", ["guard condition", "timer"])
+def test_spin_once_with_zero_timeout_runs_what_was_ready_before_it(
+    source: str, style: str, executor_of: Callable[[], Executor], node: Node
+) -> None:
+    # rclpy's own tests: ``gc.trigger(); executor.spin_once(timeout_sec=0)``
+    # and the callback has run, also a plain one that runs on a worker thread.
+    ran: list[str] = []
+
+    def plain() -> None:
+        time.sleep(0.05)  # still running when a zero timeout would have passed
+        ran.append(source)
+
+    async def coroutine() -> None:
+        ran.append(source)
+
+    callback = plain if style == "plain" else coroutine
+    executor = executor_of()
+    executor.add_node(node)
+    if source == "guard condition":
+        guard = node.create_guard_condition(callback)  # type: ignore[arg-type, unused-ignore]
+        executor.spin_once(timeout_sec=0)  # takes the new entity in
+        assert ran == []
+        guard.trigger()
+    else:
+        # rclpy 9 annotates timer callbacks as plain
+        timer = node.create_timer(0.05, callback)  # type: ignore[arg-type, unused-ignore]
+        executor.spin_once(timeout_sec=0)
+        assert ran == []
+        deadline = time.monotonic() + TIMEOUT
+        while (timer.time_until_next_call() or 0) > 0 and time.monotonic() < deadline:
+            time.sleep(0.01)  # nobody spins: the timer comes due meanwhile
+    executor.spin_once(timeout_sec=0)
+    assert ran == [source]
 
 
 @pytest.mark.parametrize("style", ["plain", "async"])
@@ -327,6 +364,17 @@ class BareYield:
         return "through"
 
 
+class YieldsUntilOpen:
+    """An awaitable that yields a bare ``None`` until told to stop."""
+
+    def __init__(self) -> None:
+        self.open = False
+
+    def __await__(self) -> Generator[None, None, None]:
+        while not self.open:
+            yield None
+
+
 def test_spin_once_with_zero_timeout_resumes_bare_yields(
     executor_of: Callable[[], Executor], node: Node
 ) -> None:
@@ -342,6 +390,71 @@ def test_spin_once_with_zero_timeout_resumes_bare_yields(
         if future.done():
             break
     assert future.done() and future.result() == "through"
+
+
+def test_a_callback_parked_on_a_bare_yield_goes_on_when_its_node_is_added_back(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    # rclpy.spin_once(node, executor=...) removes the node after each call;
+    # rclpy's test_global_executor_completes_async_task.
+    gate = YieldsUntilOpen()
+    progress: list[str] = []
+
+    async def parked() -> None:
+        progress.append("started")
+        await gate
+        progress.append("returned")
+
+    timer = node.create_timer(0.05, parked)  # type: ignore[arg-type, unused-ignore]
+    executor = executor_of()
+    rclpy.spin_once(node, executor=executor, timeout_sec=TIMEOUT)
+    assert progress == ["started"]
+    timer.cancel()
+    gate.open = True
+    rclpy.spin_once(node, executor=executor, timeout_sec=0)
+    assert progress == ["started", "returned"]
+
+
+def test_tasks_start_in_the_order_they_were_created(kind: str, executor_of: Callable[[], Executor], node: Node) -> None:
+    # A deliberate difference: rclpy starts the newest task first
+    # (its test_create_task_dependent_coroutines), AsyncioExecutor the
+    # oldest, as asyncio does and as callbacks are taken.
+    executor = executor_of()
+    executor.add_node(node)
+    started: list[str] = []
+
+    async def task(name: str) -> None:
+        started.append(name)
+
+    executor.create_task(task, "first")
+    executor.create_task(task, "second")
+    executor.spin_once(timeout_sec=0)
+    executor.spin_once(timeout_sec=0)
+    assert started == (["second", "first"] if kind == "single" else ["first", "second"])
+
+
+def test_await_asyncio_sleep_0_costs_a_spin_once_in_rclpy_only(
+    kind: str, executor_of: Callable[[], Executor], node: Node
+) -> None:
+    # A deliberate difference: rclpy's tasks treat each bare yield, which is
+    # what ``asyncio.sleep(0)`` is, as "resume me at the next spin"
+    # (test_execute_coroutine_timer, _guard_condition); AsyncioExecutor runs
+    # real asyncio, where sleep(0) only lets the loop's other ready work run.
+    steps: list[int] = []
+
+    async def stepping() -> None:
+        for step in range(3):
+            steps.append(step)
+            await asyncio.sleep(0)
+
+    executor = executor_of()
+    executor.add_node(node)
+    guard = node.create_guard_condition(stepping)  # type: ignore[arg-type, unused-ignore]
+    guard.trigger()
+    executor.spin_once(timeout_sec=TIMEOUT)
+    assert steps == ([0] if kind == "single" else [0, 1, 2])
+    executor.spin_once(timeout_sec=0)
+    assert steps == ([0, 1] if kind == "single" else [0, 1, 2])
 
 
 def test_a_coroutine_awaiting_an_rclpy_future_resumes_when_it_completes(
@@ -523,6 +636,43 @@ def test_a_service_answers_a_client_of_the_same_executor(executor_of: Callable[[
     assert client.wait_for_service(timeout_sec=TIMEOUT)
     answer = spin_for_result(executor, client.call_async(Trigger.Request()))
     assert (answer.success, answer.message) == (True, "served")
+
+
+@pytest.mark.parametrize("failure", ["raises", "wrong type"])
+def test_a_service_callback_that_fails_answers_nothing_and_says_so_once(
+    failure: str, kind: str, executor_of: Callable[[], Executor], node: Node, capfd: pytest.CaptureFixture[str]
+) -> None:
+    calls: list[str] = []
+
+    def serve(request: Trigger.Request, response: Trigger.Response) -> Any:
+        calls.append(request.__class__.__name__)
+        if len(calls) == 1:
+            if failure == "raises":
+                raise ValueError("told to fail")
+            return "not a response"
+        response.success = True
+        return response
+
+    node.create_service(Trigger, "conformance_failing", serve)
+    client: Client[Any, Any] = node.create_client(Trigger, "conformance_failing")
+    executor = executor_of()
+    executor.add_node(node)
+    assert client.wait_for_service(timeout_sec=TIMEOUT)
+    first = client.call_async(Trigger.Request())
+    if kind == "single":
+        # rclpy re-raises the callback's error out of spin.
+        with pytest.raises(ValueError if failure == "raises" else TypeError):
+            executor.spin_until_future_complete(first, timeout_sec=TIMEOUT)
+    else:
+        # The caller gets no answer (its future stays pending: give it a
+        # timeout), the log says why once, and the service serves on.
+        second = client.call_async(Trigger.Request())
+        assert spin_for_result(executor, second).success
+        assert not first.done()
+        errors = [line for line in capfd.readouterr().err.splitlines() if "conformance_failing" in line]
+        assert len(errors) == 1, errors
+        assert ("told to fail" if failure == "raises" else "TypeError") in errors[0]
+        assert len(calls) == 2
 
 
 # -- callback groups -------------------------------------------------------------------------------

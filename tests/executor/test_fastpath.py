@@ -13,6 +13,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import os
+import selectors
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -31,7 +33,7 @@ from std_msgs.msg import Int64
 from container import AsyncioExecutor
 from container._compat import WaitSet
 from container.executor import HAS_PUBLISHER_GID, _fastpath
-from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier, Taker
+from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, FdWatcher, Notifier, Taker
 from container.executor._fastpath import WaitSet as FastWaitSet
 from container.executor._waitset import EntityWaitSet
 
@@ -150,6 +152,57 @@ def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: No
         assert _until(lambda: dict(notifier.ready()).get(sub.handle.pointer, 0) >= 1)
         assert notifier.triggers == 1
         notifier.unwatch(sub.handle.pointer)
+
+
+def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
+    context: Context, guard: GuardCondition
+) -> None:
+    """asyncio's descriptors reach the loop's rcl wait through a compiled thread, without the GIL."""
+    selector = selectors.EpollSelector()
+    readable, writable = os.pipe()
+    selector.register(readable, selectors.EVENT_READ)
+    watcher = FdWatcher(epoll=selector.fileno(), guard=guard.handle.pointer)
+    wait_set = WaitSet(0, 1, 0, 0, 0, 0, context.handle)
+    try:
+        os.write(writable, b"x")
+        # Not armed: the guard is left alone while the byte waits.
+        wait_set.clear_entities()
+        wait_set.add_guard_condition(guard.handle)
+        wait_set.wait(int(0.1e9))
+        assert wait_set.get_ready_entities("guard_condition") == []
+        assert (watcher.wakes, watcher.armed, watcher.take()) == (0, False, False)
+        watcher.arm()
+        wait_set.clear_entities()
+        wait_set.add_guard_condition(guard.handle)
+        started = time.monotonic()
+        wait_set.wait(int(TIMEOUT * 1e9))
+        assert time.monotonic() - started < TIMEOUT / 2, "the armed watcher never fired"
+        assert wait_set.get_ready_entities("guard_condition") == [guard.handle.pointer]
+        # Fired once and disarmed itself, though the byte is still unread (epoll is level-triggered).
+        assert _until(lambda: not watcher.armed)
+        assert (watcher.wakes, watcher.take(), watcher.take()) == (1, True, False)
+        os.read(readable, 1)
+        watcher.arm()  # nothing readable: armed, silent
+
+        def later() -> None:
+            time.sleep(0.2)
+            os.write(writable, b"y")
+
+        threading.Thread(target=later, daemon=True).start()
+        wait_set.clear_entities()
+        wait_set.add_guard_condition(guard.handle)
+        wait_set.wait(int(TIMEOUT * 1e9))
+        assert wait_set.get_ready_entities("guard_condition") == [guard.handle.pointer]
+        assert _until(lambda: watcher.wakes == 2)
+    finally:
+        watcher.close()
+        selector.close()
+        os.close(readable)
+        os.close(writable)
+    with pytest.raises(RuntimeError, match="closed"):
+        watcher.arm()
+    with pytest.raises(ValueError):
+        FdWatcher(epoll=0, guard=0)
 
 
 def test_taker_takes_what_rclpy_takes(node: Node) -> None:

@@ -5,7 +5,8 @@
  * rcl wait set over fixed entities), taker.c (rcl_take into a kept
  * message), lock.c (a mutex both languages use), lanes.c (the callback
  * groups' slot state and the objects both languages read: work, tokens,
- * runners, routes), express.c (the loop thread's async chain). Every
+ * runners, routes), express.c (the loop thread's async chain), watcher.c
+ * (asyncio's file descriptors wake the loop's rcl wait). Every
  * object one file reads of another's is a compiled type declared here:
  * no file reads a Python attribute of the executor's own classes by name.
  */
@@ -107,6 +108,9 @@ extern PyTypeObject NotifierType;
 #define REPORTED_INLINE 16
 Py_ssize_t notifier_take_reported(
   NotifierObject * self, uintptr_t ** keys, size_t ** counts, uintptr_t * inline_keys, size_t * inline_counts);
+
+/* -- watcher.c --------------------------------------------------------------- */
+extern PyTypeObject FdWatcherType;
 
 /* -- waitset.c --------------------------------------------------------------- */
 extern PyTypeObject WaitSetType;

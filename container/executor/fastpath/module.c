@@ -134,6 +134,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     {"Notifier", &NotifierType}, {"Lock", &LockType}, {"Taker", &TakerType}, {"WaitSet", &WaitSetType},
     {"Express", &ExpressType}, {"Token", &TokenType}, {"Work", &WorkType}, {"Runner", &RunnerType},
     {"KeepLast", &KeepLastType}, {"Slots", &SlotsType}, {"Route", &RouteType}, {"Routes", &RoutesType},
+    {"FdWatcher", &FdWatcherType},
   };
   size_t i;
   PyObject * m;

@@ -13,7 +13,8 @@ the topic it publishes (a publisher nobody listens to costs less):
   375 packets/s, 17.6 kB/s) at 10 Hz, once per ``--polls`` value of
   ``comm.poll_msec`` (20, the default: polled, plus a read when each
   revolution is due). The emulator runs in a separate process on a
-  pseudo-terminal (writing every 30 ms, its default), so its CPU is not
+  pseudo-terminal (writing three times per revolution, the last on its
+  end, as it does by default), so its CPU is not
   counted in these rows (it is printed apart: the emulator's own cost);
 * **lidar+emu**: ``examples/lidar.yaml`` as it is, emulator in the container
   (what ``container run examples/lidar.yaml`` costs with no hardware).

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import re
 import time
@@ -86,6 +87,28 @@ def test_emulator_wakes_for_the_packets_that_end_a_revolution_by_the_decoders_ru
     starts = decode_bytes(emu._pending).wraps() // POINTS_PER_PACKET
     assert len(starts) > 60
     assert list(emu._turn_ends) == starts.tolist()
+
+
+@pytest.mark.parametrize("scan_hz", [10.0, 9.3, 4.0])
+def test_emulator_writes_at_most_a_tick_apart_and_on_every_revolutions_end(scan_hz: float) -> None:
+    # The writer's schedule, driven as its thread drives it but without
+    # sleeping: each write hands out what is due, then asks for the next time.
+    emu = Emulator(scan_hz=scan_hz, tick=0.035)
+    wakes, ends = [0.0], set()
+    while wakes[-1] < 20.0:
+        emu._due(wakes[-1])
+        end = emu._next_end()
+        if end is not None:
+            ends.add(round(end, 9))
+        wakes.append(emu._next_wake(wakes[-1]))
+    steps = [b - a for a, b in pairwise(wakes)]
+    assert max(steps) <= 0.035 + 1e-9
+    # Each revolution's end (the packet after its last one) is written the moment it is due.
+    written = {round(w, 9) for w in wakes}
+    assert sorted(ends)[:-1] and set(sorted(ends)[:-1]) <= written
+    # Evenly cut: no more writes than a tick's spacing needs (3 per LD06 revolution at 10 Hz).
+    per_turn = math.ceil(1 / scan_hz / 0.035)
+    assert len(wakes) / 20.0 <= scan_hz * per_turn * 1.02
 
 
 @pytest.mark.asyncio
@@ -503,6 +526,34 @@ async def test_polled_source_reads_early_when_something_is_due() -> None:
         regular = loop.time() - begin
     assert 0.04 <= early < 0.25
     assert regular >= 0.45
+
+
+@pytest.mark.asyncio
+async def test_polled_source_hands_over_what_came_by_the_due_time_then_waits_for_the_rest() -> None:
+    """The caller digests the bulk of a revolution while its last bytes are on their way."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        async with (
+            asyncio.timeout(LIMIT),
+            SerialSource(os.ttyname(slave), baudrate=230400, poll_interval=2.0) as source,
+        ):
+            loop = asyncio.get_running_loop()
+            os.write(master, b"a" * 10)
+            assert await source.read() == b"a" * 10
+            os.write(master, b"b" * 100)
+            # Due before the next poll, 1,000 bytes expected: what is there
+            # comes back at the due time, not once the rest came (or 2 s passed).
+            async with asyncio.timeout(1.0):
+                assert await source.read(due=loop.time() + 0.01, expect=1000) == b"b" * 100
+            # Past due: woken by the rest as it arrives.
+            async with asyncio.timeout(1.0):
+                pending = asyncio.ensure_future(source.read(due=loop.time() - 0.001, expect=900))
+                os.write(master, b"c" * 900)
+                assert await pending == b"c" * 900
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 # Seconds of revolutions at the device's pace.

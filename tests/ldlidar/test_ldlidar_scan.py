@@ -201,6 +201,26 @@ def test_partial_first_turn_is_dropped_and_each_scan_is_one_turn() -> None:
         assert np.all((scan.angles >= -math.pi) & (scan.angles < math.pi))
 
 
+def test_rehearsing_a_revolution_in_progress_changes_nothing() -> None:
+    # A reader rehearses the finish while a revolution's last packets are on
+    # their way (before the first packet, mid-turn, and right before the end).
+    packets = packets_for(lambda a: 800 + round(a), turns=4.5, intensity=lambda a: round(a) % 200)
+    hosts = [10.0 + i * 0.0025 for i in range(len(packets))]
+    plain = run(ScanAssembler(noise_filter=True), packets, hosts)
+    assembler = ScanAssembler(noise_filter=True)
+    assembler.rehearse()
+    rehearsed: list[Scan] = []
+    for i, packet in enumerate(packets):
+        if i % 7 == 3 or i % 38 == 37:
+            assembler.rehearse()
+        rehearsed += assembler.push(packet, host_time=hosts[i])
+    assert len(plain) == len(rehearsed) == 4
+    for a, b in zip(plain, rehearsed, strict=True):
+        assert (a.stamp, a.scan_time, a.points) == (b.stamp, b.scan_time, b.points)
+        np.testing.assert_array_equal(a.ranges, b.ranges)
+        np.testing.assert_array_equal(a.intensities, b.intensities)
+
+
 # ---- direction -------------------------------------------------------------------
 
 

@@ -56,11 +56,11 @@ _State = Literal["unopened", "running", "unplugged", "closed"]
 #: Seconds of packets an emulator makes at once (NumPy's cost is per call).
 _BATCH_S = 0.5
 
-#: Seconds between an emulator's writes: a USB serial adapter hands the host
-#: its bytes in bursts too. Each write costs the writer thread a wake-up, on
-#: the project's 2-core VM 75-200 us of CPU as /proc counts it: the writer
-#: measured 0.9-1.0% of a core at 20 ms, 0.75-0.83% at 30 ms.
-DEFAULT_TICK_S = 0.03
+#: Longest time between an emulator's writes: a USB serial adapter hands the
+#: host its bytes in bursts too. Each write costs the writer thread a wake-up,
+#: on the project's 2-core VM 75-200 us of CPU as /proc counts it. The writes
+#: are spread evenly up to each revolution's end (three per LD06 revolution).
+DEFAULT_TICK_S = 0.035
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,7 +196,7 @@ class Emulator:
     :param start_ms: device clock at start (set near 30,000 to see a wrap soon).
     :param link_dir: where to put the stable symlink; a temporary directory
         (removed on :meth:`stop`) if not given.
-    :param tick: seconds between writes (:data:`DEFAULT_TICK_S`); packets due in a tick go together.
+    :param tick: the most seconds between writes (:data:`DEFAULT_TICK_S`); packets due in between go together.
     """
 
     def __init__(
@@ -346,7 +346,7 @@ class Emulator:
                 os.unlink(self.link)
 
     def _write_paced(self) -> None:
-        """The writer thread: every ``tick`` and when a revolution ends, write what is due.
+        """The writer thread: at most a ``tick`` apart and when a revolution ends, write what is due.
 
         A revolution's last packet goes out with the next one, when that is
         due, not up to a tick later: a real device delivers every packet
@@ -354,7 +354,7 @@ class Emulator:
         the bytes that complete a revolution.
         """
         begin = time.monotonic()
-        ticks = 1
+        wake = 0.0
         while not self._stopping.is_set():
             count, data = self._due(time.monotonic() - begin)
             with self._lock:
@@ -370,17 +370,28 @@ class Emulator:
                     self._write(data)
             if self._finished():
                 return
-            # On a fixed grid, so that late wake-ups do not add up. A plain
-            # sleep: a timed Event.wait costs 85 us of CPU here, sleep 29 us;
-            # stop() waits out at most one tick.
-            now = time.monotonic() - begin
-            while ticks * self._tick <= now:
-                ticks += 1
-            wake = ticks * self._tick
-            ends = self._next_end()
-            if ends is not None and ends < wake:
-                wake = ends
+            # Scheduled, not from when it woke, so that late wake-ups do not
+            # add up. A plain sleep: a timed Event.wait costs 85 us of CPU
+            # here, sleep 29 us; stop() waits out at most one tick.
+            wake = self._next_wake(wake)
+            late = time.monotonic() - begin
+            if wake <= late:  # overslept (a loaded machine): no burst of catch-up writes
+                wake = self._next_wake(late)
             time.sleep(max(0.0, begin + wake - time.monotonic()))
+
+    def _next_wake(self, last: float) -> float:
+        """Seconds from the start of the write after the one scheduled at ``last``.
+
+        The time up to the next revolution's end is cut into equal steps of
+        at most a tick, so that the end falls on a step: a write every 33 ms
+        at the LD06's 10 Hz and 35 ms ticks, 30 wake-ups a second, where a
+        fixed grid of 30 ms ticks plus one wake-up per end made 43.
+        """
+        end = self._next_end()
+        if end is None or end <= last:
+            return last + self._tick
+        steps = math.ceil((end - last) / self._tick - 1e-9)
+        return last + (end - last) / steps
 
     def _released(self) -> int:
         """Packets made and already handed to the writer (sent or dropped)."""

@@ -458,6 +458,21 @@ class ScanAssembler:
         self._turn = turn
         return scans
 
+    def rehearse(self) -> None:
+        """Finish the revolution in progress as if it were complete, and drop the result.
+
+        For a reader to call while a revolution's last packets are on their
+        way. After a sleep, this machine runs the finish (some thirty NumPy
+        calls) with cold caches: 0.3-0.4 ms against 70 us warm, most of the
+        delay from the last byte to the scan. Rehearsed a few milliseconds
+        before, it runs warm when it counts: the median delay went from
+        0.83-0.92 ms to 0.74-0.80 ms in three alternating pairs of runs, for
+        one more finish per revolution (about 0.1% of a core at 10 Hz).
+        """
+        turn = self._turn
+        if turn is not None and turn.rows and turn.rel:
+            self._finish(turn)
+
     def _predict(self, span: int, speed: int, device: float, dt: float) -> None:
         """When the packet completing the revolution will have been measured, in device time."""
         if not span or not speed or self._last_end is None:
@@ -543,6 +558,21 @@ class ScanAssembler:
         return (deg >= low) | (deg <= high)
 
 
+def _median(values: NDArray[np.int64]) -> float:
+    """``np.median`` of a non-empty array, for a fraction of its cost.
+
+    ``np.median`` goes through several layers of Python (partition, mean,
+    NaN checks): right after the loop wakes, with cold caches, it took
+    about 140 us of the 0.3 ms between a revolution's last bytes and its
+    scan; a sort of a turn's 40 packets is a few microseconds.
+    """
+    ordered = np.sort(values)
+    middle = len(ordered) // 2
+    if len(ordered) % 2:
+        return float(ordered[middle])
+    return (float(ordered[middle - 1]) + float(ordered[middle])) / 2
+
+
 def _native_rays(rel: NDArray[np.int64], spans: NDArray[np.int64], points: int) -> int:
     """Rays at the device's own resolution: a turn over the typical point spacing.
 
@@ -553,9 +583,9 @@ def _native_rays(rel: NDArray[np.int64], spans: NDArray[np.int64], points: int) 
     advance = np.diff(rel) % TURN_SUBUNITS
     known = advance[advance > 0]
     if len(known):
-        spacing = float(np.median(known)) / POINTS_PER_PACKET
+        spacing = _median(known) / POINTS_PER_PACKET
     else:
-        spacing = float(np.median(spans)) / (POINTS_PER_PACKET - 1) if len(spans) else 0.0
+        spacing = _median(spans) / (POINTS_PER_PACKET - 1) if len(spans) else 0.0
     if spacing <= 0:
         return max(points, 1)
     return max(round(TURN_SUBUNITS / spacing), 1)
@@ -632,7 +662,7 @@ def _filter_noise(
     if not near.any():
         return dist
     # Positions are subunits, and a packet's points are `span` subunits apart.
-    spacing = float(np.median(spans)) if len(spans) else 0.0
+    spacing = _median(spans) if len(spans) else 0.0
     idx = np.flatnonzero(near)
     p, d = pos[idx], dist[idx].astype(np.int64)
     # Neighbours in angle among the near points, as the vendor groups them.

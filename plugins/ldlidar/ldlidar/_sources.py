@@ -114,10 +114,11 @@ class SerialSource(_Base):
     second, often a packet or two at a time. A polled source reads the same
     bytes in a few large chunks instead. A caller that knows when something
     important arrives (the packet completing a revolution) passes it as
-    ``read(due=..., expect=...)``: the source sleeps until then, and from
-    then on wakes as soon as bytes arrive, until *expect* bytes have come; so
-    a revolution is read within a burst of completing, in one chunk, and
-    parsed once. Whatever is due, it reads at least every :attr:`hold`
+    ``read(due=..., expect=...)``: the source sleeps until then, returns
+    what has come by then (for the caller to digest while the rest is on its
+    way), and from then on wakes as soon as bytes arrive, until *expect*
+    bytes have come; so a revolution's last packets are read within a burst
+    of arriving, with little left to parse. Whatever is due, it reads at least every :attr:`hold`
     seconds, well before the kernel's 4 KiB line buffer could fill; with
     nothing due it reads every *poll_interval*.
 
@@ -220,11 +221,14 @@ class SerialSource(_Base):
         chunk = b""
         while True:
             now = loop.time()
+            at_due = False
             if self._more:
                 self._more = False  # the last read filled the chunk: more is waiting
             elif due is not None and due > now - self.hold:
                 if due > now:
-                    await asyncio.sleep(min(due, self._last_read + self.hold) - now)
+                    until = min(due, self._last_read + self.hold)
+                    at_due = until == due
+                    await asyncio.sleep(until - now)
                 else:
                     # Due: the next bytes are the ones waited for.
                     await self._readable(min(self.hold, max(self._last_read + self.hold - now, 0.0)))
@@ -240,7 +244,11 @@ class SerialSource(_Base):
             now = loop.time()
             if not chunk:
                 continue
-            if len(chunk) >= expect or due is None or due > now or now >= self._last_gather + self.hold:
+            # The read at the due time returns what it got even if the
+            # revolution is not complete yet: the caller digests that while
+            # waiting for the rest, so less is left between the last byte
+            # and the scan.
+            if at_due or len(chunk) >= expect or due is None or due > now or now >= self._last_gather + self.hold:
                 self._last_gather = now
                 return chunk
 

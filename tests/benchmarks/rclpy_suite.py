@@ -45,7 +45,8 @@ FILES = (
     "test_service_introspection.py",
 )
 _SUBSTITUTE = "LIFECYCLE_CONTAINER_SUBSTITUTE_EXECUTOR"
-_RESULT = re.compile(r"^(PASSED|FAILED|ERROR)\s+(\S+)|^(\S+::\S+)\s+(PASSED|FAILED|ERROR)", re.M)
+#: pytest's ``-rA`` summary lines: ``PASSED file::test[id, maybe with spaces]`` (`` - why``).
+_RESULT = re.compile(r"^(PASSED|FAILED|ERROR) (\S+::.+?)(?: - .*)?$", re.M)
 
 
 # -- the pytest plugin (-p rclpy_suite) -----------------------------------------------
@@ -84,8 +85,7 @@ def run(target: list[str], *, cwd: Path, substitute: bool, timeout: float) -> di
         return None
     outcomes: dict[str, str] = {}
     for match in _RESULT.finditer(done.stdout):
-        outcome, test = (match.group(1), match.group(2)) if match.group(1) else (match.group(4), match.group(3))
-        outcomes[test.split("/")[-1]] = outcome
+        outcomes[match.group(2)] = match.group(1)
     return outcomes
 
 
@@ -107,7 +107,7 @@ def outcomes_of(path: Path, *, substitute: bool, timeout: float) -> dict[str, st
     found: dict[str, str] = {}
     for test in collect(path):
         one = run([test], cwd=path.parent, substitute=substitute, timeout=timeout)
-        found[test.split("/")[-1]] = "HANGS" if one is None else next(iter(one.values()), "ERROR")
+        found[test] = "HANGS" if one is None else next(iter(one.values()), "ERROR")
     return found
 
 

@@ -629,16 +629,24 @@ def test_a_custom_waitable_is_waited_on_taken_and_executed(executor_of: Callable
 # -- services and clients ----------------------------------------------------------------------
 
 
+def serving(
+    node: Node, name: str, serve: Callable[..., Any], executor_of: Callable[[], Executor]
+) -> tuple[Client[Any, Any], Executor]:
+    """A ``Trigger`` service ``name`` on ``node``, a client of it there, and an executor with ``node``."""
+    node.create_service(Trigger, name, serve)
+    client: Client[Any, Any] = node.create_client(Trigger, name)
+    executor = executor_of()
+    executor.add_node(node)
+    assert client.wait_for_service(timeout_sec=TIMEOUT)
+    return client, executor
+
+
 def test_a_service_answers_a_client_of_the_same_executor(executor_of: Callable[[], Executor], node: Node) -> None:
     def serve(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         response.success, response.message = True, "served"
         return response
 
-    node.create_service(Trigger, "conformance_trigger", serve)
-    client: Client[Any, Any] = node.create_client(Trigger, "conformance_trigger")
-    executor = executor_of()
-    executor.add_node(node)
-    assert client.wait_for_service(timeout_sec=TIMEOUT)
+    client, executor = serving(node, "conformance_trigger", serve, executor_of)
     answer = spin_for_result(executor, client.call_async(Trigger.Request()))
     assert (answer.success, answer.message) == (True, "served")
 
@@ -658,11 +666,7 @@ def test_a_service_callback_that_fails_answers_nothing_and_says_so_once(
         response.success = True
         return response
 
-    node.create_service(Trigger, "conformance_failing", serve)
-    client: Client[Any, Any] = node.create_client(Trigger, "conformance_failing")
-    executor = executor_of()
-    executor.add_node(node)
-    assert client.wait_for_service(timeout_sec=TIMEOUT)
+    client, executor = serving(node, "conformance_failing", serve, executor_of)
     first = client.call_async(Trigger.Request())
     if kind == "single":
         # rclpy re-raises the callback's error out of spin.

@@ -75,6 +75,16 @@ def guard(context: Context) -> Iterator[GuardCondition]:
     made.destroy()
 
 
+def _wait_on(wait_set: WaitSet, guard: GuardCondition, timeout: float) -> tuple[list[int], float]:
+    """Wait on ``guard`` alone for at most ``timeout`` s: the guard conditions found ready, and the seconds it took."""
+    wait_set.clear_entities()
+    wait_set.add_guard_condition(guard.handle)
+    started = time.monotonic()
+    wait_set.wait(int(timeout * 1e9))
+    ready: list[int] = wait_set.get_ready_entities("guard_condition")
+    return ready, time.monotonic() - started
+
+
 def _matched(publisher: Any) -> None:
     assert _until(lambda: publisher.get_subscription_count() >= 1), "publisher never matched"
 
@@ -142,12 +152,9 @@ def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: No
             pub.publish(Int64(data=3))
 
         threading.Thread(target=later, daemon=True).start()
-        wait_set.clear_entities()
-        wait_set.add_guard_condition(guard.handle)
-        started = time.monotonic()
-        wait_set.wait(int(TIMEOUT * 1e9))
-        assert time.monotonic() - started < TIMEOUT / 2, "the armed guard never fired"
-        assert wait_set.get_ready_entities("guard_condition") == [guard.handle.pointer]
+        ready, took = _wait_on(wait_set, guard, TIMEOUT)
+        assert took < TIMEOUT / 2, "the armed guard never fired"
+        assert ready == [guard.handle.pointer]
         notifier.disarm()
         assert _until(lambda: dict(notifier.ready()).get(sub.handle.pointer, 0) >= 1)
         assert notifier.triggers == 1
@@ -166,18 +173,12 @@ def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
     try:
         os.write(writable, b"x")
         # Not armed: the guard is left alone while the byte waits.
-        wait_set.clear_entities()
-        wait_set.add_guard_condition(guard.handle)
-        wait_set.wait(int(0.1e9))
-        assert wait_set.get_ready_entities("guard_condition") == []
+        assert _wait_on(wait_set, guard, 0.1)[0] == []
         assert (watcher.wakes, watcher.armed, watcher.take()) == (0, False, False)
         watcher.arm()
-        wait_set.clear_entities()
-        wait_set.add_guard_condition(guard.handle)
-        started = time.monotonic()
-        wait_set.wait(int(TIMEOUT * 1e9))
-        assert time.monotonic() - started < TIMEOUT / 2, "the armed watcher never fired"
-        assert wait_set.get_ready_entities("guard_condition") == [guard.handle.pointer]
+        ready, took = _wait_on(wait_set, guard, TIMEOUT)
+        assert took < TIMEOUT / 2, "the armed watcher never fired"
+        assert ready == [guard.handle.pointer]
         # Fired once and disarmed itself, though the byte is still unread (epoll is level-triggered).
         assert _until(lambda: not watcher.armed)
         assert (watcher.wakes, watcher.take(), watcher.take()) == (1, True, False)
@@ -189,10 +190,7 @@ def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
             os.write(writable, b"y")
 
         threading.Thread(target=later, daemon=True).start()
-        wait_set.clear_entities()
-        wait_set.add_guard_condition(guard.handle)
-        wait_set.wait(int(TIMEOUT * 1e9))
-        assert wait_set.get_ready_entities("guard_condition") == [guard.handle.pointer]
+        assert _wait_on(wait_set, guard, TIMEOUT)[0] == [guard.handle.pointer]
         assert _until(lambda: watcher.wakes == 2)
     finally:
         watcher.close()

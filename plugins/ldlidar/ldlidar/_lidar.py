@@ -200,6 +200,7 @@ class Lidar:
         if self.state == "unopened":
             raise DeviceError("cannot read scans: lidar is not open", device=self.port)
         assembler = self.assembler
+        rehearse = False
         while self.state in ("open", "reconnecting"):
             while self._pending:
                 rows, read_at = self._pending.pop(0)
@@ -207,6 +208,9 @@ class Lidar:
                     yield scan
                 if assembler.clock.jumps != self._jumps:
                     self._clock_jumped()
+            if rehearse:
+                rehearse = False
+                assembler.rehearse()
             if self.state == "reconnecting":
                 await self._reconnect()
                 continue
@@ -218,13 +222,10 @@ class Lidar:
                 # bytes: then only they are parsed between their arrival and
                 # the scan (with the loop's caches cold, parsing a turn's
                 # bytes there took a third of that time), and the finish
-                # runs warm (see ScanAssembler.rehearse).
+                # runs warm (see ScanAssembler.rehearse), once the loop's top
+                # has pushed what was parsed.
                 self._parse_held()
-                while self._pending:
-                    rows, read_at = self._pending.pop(0)
-                    for scan in assembler.push_rows(rows, host_time=read_at):
-                        yield scan
-                assembler.rehearse()
+                rehearse = True
                 continue
             try:
                 async with asyncio.timeout(self.timeout):

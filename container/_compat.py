@@ -20,7 +20,7 @@ import inspect
 import sys
 from collections.abc import Callable, Sized
 from types import FrameType
-from typing import TYPE_CHECKING, Any, TypeAlias
+from typing import TYPE_CHECKING, Any, Protocol, TypeAlias
 
 import rclpy.timer
 from rclpy.event_handler import EventHandler
@@ -38,6 +38,7 @@ if TYPE_CHECKING:
 __all__ = [
     "PRIVATE_NAMES",
     "TIMER_INFO",
+    "DoneCallbackRunner",
     "InvalidROSArgsError",
     "RCLError",
     "SubParsers",
@@ -239,8 +240,15 @@ def subscription_wants_info(subscription: Subscription[Any]) -> bool:
     return subscription._callback_type is not Subscription.CallbackType.MessageOnly
 
 
-def adopt_future(future: Future[Any], executor: Executor) -> None:
-    """Make ``executor`` run ``future``'s done-callbacks, as rclpy's executors do."""
+class DoneCallbackRunner(Protocol):
+    """What rclpy's future needs of its executor: ``create_task(callback, future)``."""
+
+    def create_task(self, callback: Callable[..., Any], *args: Any, **kwargs: Any) -> object: ...
+
+
+def adopt_future(future: Future[Any], executor: Executor | DoneCallbackRunner) -> None:
+    """Make ``executor`` run ``future``'s done-callbacks, as rclpy's executors do
+    (rclpy's future calls its ``create_task(callback, future)`` for each)."""
     future._set_executor(executor)
 
 

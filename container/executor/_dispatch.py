@@ -43,6 +43,7 @@ from .._compat import (
 from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
 from ._fastpath import (
     Express,
+    Handoff,
     Notifier,
     Token,
     Work,
@@ -50,6 +51,7 @@ from ._fastpath import (
 from ._gate import Gate
 from ._hooks import ExecutorHooks
 from ._lanes import Lane, Retired
+from ._tasks import DoneCallbacks
 from ._waitset import EntityWaitSet, is_hot_waitable
 
 if TYPE_CHECKING:
@@ -76,6 +78,8 @@ class Dispatcher:
 
     #: Lanes' workers carry on to the plain callbacks their publishes reach (:class:`LaneHooks`).
     carries = True
+    #: The workers the loop's thread woke (:class:`LaneHooks`); its selector waits for them.
+    handoff: Handoff
 
     def __init__(
         self,
@@ -88,6 +92,7 @@ class Dispatcher:
         loop_waits: bool = True,
     ) -> None:
         self.context = context
+        self.handoff = Handoff()
         #: Whether the loop's own thread waits in rcl (the executor's loop);
         #: on a loop of the user's (``spin_async``) a waiter thread does.
         self._loop_waits = loop_waits
@@ -141,6 +146,10 @@ class Dispatcher:
         self.relieving = False
         #: How many callbacks may start (``spin_once``); see :class:`Gate`.
         self.gate = Gate()
+        #: Whose futures the responses complete, for their done-callbacks (see :class:`DoneCallbacks`).
+        self.response_executor = DoneCallbacks(
+            executor=future_executor, post=self._post, on_loop_thread=self._dispatching_burst, gate=self.gate
+        )
         #: Waitables whose own code raised (see :meth:`set_aside`), by identity.
         self._set_aside: dict[int, weakref.ref[object] | object] = {}
 

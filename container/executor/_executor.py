@@ -575,6 +575,7 @@ class AsyncioExecutor(Executor):
                     self._wait,
                     idle=functools.partial(loop_is_idle, self._loop),
                     ros_turn_due=self._ros_turn_due,
+                    handoff=self._dispatcher.handoff,
                 )
                 started = True
                 watchdog = self._start_watchdog()
@@ -719,8 +720,15 @@ class AsyncioExecutor(Executor):
         return bool(self._inbox) or self._dispatcher.ros_turn_due()
 
     def _wait(self, timeout_ns: int) -> int:
-        flags = self._dispatcher.wait_and_dispatch(timeout_ns)
-        self._inbox.run()
+        inbox = self._inbox
+        inbox.draining(threading.get_ident())
+        try:
+            flags = self._dispatcher.wait_and_dispatch(timeout_ns)
+            inbox.run()
+        finally:
+            inbox.draining(None)
+            if inbox:
+                self._guard_trigger()  # run() raised: what is left runs after the next wait
         # Shutdown of the context and SIGINT both trigger one of our guards.
         if flags & WOKEN and not self.context.ok():
             self._signal_stopped()

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from rclpy.guard_condition import GuardCondition
     from rclpy.node import Node
 
-    from ._fastpath import Work
+    from ._fastpath import Handoff, Work
     from ._lanes import Lane
 
 __all__: list[str] = []
@@ -61,6 +61,9 @@ class LaneHooks(Protocol):
 
     #: Whether worker threads carry on to the plain callbacks their callbacks' publishes reach.
     carries: bool
+    @property
+    def handoff(self) -> Handoff | None:
+        """Where the loop's thread counts the workers it wakes (``None``: it never waits for them)."""
 
     def on_loop_thread(self) -> bool:
         """Whether the caller runs on the dispatching loop's thread."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -31,11 +32,20 @@ class Inbox:
         self._loop = loop
         self._wake = wake
         self._queue: collections.deque[tuple[Callable[..., object], tuple[Any, ...]]] = collections.deque()
+        #: The thread between a wait and the :meth:`run` after it (see :meth:`draining`).
+        self._drainer: int | None = None
 
     def post(self, callback: Callable[..., object], *args: Any) -> None:
         """Run ``callback(*args)`` on the own loop's thread after its next wait (any thread)."""
         self._queue.append((callback, args))
-        self._wake()
+        if self._drainer is None or self._drainer != threading.get_ident():
+            self._wake()
+
+    def draining(self, thread: int | None) -> None:
+        """``thread`` (``None``: nobody) dispatches a wait and then calls :meth:`run`:
+        what it posts meanwhile runs then, without a wake-up (a guard
+        condition's trigger, and the next wait returning at once for it)."""
+        self._drainer = thread
 
     def call_soon(self, loop: asyncio.AbstractEventLoop, callback: Callable[..., object], *args: Any) -> None:
         """Run ``callback(*args)`` in ``loop``'s next iteration (any thread; nothing once it is closed)."""

@@ -57,7 +57,7 @@ from typing import Any
 
 from .._compat import enter_task, leave_task
 from ._bridge import drive
-from ._fastpath import Lock, Runner, Slots, Work, first_step, mark_carrier
+from ._fastpath import Handoff, Lock, Runner, Slots, Work, first_step, mark_carrier
 from ._hooks import LaneHooks
 
 __all__: list[str] = []
@@ -131,6 +131,9 @@ class Lane:
         self._progress = hooks.progress
         self._loop = loop
         self._on_loop_thread = hooks.on_loop_thread
+        #: Told of each worker the loop's thread wakes, and by the worker when
+        #: it starts (see ``_fastpath.Handoff``).
+        self._handoff: Handoff | None = hooks.handoff
         #: The admission state (running, limit, waiting work, idle runners),
         #: which the compiled path reads too; its lock guards the rest here.
         self._slots = Slots(limit)
@@ -140,7 +143,8 @@ class Lane:
         #: Threads away running another lane's work (see :meth:`_carry_on`).
         self._away = 0
         self._threads: list[threading.Thread] = []
-        self._inbox: queue.SimpleQueue[Work | None] = queue.SimpleQueue()
+        #: Work for the workers, and whether the loop's thread handed it (and waits for its start).
+        self._inbox: queue.SimpleQueue[tuple[Work, bool] | None] = queue.SimpleQueue()
         # Async side, touched on the loop thread only.
         self._runners: dict[asyncio.Task[None], Runner] = {}
         #: The slots' list itself: runners idle, the last to be used first.
@@ -242,7 +246,12 @@ class Lane:
                 self._threads.append(thread)
             else:
                 self._idle_threads -= 1
-        self._inbox.put(work)
+        handed = False
+        handoff = self._handoff
+        if handoff is not None and self._on_loop_thread():
+            handoff.handed()
+            handed = True
+        self._inbox.put((work, handed))
         if spawn:
             thread.start()
 
@@ -252,13 +261,16 @@ class Lane:
         inbox = self._inbox
         while True:
             try:
-                work = inbox.get(timeout=WORKER_IDLE_S)
+                item = inbox.get(timeout=WORKER_IDLE_S)
             except queue.Empty:
                 if self._retire_idle_thread():
                     return
                 continue
-            if work is None:
+            if item is None:
                 return
+            work, handed = item
+            if handed and self._handoff is not None:
+                self._handoff.started()
             self._run_plain(work)
             if self._carries:
                 self._carry_on(self._hooks.carry)

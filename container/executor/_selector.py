@@ -19,13 +19,19 @@ from typing import Any
 
 from rclpy.guard_condition import GuardCondition
 
-from ._fastpath import FdWatcher
+from ._fastpath import FdWatcher, Handoff
 
 __all__: list[str] = []
 
 #: Waits in rcl for at most the given nanoseconds (``-1``: forever) and
 #: dispatches what became ready.
 WaitAndDispatch = Callable[[int], object]
+
+#: How long a busy loop waits, without the GIL, for the worker threads it
+#: woke to start (see :class:`~._fastpath.Handoff`): a wake-up takes
+#: 50-200 us here; one that takes longer (a thread starting, a starved
+#: core) is left to CPython's forced switch.
+HANDOFF_WAIT_NS = 1_000_000
 
 
 class RclSelector(selectors.BaseSelector):
@@ -41,6 +47,7 @@ class RclSelector(selectors.BaseSelector):
         self._wait: WaitAndDispatch | None = None
         self._idle: Callable[[], bool] | None = None
         self._ros_turn_due: Callable[[], bool] | None = None
+        self._handoff: Handoff | None = None
         self._guard_handle = guard.handle
         self._guard_handle.__enter__()
         try:
@@ -56,6 +63,7 @@ class RclSelector(selectors.BaseSelector):
         *,
         idle: Callable[[], bool] | None = None,
         ros_turn_due: Callable[[], bool] | None = None,
+        handoff: Handoff | None = None,
     ) -> None:
         """Route blocking selects through ``wait`` (``None``: plain epoll).
 
@@ -68,10 +76,15 @@ class RclSelector(selectors.BaseSelector):
             give ROS a turn: an rcl wait costs tens of microseconds, and a
             busy asyncio loop iterates far more often than timers and guard
             conditions need looking at (new messages are reported anyway).
+        :param handoff: the worker threads the loop's thread woke with plain
+            work; a select that must not block lets go of the GIL until
+            they have started, or a busy loop would hold it for CPython's
+            whole switch interval (5 ms) each time.
         """
         self._wait = wait
         self._idle = idle
         self._ros_turn_due = ros_turn_due
+        self._handoff = handoff
 
     # -- selectors.BaseSelector -----------------------------------------------
     def register(
@@ -95,14 +108,19 @@ class RclSelector(selectors.BaseSelector):
         if wait is None:
             return self._inner.select(timeout)
         # While the watcher is armed it would have woken rcl for a ready fd,
-        # so pure ROS traffic costs no epoll call at all.
+        # so pure ROS traffic costs no epoll call at all. Otherwise a look
+        # that keeps the GIL first: epoll's own lets it go even for a
+        # zero timeout, which restarts a waiting thread's wait for a
+        # forced switch, every iteration of a busy loop.
         watcher = self._watcher
-        ready = [] if watcher.armed else self._inner.select(0)
+        ready = [] if watcher.armed or not watcher.pending() else self._inner.select(0)
         if ready or (timeout is not None and timeout <= 0):
             # Still give ROS a turn so a busy fd cannot starve it.
             due = self._ros_turn_due
             if due is None or due():
                 wait(0)
+            if self._handoff is not None:
+                self._handoff.give(HANDOFF_WAIT_NS)
             return ready or self._fds_if_woken()
         watcher.arm()
         idle = self._idle

@@ -109,7 +109,7 @@ def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.D
             future = cli.get_pending_request(header.request_id.sequence_number)
         except KeyError:
             continue  # the caller cancelled the request
-        adopt_future(future, dispatcher.future_executor)
+        adopt_future(future, dispatcher.response_executor)
         future.set_result(response)
         dispatcher.response_arrived()
 

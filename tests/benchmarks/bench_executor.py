@@ -30,6 +30,7 @@ Printed as medians and as ratios to each of rclpy's three executors.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import os
@@ -51,16 +52,9 @@ KINDS = {
     "floor": "no executor: one bare rcl wait loop",
 }
 
-#: rclpy's EventsExecutor never fires timers on these machines (measured):
-#: the measurements that need a timer print n/a for it.
-TIMERLESS = {"events"}
-
-#: The measurements that need a timer to fire.
-TIMED = {"gap", "load"}
-
-#: The EventsExecutor hangs in the service chain here more often than not
-#: (seen: a call from another thread while it spins): left out of it.
-EVENTLESS = {"services"}
+#: How long one ``spin_until_future_complete`` of the EventsExecutor may
+#: last (see :func:`_spin_until`): a finite deadline, far beyond any run.
+EVENTS_SPIN_S = 3600.0
 
 #: The floor has no callback groups, no isolation: ping-pong and load only.
 FLOORLESS = {"gap", "services"}
@@ -134,16 +128,42 @@ def _spin_until(
     """Spin ``executor`` on a helper thread until ``done`` is set, whatever its kind.
 
     The spin runs on a helper thread; this one runs ``kick`` and ends the
-    spin, not a timer: the EventsExecutor's timers do not fire.
+    spin.
+
+    rclpy's EventsExecutor is spun until a future completes, with a finite
+    timeout, rather than by ``spin()``: in the PyPI wheels (Jazzy 7.1.5;
+    built against glibc 2.14's symbols, so ``std::condition_variable``
+    waits on the steady clock through ``pthread_cond_timedwait`` on the
+    system clock), ``spin()`` waits until ``steady_clock::time_point::max()``,
+    whose conversion to the system clock overflows: every wait returns at
+    once, the spinning thread loops at 90-100% of a core holding its event
+    queue's lock, and no other thread gets it in. Its timers then never fire
+    (their thread cannot queue them) and a call from another thread hangs.
+    With a finite deadline its waits work (a 100 Hz timer: 200 firings in
+    2 s, 2% of a core). A build against a newer glibc
+    (``pthread_cond_clockwait``), as ROS's own packages are, has no such
+    overflow; this is what its ``spin()`` does there.
     """
-    spinner = threading.Thread(target=executor.spin, name="spin", daemon=True)
+    stop: Any = None
+    if type(executor).__name__ == "EventsExecutor":
+        from rclpy.task import Future
+
+        stop = Future()
+
+        def spin() -> None:
+            with contextlib.suppress(Exception):
+                executor.spin_until_future_complete(stop, timeout_sec=EVENTS_SPIN_S)
+
+        spinner = threading.Thread(target=spin, name="spin", daemon=True)
+    else:
+        spinner = threading.Thread(target=executor.spin, name="spin", daemon=True)
     spinner.start()
     if kick is not None:
         kick()
     done.wait(limit)
     done.set()
-    # The EventsExecutor's shutdown() from another thread can hang while it
-    # spins (seen here): the measurement is taken, the child exits anyway.
+    if stop is not None:
+        stop.set_result(None)
     threading.Thread(target=executor.shutdown, args=(0.5,), daemon=True).start()
     spinner.join(2.0)
 
@@ -160,8 +180,7 @@ def _chain_rate(
     """Spin ``executor``; how fast a chain of callbacks raises ``count`` over
     ``seconds``, once it has counted 100 (warm-up). ``done`` is set at the end.
 
-    Measured from this thread, not a timer (the EventsExecutor's never
-    fire): ``start`` kicks the chain once the spin runs, ``resend`` kicks it
+    Measured from this thread, not a timer: ``start`` kicks the chain once the spin runs, ``resend`` kicks it
     again every 2 s until it counts (a lost first kick).
     """
     rate: list[float] = []
@@ -455,9 +474,7 @@ def main() -> None:
             for label in labels:
                 for kind in _running_order(kinds, round_index):
                     if (
-                        (measure in TIMED and kind in TIMERLESS)
-                        or (measure in FLOORLESS and kind == "floor")
-                        or (measure in EVENTLESS and kind == "events")
+                        measure in FLOORLESS and kind == "floor"
                     ):
                         continue
                     seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)

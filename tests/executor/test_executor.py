@@ -398,6 +398,59 @@ def test_async_callback_awaits_a_service_call_without_busy_waiting(
     assert float(replies[1].split("=")[1]) < 0.15, replies
 
 
+def test_a_responses_done_callbacks_run_on_the_loop_in_order_and_an_error_is_logged(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A service response's done-callbacks skip the task machinery (one
+    post each, see ``_tasks.DoneCallbacks``); they still run on the loop's
+    thread, in the order added, and one that raises is logged and stops
+    nothing: the next callback runs, the next call is answered."""
+    server_node, client_node = make_node("done_server"), make_node("done_client")
+
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success = True
+        return response
+
+    server_node.create_service(Trigger, "done_order", answer)
+    client: Client[Any, Any] = client_node.create_client(Trigger, "done_order")
+    executor.add_node(server_node)
+    executor.add_node(client_node)
+    thread = spin_in_thread(executor)
+    seen: list[tuple[str, int]] = []
+    finished = threading.Event()
+
+    def record(name: str) -> Callable[[RclFuture[Any]], None]:
+        def done(_: RclFuture[Any]) -> None:
+            seen.append((name, threading.get_ident()))
+            if name == "last":
+                finished.set()
+
+        return done
+
+    def fails(_: RclFuture[Any]) -> None:
+        raise RuntimeError("told to fail")
+
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        with caplog.at_level(logging.ERROR, logger="container.executor._tasks"):
+            future = client.call_async(Trigger.Request())
+            for callback in (record("first"), fails, record("last")):
+                future.add_done_callback(callback)
+            assert finished.wait(10.0), seen
+            again = client.call_async(Trigger.Request())
+            answered = threading.Event()
+            again.add_done_callback(lambda _: answered.set())
+            assert answered.wait(10.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    assert [name for name, _ in seen] == ["first", "last"]
+    assert {ident for _, ident in seen} == {thread.ident}
+    assert again.result().success
+    assert [record.message for record in caplog.records] == ["a done-callback of a service response raised"]
+    assert "told to fail" in caplog.text
+
+
 @pytest.mark.parametrize("how", ["asyncio.create_task", "asyncio.wait_for"])
 def test_an_asyncio_task_awaits_a_service_call_without_busy_waiting(
     executor: AsyncioExecutor, make_node: Callable[[str], Node], how: str

@@ -111,6 +111,7 @@ Py_ssize_t notifier_take_reported(
 
 /* -- watcher.c --------------------------------------------------------------- */
 extern PyTypeObject FdWatcherType;
+extern PyTypeObject HandoffType;
 
 /* -- waitset.c --------------------------------------------------------------- */
 extern PyTypeObject WaitSetType;

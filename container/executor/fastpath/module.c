@@ -134,7 +134,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     {"Notifier", &NotifierType}, {"Lock", &LockType}, {"Taker", &TakerType}, {"WaitSet", &WaitSetType},
     {"Express", &ExpressType}, {"Token", &TokenType}, {"Work", &WorkType}, {"Runner", &RunnerType},
     {"KeepLast", &KeepLastType}, {"Slots", &SlotsType}, {"Route", &RouteType}, {"Routes", &RoutesType},
-    {"FdWatcher", &FdWatcherType},
+    {"FdWatcher", &FdWatcherType}, {"Handoff", &HandoffType},
   };
   size_t i;
   PyObject * m;

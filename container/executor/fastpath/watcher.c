@@ -145,6 +145,16 @@ static PyObject * FdWatcher_take(FdWatcherObject * self, PyObject * Py_UNUSED(ig
   return PyBool_FromLong(atomic_exchange(&self->ready, 0));
 }
 
+static PyObject * FdWatcher_pending(FdWatcherObject * self, PyObject * Py_UNUSED(ignored))
+{
+  /* Keeps the GIL: selectors' own zero-timeout select lets it go, and
+   * each such release restarts a waiting thread's wait for a forced switch
+   * (see handoff.c): a busy loop calling it every iteration starved them. */
+  struct pollfd fd = {self->epfd, POLLIN, 0};
+  int n = poll(&fd, 1, 0);
+  return PyBool_FromLong(n != 0); /* an error too: let the selector tell */
+}
+
 static PyObject * FdWatcher_close(FdWatcherObject * self, PyObject * Py_UNUSED(ignored))
 {
   stop(self);
@@ -182,6 +192,8 @@ static PyMethodDef FdWatcher_methods[] = {
    "arm(): about to sleep in rcl; trigger the guard once the epoll descriptor is readable."},
   {"take", (PyCFunction)FdWatcher_take, METH_NOARGS,
    "take() -> bool: whether it fired since the last take (and forget that it did)."},
+  {"pending", (PyCFunction)FdWatcher_pending, METH_NOARGS,
+   "pending() -> bool: whether the epoll descriptor is readable now, without letting the GIL go."},
   {"close", (PyCFunction)FdWatcher_close, METH_NOARGS,
    "close(): stop and join the thread; the guard is never triggered after this returns."},
   {NULL, NULL, 0, NULL},

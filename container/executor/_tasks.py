@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import inspect
 import logging
+import weakref
 from collections.abc import Callable, Generator
 from typing import TYPE_CHECKING, Any
 
@@ -167,17 +168,26 @@ class DoneCallbacks:
         self._post = post
         self._on_loop_thread = on_loop_thread
         self._gate = gate
+        #: Whether a function is a coroutine function, by the function (a
+        #: bound method's ``__func__``): ``inspect`` asks in several calls.
+        self._coroutine: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
 
     def create_task(self, callback: Callable[..., Any], *args: Any, **kwargs: Any) -> RclFuture[Any] | None:
-        if (
-            kwargs
-            or self._gate.permits is not None
-            or not self._on_loop_thread()
-            or inspect.iscoroutinefunction(callback)
-        ):
+        if kwargs or self._gate.permits is not None or not self._on_loop_thread() or self._is_coroutine(callback):
             return self._executor.create_task(callback, *args, **kwargs)
         self._post(_run_done_callback, callback, args)
         return None
+
+    def _is_coroutine(self, callback: Callable[..., Any]) -> bool:
+        function = getattr(callback, "__func__", callback)
+        try:
+            return self._coroutine[function]
+        except (KeyError, TypeError):  # not seen yet; or not weakly referable
+            pass
+        found = inspect.iscoroutinefunction(callback)
+        with contextlib.suppress(TypeError):
+            self._coroutine[function] = found
+        return found
 
 
 def _run_done_callback(callback: Callable[..., Any], args: tuple[Any, ...]) -> None:

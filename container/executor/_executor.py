@@ -27,6 +27,7 @@ import functools
 import inspect
 import sys
 import threading
+import time
 import types
 import weakref
 from collections.abc import Callable, Coroutine, Generator
@@ -288,10 +289,14 @@ class AsyncioExecutor(Executor):
         # Listening before the gate opens: what was held since the last spin
         # (a ready timer, a task) starts as it opens and may complete before
         # the loop first runs the coroutine that waits for it.
+        # rclpy's timeout runs from the call: so does this one, not from
+        # once the loop runs (setting up a spin takes a few hundred us here,
+        # which a spin_once(timeout_sec=period / 2) beside a 1 ms timer cannot spare).
+        deadline = None if timeout_sec is None or timeout_sec < 0 else time.monotonic() + timeout_sec
         completed = self._loop.create_future()
         self._completion_waiters.append(completed)
         try:
-            self._run_owned(self._until_a_callback_completes(completed, timeout_sec), permits=1)
+            self._run_owned(self._until_a_callback_completes(completed, deadline), permits=1)
         finally:
             with contextlib.suppress(ValueError):
                 self._completion_waiters.remove(completed)
@@ -720,6 +725,7 @@ class AsyncioExecutor(Executor):
         return bool(self._inbox) or self._dispatcher.ros_turn_due()
 
     def _wait(self, timeout_ns: int) -> int:
+        self._rcl_turn_owed = False  # any wait is the look in rcl a spin_once owes
         inbox = self._inbox
         inbox.draining(threading.get_ident())
         try:
@@ -742,7 +748,7 @@ class AsyncioExecutor(Executor):
     async def _until_stopped(self) -> None:
         await self._stopped_future()
 
-    async def _until_a_callback_completes(self, completed: asyncio.Future[None], timeout_sec: float | None) -> None:
+    async def _until_a_callback_completes(self, completed: asyncio.Future[None], deadline: float | None) -> None:
         # rclpy resumes every pending task on each spin: a coroutine parked on
         # a bare yield (an rclpy future) looks again now, not at the next poll.
         self._notify_progress()
@@ -750,7 +756,7 @@ class AsyncioExecutor(Executor):
         # runs in this call, also with timeout_sec=0: the loop's first
         # select looks in rcl however busy asyncio is.
         self._rcl_turn_owed = True
-        await self._bounded(completed, timeout_sec)
+        await self._bounded(completed, None if deadline is None else max(0.0, deadline - time.monotonic()))
         while not completed.done() and self._dispatcher.gate.permits == 0 and not self._stop_requested():
             # A callback started within the timeout (a plain one runs on its
             # group's thread): as in rclpy, where the timeout bounds the wait

@@ -516,20 +516,23 @@ def _report(results: Results, kinds: list[str]) -> None:
                 mine = _median(calls[kind])
                 listed = " ".join(f"{_x(_ratio(mine, peer)):>9}" for peer in peers)
                 print(f"{KINDS[kind]:38} {mine:13.0f} {listed}")
-    print("\nround by round (same round's peer):")
-    for peer in ("single", "multi", "events"):
-        peers = rt.get(peer, [])
-        if not peers:
+    for title, values in (("round trips", rt), ("service calls", calls)):
+        if not any(values.values()):
             continue
-        for kind in kinds:
-            ratios = [_ratio(mine, other) for mine, other in zip(rt[kind], peers, strict=False)]
-            if kind == peer or not ratios:
+        print(f"\n{title}, round by round (same round's peer):")
+        for peer in ("single", "multi", "events"):
+            peers = values.get(peer, [])
+            if not peers:
                 continue
-            listed = " ".join(_x(r) for r in ratios)
-            print(
-                f"{KINDS[kind]:38} vs {peer:6} {listed}"
-                f"   (median {_x(_median(ratios))}, min {_x(min(ratios))})"
-            )
+            for kind in kinds:
+                ratios = [_ratio(mine, other) for mine, other in zip(values[kind], peers, strict=False)]
+                if kind == peer or not ratios:
+                    continue
+                listed = " ".join(_x(r) for r in ratios)
+                print(
+                    f"{KINDS[kind]:38} vs {peer:6} {listed}"
+                    f"   (median {_x(_median(ratios))}, min {_x(min(ratios))})"
+                )
 
 
 def _compare(results: dict[str, Results], kinds: list[str]) -> None:

@@ -269,11 +269,14 @@ class Lane:
             if item is None:
                 return
             work, handed = item
-            if handed and self._handoff is not None:
-                self._handoff.started()
+            handoff = self._handoff if handed else None
+            if handoff is not None:
+                handoff.started()
             self._run_plain(work)
             if self._carries:
                 self._carry_on(self._hooks.carry)
+            if handoff is not None:
+                handoff.finished()
             with self._lock:
                 if self._closed:
                     return

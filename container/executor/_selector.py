@@ -32,6 +32,10 @@ WaitAndDispatch = Callable[[int], object]
 #: 50-200 us here; one that takes longer (a thread starting, a starved
 #: core) is left to CPython's forced switch.
 HANDOFF_WAIT_NS = 1_000_000
+#: How long it then stays awake (spinning) for them to finish: a short
+#: callback's worker lets the GIL go within that, and the loop's core never
+#: went idle (waking an idle core of a virtual machine costs 50-200 us).
+HANDOFF_SPIN_NS = 200_000
 
 
 class RclSelector(selectors.BaseSelector):
@@ -120,7 +124,7 @@ class RclSelector(selectors.BaseSelector):
             if due is None or due():
                 wait(0)
             if self._handoff is not None:
-                self._handoff.give(HANDOFF_WAIT_NS)
+                self._handoff.give(HANDOFF_WAIT_NS, HANDOFF_SPIN_NS)
             return ready or self._fds_if_woken()
         watcher.arm()
         idle = self._idle

@@ -249,7 +249,8 @@ class DoneCallbackRunner(Protocol):
 def adopt_future(future: Future[Any], executor: Executor | DoneCallbackRunner) -> None:
     """Make ``executor`` run ``future``'s done-callbacks, as rclpy's executors do
     (rclpy's future calls its ``create_task(callback, future)`` for each)."""
-    future._set_executor(executor)
+    # rclpy 9 annotates an Executor; its future only calls create_task on it.
+    future._set_executor(executor)  # type: ignore[arg-type, unused-ignore]
 
 
 def runs_plain_callback(function: Callable[..., Any], args: tuple[Any, ...]) -> bool:

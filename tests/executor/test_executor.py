@@ -446,7 +446,8 @@ def test_a_responses_done_callbacks_run_on_the_loop_in_order_and_an_error_is_log
         thread.join(5.0)
     assert [name for name, _ in seen] == ["first", "last"]
     assert {ident for _, ident in seen} == {thread.ident}
-    assert again.result().success
+    reply = again.result()
+    assert reply is not None and reply.success
     assert [record.message for record in caplog.records] == ["a done-callback of a service response raised"]
     assert "told to fail" in caplog.text
 

@@ -943,7 +943,7 @@ def test_a_plain_subscriber_that_blocks_beside_a_busy_publisher_delays_no_other_
         if len(ticks) > 30:
             enough.set()
 
-    c.create_timer(0.05, tick)
+    c.create_timer(0.05, tick)  # type: ignore[arg-type, unused-ignore]  # rclpy 9 annotates plain callbacks
     for made in (a, b, c):
         executor.add_node(made)
     _matched(publisher)

@@ -961,6 +961,52 @@ def test_a_plain_subscriber_that_blocks_beside_a_busy_publisher_delays_no_other_
     assert max(gaps) < 0.2, f"largest gap {max(gaps):.3f} s"  # 50 ms and a little; blocked: 300 ms
 
 
+def test_a_handoff_waits_for_the_workers_it_woke_and_no_others() -> None:
+    """``give`` waits (GIL let go) until the workers handed work since the
+    last give started, then stays awake until they finished, bounded; a
+    worker still running from before (a callback blocking in another group)
+    is not waited for. Each worker starts 50 ms late, as a woken thread
+    would be: after the give began."""
+    handoff = _fastpath.Handoff()
+    assert handoff.give(1_000_000_000, 1_000_000_000) is False  # nothing handed: at once
+
+    def worker(runs_s: float, *, until: threading.Event | None = None) -> threading.Thread:
+        def run() -> None:
+            time.sleep(0.05)
+            handoff.started()
+            if until is not None:
+                until.wait(10.0)
+            time.sleep(runs_s)
+            handoff.finished()
+
+        thread = threading.Thread(target=run)
+        thread.start()
+        return thread
+
+    handoff.handed()
+    started = time.monotonic()
+    slow = worker(0.05)
+    assert handoff.give(1_000_000_000, 2_000_000_000) is True
+    waited = time.monotonic() - started
+    slow.join()
+    assert 0.09 < waited < 1.0, waited  # until it finished, not the 2 s bound
+
+    stuck = threading.Event()
+    handoff.handed()
+    blocker = worker(0.0, until=stuck)
+    assert handoff.give(1_000_000_000, 0) is True  # started; no spin asked
+    handoff.handed()
+    started = time.monotonic()
+    quick = worker(0.0)
+    assert handoff.give(1_000_000_000, 2_000_000_000) is True
+    waited = time.monotonic() - started
+    quick.join()
+    stuck.set()
+    blocker.join()
+    assert waited < 1.0, waited  # the blocker, running since before, was not waited for
+    assert handoff.outstanding == 0 and handoff.given == 3
+
+
 def test_the_compiled_lock_behaves_as_threading_lock() -> None:
     """The take lock and the lanes' locks: what Python code does with them, from two threads."""
     lock = _fastpath.Lock()

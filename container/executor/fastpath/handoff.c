@@ -102,9 +102,13 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
   long long spin_ns = 0;
   struct timespec deadline;
   int waited = 0;
+  long before;
   if (!PyArg_ParseTuple(args, "L|L:give", &timeout_ns, &spin_ns)) {
     return NULL;
   }
+  /* Workers running before this give's own start: not waited for (one
+   * blocking for seconds in another group would cost every give the spin). */
+  before = atomic_load(&self->running);
   pthread_mutex_lock(&self->mutex);
   if (self->outstanding == 0) {
     pthread_mutex_unlock(&self->mutex);
@@ -139,7 +143,7 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
      * comes back through a condition variable too). One that runs longer
      * is left to the GIL as before. */
     long long until = now_ns() + spin_ns;
-    while (atomic_load(&self->running) > 0 && now_ns() < until) {
+    while (atomic_load(&self->running) > before && now_ns() < until) {
       sched_yield();
     }
   }

@@ -272,11 +272,13 @@ class Lane:
             handoff = self._handoff if handed else None
             if handoff is not None:
                 handoff.started()
-            self._run_plain(work)
-            if self._carries:
-                self._carry_on(self._hooks.carry)
-            if handoff is not None:
-                handoff.finished()
+            try:
+                self._run_plain(work)
+                if self._carries:
+                    self._carry_on(self._hooks.carry)
+            finally:
+                if handoff is not None:
+                    handoff.finished()
             with self._lock:
                 if self._closed:
                     return

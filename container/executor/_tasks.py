@@ -193,6 +193,8 @@ class DoneCallbacks:
 def _run_done_callback(callback: Callable[..., Any], args: tuple[Any, ...]) -> None:
     try:
         callback(*args)
-    except Exception:
+    except KeyboardInterrupt:
+        raise
+    except BaseException:  # logged, never fatal: sys.exit() included, as for any callback
         _log.exception("a done-callback of a service response raised")
 

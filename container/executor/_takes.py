@@ -121,16 +121,17 @@ def take_request(dispatcher: Dispatcher, entry: Entry) -> None:
     otherwise lose the oldest before their turn came.
     """
     srv = entry.entity
+    serve = _serve_async if entry.is_async else _serve
+    callback, request_type, response_type = srv.callback, srv.srv_type.Request, srv.srv_type.Response
     while True:
         try:
             with srv.handle:
-                request, header = srv.handle.service_take_request(srv.srv_type.Request)
+                request, header = srv.handle.service_take_request(request_type)
         except InvalidHandle:
             return
         if header is None:
             return
-        serve = _serve_async if entry.is_async else _serve
-        dispatcher.submit(entry, serve, (srv, srv.callback, srv.srv_type.Response, request, header))
+        dispatcher.submit(entry, serve, (srv, callback, response_type, request, header))
 
 def take_waitable(dispatcher: Dispatcher, entry: Entry) -> None:
     waitable = entry.entity

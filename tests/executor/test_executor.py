@@ -699,6 +699,31 @@ def test_spin_once_runs_one_callback(
     assert calls
 
 
+def test_spin_once_looks_in_rcl_no_more_after_its_timeout(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With nothing ready, a ``spin_once(timeout_sec=...)``'s last look in rcl
+    is the wait its timeout ends, as in rclpy. The look a ``spin_once``
+    owes was still owed after that wait (only a poll paid it), so one more
+    rcl poll ran after the timeout: a timer due just then fired in a call
+    that had already timed out (rclpy's ``test_zero_callback[0.001]``)."""
+    node = make_node("once_timeout")
+    executor.add_node(node)
+    executor.spin_once(timeout_sec=0)
+    hot = executor._dispatcher._hot
+    waits: list[int] = []
+    wait_and_dispatch = hot.wait_and_dispatch
+
+    def recorded(timeout_ns: int) -> int:
+        waits.append(timeout_ns)
+        return wait_and_dispatch(timeout_ns)
+
+    monkeypatch.setattr(hot, "wait_and_dispatch", recorded)
+    executor.spin_once(timeout_sec=0.05)
+    assert waits and waits[-1] > 0, waits  # before: [..., 50 ms, 0]
+    assert max(waits) <= 50_000_000, waits
+
+
 def test_rclpy_spin_helpers_accept_it(context: Context, make_node: Callable[[str], Node]) -> None:
     executor = AsyncioExecutor(context=context)
     node = make_node("drop_in")

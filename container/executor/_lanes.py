@@ -64,6 +64,10 @@ __all__: list[str] = []
 
 #: Seconds a lane's worker thread waits for more work before it exits.
 WORKER_IDLE_S = 3.0
+#: How long a worker whose work comes quickly stays awake for more (see
+#: ``Handoff.linger``): it lingers only while its last wait for work was
+#: shorter than this.
+WORKER_LINGER_NS = 250_000
 
 
 class _Carrier(threading.local):
@@ -259,13 +263,19 @@ class Lane:
         if self._carries:
             mark_carrier()  # its publishes to plain callbacks need not wake the loop
         inbox = self._inbox
+        lingering = self._handoff
+        quick = False  # the last wait for work was short: linger before the next
         while True:
+            if quick and lingering is not None and inbox.empty():
+                lingering.linger(WORKER_LINGER_NS)
+            waited_from = time.monotonic_ns()
             try:
                 item = inbox.get(timeout=WORKER_IDLE_S)
             except queue.Empty:
                 if self._retire_idle_thread():
                     return
                 continue
+            quick = time.monotonic_ns() - waited_from < WORKER_LINGER_NS
             if item is None:
                 return
             work, handed = item

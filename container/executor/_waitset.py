@@ -302,6 +302,8 @@ class EntityWaitSet:
                 services=[handle.pointer for handle in handles["service"]],
                 # Told how long each wait may last: a carrier's publish need not wake it.
                 notifier=self._notifier if isinstance(self._notifier, _fastpath.Notifier) else None,
+                # Stays awake, before blocking, for the answer of plain work it handed over.
+                handoff=dispatcher.handoff,
             )
         else:
             table.wait_set = WaitSet(

@@ -1007,6 +1007,63 @@ def test_a_handoff_waits_for_the_workers_it_woke_and_no_others() -> None:
     assert handoff.outstanding == 0 and handoff.given == 3
 
 
+def test_a_lingering_worker_stays_awake_until_work_is_handed_over_or_its_time_is_up() -> None:
+    """``linger`` returns True once the loop hands work over (and, holding
+    the GIL, 50 us later at most); False when the time ran out first."""
+    handoff = _fastpath.Handoff()
+    started = time.monotonic()
+    assert handoff.linger(20_000_000) is False  # 20 ms, nothing handed
+    assert 0.019 < time.monotonic() - started < 1.0
+
+    result: list[bool] = []
+    lingering = threading.Event()
+
+    def worker() -> None:
+        lingering.set()
+        result.append(handoff.linger(5_000_000_000))
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    assert lingering.wait(TIMEOUT)
+    time.sleep(0.05)  # the worker is inside linger (it lets the GIL go)
+    handed_at = time.monotonic()
+    handoff.handed()
+    thread.join(TIMEOUT)
+    assert result == [True]
+    assert time.monotonic() - handed_at < 1.0  # not the 5 s bound
+
+
+def test_plain_service_calls_find_the_loop_and_the_worker_awake(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """A plain service answering calls one after another: the loop stays
+    awake for the answer of the worker it handed each request to, instead of
+    blocking in rcl and having its idle core woken (on this VM that wake-up
+    cost more than the call). Counted by the hand-over's ``lingered``."""
+    from std_srvs.srv import Trigger
+
+    server, caller = host(Node, "linger_server"), host(Node, "linger_caller")
+    server.create_service(Trigger, "linger", lambda request, response: response)
+    client = caller.create_client(Trigger, "linger")
+    calls = 300
+    answered = threading.Event()
+    count = [0]
+
+    def next_call(_: Any = None) -> None:
+        count[0] += 1
+        if count[0] > calls:
+            answered.set()
+        else:
+            client.call_async(Trigger.Request()).add_done_callback(next_call)
+
+    with _spinning(executor):
+        assert client.wait_for_service(timeout_sec=TIMEOUT)
+        executor.loop.call_soon_threadsafe(next_call)
+        assert answered.wait(30.0), count
+        lingered = executor._dispatcher.handoff.lingered
+    assert lingered > 0, lingered
+
+
 def test_the_compiled_lock_behaves_as_threading_lock() -> None:
     """The take lock and the lanes' locks: what Python code does with them, from two threads."""
     lock = _fastpath.Lock()

@@ -112,6 +112,16 @@ Py_ssize_t notifier_take_reported(
 /* -- watcher.c --------------------------------------------------------------- */
 extern PyTypeObject FdWatcherType;
 extern PyTypeObject HandoffType;
+typedef struct HandoffObject HandoffObject;
+/* On the loop thread, without the GIL: whether workers it woke still run
+ * (and lingering has not been failing lately: see handoff.c). */
+int handoff_may_linger(HandoffObject * self);
+/* Then, before blocking for up to timeout_ns (negative: no limit): stay
+ * awake while they run, until an answer woke the armed notifier (armed
+ * went to 0); 1 if one did. */
+int handoff_loop_linger(HandoffObject * self, const atomic_int * armed, long long timeout_ns);
+/* Whether the loop thread is in a wait without the GIL (a lingering worker takes it then). */
+void handoff_loop_free(HandoffObject * self, int free);
 
 /* -- waitset.c --------------------------------------------------------------- */
 extern PyTypeObject WaitSetType;

@@ -11,6 +11,7 @@ typedef struct {
   void ** entities[WS_KINDS];
   size_t counts[WS_KINDS];
   NotifierObject * notifier; /* told when each wait ends at the latest, or NULL */
+  HandoffObject * handoff;   /* the loop's hand-overs to workers (with a notifier only), or NULL */
 } WaitSetObject;
 
 static int addresses(PyObject * sequence, void *** out, size_t * count)
@@ -49,9 +50,10 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
 {
   static char * keywords[] = {
     "context", "subscriptions", "guard_conditions", "timers", "clients", "services", "events", "notifier",
-    NULL};
+    "handoff", NULL};
   unsigned long long context;
   PyObject * notifier = Py_None;
+  PyObject * handoff = Py_None;
   PyObject * given[WS_KINDS] = {NULL, NULL, NULL, NULL, NULL, NULL};
   PyObject * empty;
   rcl_ret_t ret;
@@ -61,13 +63,17 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
     return -1;
   }
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwargs, "K|$OOOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
-      &given[WS_TIMERS], &given[WS_CLIENTS], &given[WS_SERVICES], &given[WS_EVENTS], &notifier))
+      args, kwargs, "K|$OOOOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
+      &given[WS_TIMERS], &given[WS_CLIENTS], &given[WS_SERVICES], &given[WS_EVENTS], &notifier, &handoff))
   {
     return -1;
   }
   if (notifier != Py_None && !PyObject_TypeCheck(notifier, &NotifierType)) {
     PyErr_SetString(PyExc_TypeError, "notifier must be a Notifier or None");
+    return -1;
+  }
+  if (handoff != Py_None && !PyObject_TypeCheck(handoff, &HandoffType)) {
+    PyErr_SetString(PyExc_TypeError, "handoff must be a Handoff or None");
     return -1;
   }
   if (context == 0) {
@@ -97,6 +103,10 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
   if (notifier != Py_None) {
     Py_INCREF(notifier);
     self->notifier = (NotifierObject *)notifier;
+    if (handoff != Py_None) {
+      Py_INCREF(handoff);
+      self->handoff = (HandoffObject *)handoff;
+    }
   }
   self->initialised = 1;
   return 0;
@@ -112,6 +122,7 @@ static void WaitSet_dealloc(WaitSetObject * self)
     free(self->entities[kind]);
   }
   Py_XDECREF(self->notifier);
+  Py_XDECREF(self->handoff);
   Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -246,13 +257,40 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
   } else if (ret == RCL_RET_OK) {
     /* Only a carrier's publish reads it (on_event). */
     NotifierObject * told = atomic_load(&carriers_exist) ? self->notifier : NULL;
+    HandoffObject * handoff = self->handoff;
     Py_BEGIN_ALLOW_THREADS
+    /* Plain work was handed to workers and runs: its answer (a response, a
+     * message) usually comes within microseconds, and waking this thread's
+     * idle core for it costs more. So the thread stays awake for it first,
+     * no later than the wait would end (its timeout, its soonest timer): no
+     * timer fires later for it. An answer that comes disarmed the notifier
+     * and triggered its guard: rcl_wait then returns at once. */
+    int linger = handoff != NULL && timeout != 0 && handoff_may_linger(handoff);
+    long long by = told != NULL || linger ? wake_deadline(self, timeout) : LLONG_MAX;
     if (told != NULL) {
-      atomic_store(&told->wake_by, wake_deadline(self, timeout));
+      /* Set before lingering: a carrier's publish wakes no one meanwhile either. */
+      atomic_store(&told->wake_by, by);
+    }
+    if (handoff != NULL) {
+      handoff_loop_free(handoff, 1);
+    }
+    if (linger) {
+      long long from = monotonic_ns();
+      long long left = by == LLONG_MAX ? -1 : by - from;
+      if (left != 0 && (left > 0 || by == LLONG_MAX)) {
+        handoff_loop_linger(handoff, &self->notifier->armed, left);
+        if (timeout > 0) {
+          long long spent = monotonic_ns() - from;
+          timeout = timeout > spent ? timeout - spent : 0;
+        }
+      }
     }
     ret = rcl_wait(ws, (int64_t)timeout);
     if (told != NULL) {
       atomic_store(&told->wake_by, LLONG_MAX);
+    }
+    if (handoff != NULL) {
+      handoff_loop_free(handoff, 0);
     }
     Py_END_ALLOW_THREADS
   }

@@ -113,17 +113,20 @@ def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.D
         future.set_result(response)
         dispatcher.response_arrived()
 
-def take_request(dispatcher: Dispatcher, entry: Entry) -> None:
-    """Take every request waiting, each to be answered.
+def take_request(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.DRAIN) -> None:
+    """Take ``count`` requests (what the new-request callbacks reported), or
+    every request waiting (a wait found the service ready; a fresh watch),
+    each to be answered.
 
     All at once, not one per wait: service requests sit in a keep-last
     history (depth 10 by default), and twenty peers asking at once would
-    otherwise lose the oldest before their turn came.
+    otherwise lose the oldest before their turn came. With a count, no
+    take comes back empty to say so: 1.5 us of a 40 us round trip.
     """
     srv = entry.entity
     serve = _serve_async if entry.is_async else _serve
     callback, request_type, response_type = srv.callback, srv.srv_type.Request, srv.srv_type.Response
-    while True:
+    for _ in itertools.repeat(None) if count >= _fastpath.DRAIN else range(count):
         try:
             with srv.handle:
                 request, header = srv.handle.service_take_request(request_type)

@@ -645,7 +645,7 @@ class EntityWaitSet:
             if (subscription := subscriptions.get(pointer)) is not None:
                 take(subscription, count)
             elif (service := by_pointer["service"].get(pointer)) is not None:
-                take_request(dispatcher, service)
+                take_request(dispatcher, service, count)
             elif (client := by_pointer["client"].get(pointer)) is not None:
                 take_response(dispatcher, client, count)
             elif (event := by_pointer["event"].get(pointer)) is not None:

@@ -983,24 +983,24 @@ def test_a_handoff_waits_for_the_workers_it_woke_and_no_others() -> None:
         thread.start()
         return thread
 
-    handoff.handed()
-    started = time.monotonic()
-    slow = worker(0.05)
-    assert handoff.give(1_000_000_000, 2_000_000_000) is True
-    waited = time.monotonic() - started
-    slow.join()
+    def given_to(runs_s: float) -> float:
+        """Hand work to a new worker that runs ``runs_s``: how long the give (2 s spin bound) took."""
+        handoff.handed()
+        started = time.monotonic()
+        thread = worker(runs_s)
+        assert handoff.give(1_000_000_000, 2_000_000_000) is True
+        waited = time.monotonic() - started
+        thread.join()
+        return waited
+
+    waited = given_to(0.05)
     assert 0.09 < waited < 1.0, waited  # until it finished, not the 2 s bound
 
     stuck = threading.Event()
     handoff.handed()
     blocker = worker(0.0, until=stuck)
     assert handoff.give(1_000_000_000, 0) is True  # started; no spin asked
-    handoff.handed()
-    started = time.monotonic()
-    quick = worker(0.0)
-    assert handoff.give(1_000_000_000, 2_000_000_000) is True
-    waited = time.monotonic() - started
-    quick.join()
+    waited = given_to(0.0)
     stuck.set()
     blocker.join()
     assert waited < 1.0, waited  # the blocker, running since before, was not waited for
@@ -1016,19 +1016,13 @@ def test_a_lingering_worker_stays_awake_until_work_is_handed_over_or_its_time_is
     assert 0.019 < time.monotonic() - started < 1.0
 
     result: list[bool] = []
-    lingering = threading.Event()
-
-    def worker() -> None:
-        lingering.set()
-        result.append(handoff.linger(5_000_000_000))
-
-    thread = threading.Thread(target=worker)
+    thread = threading.Thread(target=lambda: result.append(handoff.linger(5_000_000_000)))
     thread.start()
-    assert lingering.wait(TIMEOUT)
-    time.sleep(0.05)  # the worker is inside linger (it lets the GIL go)
     handed_at = time.monotonic()
-    handoff.handed()
-    thread.join(TIMEOUT)
+    while thread.is_alive() and time.monotonic() - handed_at < TIMEOUT:
+        # Again until seen: a hand-over made before the worker is inside linger is not one it waits for.
+        handoff.handed()
+        thread.join(0.01)
     assert result == [True]
     assert time.monotonic() - handed_at < 1.0  # not the 5 s bound
 

@@ -104,13 +104,6 @@ static PyObject * Handoff_finished(HandoffObject * self, PyObject * Py_UNUSED(ig
   Py_RETURN_NONE;
 }
 
-static long long now_ns(void)
-{
-  struct timespec now;
-  clock_gettime(CLOCK_MONOTONIC, &now);
-  return (long long)now.tv_sec * 1000000000LL + now.tv_nsec;
-}
-
 static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
 {
   long long timeout_ns;
@@ -158,8 +151,8 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
      * waking an idle core costs 50-200 us, twice per hand-over (the GIL
      * comes back through a condition variable too). One that runs longer
      * is left to the GIL as before. */
-    long long until = now_ns() + spin_ns;
-    while (atomic_load(&self->running) > before && now_ns() < until) {
+    long long until = monotonic_ns() + spin_ns;
+    while (atomic_load(&self->running) > before && monotonic_ns() < until) {
       sched_yield();
     }
   }
@@ -193,7 +186,7 @@ static PyObject * Handoff_linger(HandoffObject * self, PyObject * arg)
   }
   seen = atomic_load(&self->handed_total);
   Py_BEGIN_ALLOW_THREADS
-  long long now = now_ns();
+  long long now = monotonic_ns();
   long long until = now + spin_ns;
   long long handed_at = 0;
   while (now < until) {
@@ -205,7 +198,7 @@ static PyObject * Handoff_linger(HandoffObject * self, PyObject * arg)
       break;
     }
     sched_yield();
-    now = now_ns();
+    now = monotonic_ns();
   }
   Py_END_ALLOW_THREADS
   return PyBool_FromLong(handed);
@@ -234,6 +227,15 @@ int handoff_may_linger(HandoffObject * self)
   return 1;
 }
 
+/* A linger of the loop's saw its answer: lingering pays again. */
+static int answered(HandoffObject * self)
+{
+  self->misses = 0;
+  self->backoff = LOOP_SKIP;
+  self->lingered++;
+  return 1;
+}
+
 int handoff_loop_linger(HandoffObject * self, const atomic_int * armed, long long timeout_ns)
 {
   long long now, until, limit = LOOP_LINGER_NS;
@@ -241,7 +243,7 @@ int handoff_loop_linger(HandoffObject * self, const atomic_int * armed, long lon
     limit = timeout_ns;
   }
   long long answered_at = 0;
-  now = now_ns();
+  now = monotonic_ns();
   until = now + limit;
   while (now < until) {
     if (!atomic_load(armed)) {
@@ -252,22 +254,16 @@ int handoff_loop_linger(HandoffObject * self, const atomic_int * armed, long lon
         answered_at = now;
       }
       if (atomic_load(&self->inflight) <= 0 || now - answered_at >= LINGER_GIL_GRACE_NS) {
-        self->misses = 0;
-        self->backoff = LOOP_SKIP;
-        self->lingered++;
-        return 1;
+        return answered(self);
       }
     } else if (atomic_load(&self->inflight) <= 0) {
       break; /* done without an answer for this thread */
     }
     sched_yield();
-    now = now_ns();
+    now = monotonic_ns();
   }
   if (!atomic_load(armed)) {
-    self->misses = 0;
-    self->backoff = LOOP_SKIP;
-    self->lingered++;
-    return 1;
+    return answered(self);
   }
   /* No answer: the work was a plain timer's, or runs long. Staying awake
    * was for nothing; after a few such, block at once for a while. */

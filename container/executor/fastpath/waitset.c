@@ -276,9 +276,8 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
     }
     if (linger) {
       long long from = monotonic_ns();
-      long long left = by == LLONG_MAX ? -1 : by - from;
-      if (left != 0 && (left > 0 || by == LLONG_MAX)) {
-        handoff_loop_linger(handoff, &self->notifier->armed, left);
+      if (by == LLONG_MAX || by > from) { /* not when a timer is due already */
+        handoff_loop_linger(handoff, &self->notifier->armed, by == LLONG_MAX ? -1 : by - from);
         if (timeout > 0) {
           long long spent = monotonic_ns() - from;
           timeout = timeout > spent ? timeout - spent : 0;

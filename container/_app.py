@@ -19,7 +19,8 @@ from rclpy.exceptions import ParameterException
 from ._config import ContainerConfig
 from ._container import ComponentManager, LoadedNode, entry_label, requests_from_specs
 from ._diagnostics import LoopDiagnostics
-from ._errors import ContainerError
+from ._errors import ConfigError, ContainerError
+from ._load import LoadReporter
 from ._params import node_parameters
 from ._registry import PluginRegistry
 from ._services import ContainerServices
@@ -50,6 +51,8 @@ class ContainerApp:
     manager: ComponentManager
     services: ContainerServices
     diagnostics: LoopDiagnostics
+    #: The per-node load on ``~/load`` (``None``: the executor keeps no accounts).
+    load: LoadReporter | None
     stopping: asyncio.Event = field(default_factory=asyncio.Event)
 
     @classmethod
@@ -87,10 +90,17 @@ class ContainerApp:
             use_intra_process_comms=config.use_intra_process_comms,
         )
         services = ContainerServices(manager)
-        diagnostics = LoopDiagnostics(manager, executor)
+        accounting = executor.accounting
+        try:
+            load = LoadReporter(manager, accounting) if accounting is not None else None
+        except (ConfigError, ParameterException):
+            services.destroy()
+            manager.destroy_node()
+            raise
+        diagnostics = LoopDiagnostics(manager, executor, load=load)
         # The registry has logged each plugin it skipped, once.
         executor.add_node(manager)
-        return cls(config, context, registry, executor, manager, services, diagnostics)
+        return cls(config, context, registry, executor, manager, services, diagnostics, load)
 
     async def serve(
         self,
@@ -181,6 +191,8 @@ class ContainerApp:
         """Destroy the container node; the executor is its owner's to shut down."""
         self.services.destroy()
         self.diagnostics.close()
+        if self.load is not None:
+            self.load.close()
         self.executor.remove_node(self.manager)
         self.manager.destroy_node()
 
@@ -205,8 +217,8 @@ def run_container(
     async def main(session: Session) -> int:
         try:
             app = ContainerApp.create(config, context=session.context, executor=session.executor)
-        except ParameterException as exc:
-            # A container parameter of the wrong type (--params-file, -p, the file).
+        except (ParameterException, ConfigError) as exc:
+            # A container parameter of the wrong type or value (--params-file, -p, the file).
             print(f"container run: {' '.join(str(exc).split())}", file=sys.stderr)
             return EXIT_USAGE
         exits = config.on_failure == "exit" if exit_on_failure is None else exit_on_failure

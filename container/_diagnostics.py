@@ -11,6 +11,10 @@ only stalls in a plugin's work (the container's start-up on a loaded
 machine is no plugin's fault), but a loop stuck in our own code still
 holds every ``async def`` callback back, which is what this status says.
 ``whose`` tells the two apart.
+
+With the per-node load (:class:`~container._load.LoadReporter`), the same
+report carries one status per node of its latest window: ERROR while one of
+its callbacks is stuck, WARN when one was in that window.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.timer import Timer
 
+from ._load import LoadReporter
 from .executor import AsyncioExecutor
 
 __all__ = ["LoopDiagnostics"]
@@ -32,9 +37,10 @@ PERIOD = 1.0
 class LoopDiagnostics:
     """Publish the executor's loop health for ``node`` until :meth:`close`."""
 
-    def __init__(self, node: Node, executor: AsyncioExecutor) -> None:
+    def __init__(self, node: Node, executor: AsyncioExecutor, *, load: LoadReporter | None = None) -> None:
         self._node = node
         self._executor = executor
+        self._load = load
         self._publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._timer: Timer | None = node.create_timer(PERIOD, self._report)
 
@@ -66,7 +72,10 @@ class LoopDiagnostics:
         )
 
     def _report(self) -> None:
-        report = DiagnosticArray(status=[self.status()])
+        statuses = [self.status()]
+        if self._load is not None:
+            statuses += self._load.statuses()
+        report = DiagnosticArray(status=statuses)
         report.header.stamp = self._node.get_clock().now().to_msg()
         self._publisher.publish(report)
 

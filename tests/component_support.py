@@ -3,11 +3,12 @@
 This module is also the test plugin itself: ``install_test_plugin`` writes a
 distribution ``test-nodes`` whose entry point names this module, so a
 ``container run`` child process registers ``test_nodes::Exploding`` and
-``test_nodes::Busy`` exactly like an installed plugin's types.
+``test_nodes::Busy`` (and ``Burner``, ``Idle``) exactly like an installed plugin's types.
 """
 
 from __future__ import annotations
 
+import time
 import weakref
 from collections.abc import Sequence
 from pathlib import Path
@@ -79,11 +80,41 @@ class Busy(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
 
+def burn(seconds: float) -> None:
+    """Spend ``seconds`` of this thread's CPU time (not wall time: a preempted burn still burns that much)."""
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        pass
+
+
+class Burner(Node):
+    """A timer that burns a known amount of CPU: ``burn_ms`` of thread CPU time every ``period`` s."""
+
+    default_node_name = "burner"
+
+    def __init__(self, node_name: str = default_node_name, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self.burn_s = float(self.declare_parameter("burn_ms", 20.0).value) / 1e3
+        self.create_timer(float(self.declare_parameter("period", 0.1).value), lambda: burn(self.burn_s))
+
+
+class Idle(Node):
+    """A timer that does nothing, once a second."""
+
+    default_node_name = "idle"
+
+    def __init__(self, node_name: str = default_node_name, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self.create_timer(1.0, lambda: None)
+
+
 @hookimpl
 def register_node_types(register: RegisterNodeType) -> None:
     """Register the test node types."""
     register(Exploding)
     register(Busy)
+    register(Burner)
+    register(Idle)
 
 
 def install_test_plugin(

@@ -227,3 +227,16 @@ def test_invalid_ros_arguments_are_a_usage_error() -> None:
         assert result.stderr.startswith("container run: invalid ROS arguments: "), result.stderr
         assert message in result.stderr
         assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("value", ["0", "-1.5", "abc"])
+def test_a_load_period_that_is_not_a_positive_number_is_a_usage_error(value: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "container", "run", "--ros-args", "-p", f"load_period:={value}"],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith("container run: load_period must be a positive number of seconds, not "), (
+        result.stderr
+    )
+    assert "Traceback" not in result.stderr

@@ -19,7 +19,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
-from . import _component, _index, _lifecycle, _manager, _run
+from . import _component, _index, _lifecycle, _manager, _run, _top
 
 if TYPE_CHECKING:
     from .._compat import SubParsers
@@ -32,6 +32,7 @@ _COMMANDS: list[Callable[[SubParsers], None]] = [
     _component.add_parser,
     _lifecycle.add_parser,
     _manager.add_parser,
+    _top.add_parser,
     _index.add_parser,
 ]
 

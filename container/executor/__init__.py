@@ -10,6 +10,7 @@ package depends on rclpy and :mod:`container._compat` only, never on the
 rest of the container.
 """
 
+from ._accounting import Accounting, CallbackLoad, ContainerLoad, GroupLoad, NodeLoad
 from ._bridge import Escaped, contained, in_thread, result
 from ._culprit import working_for
 from ._entries import describe
@@ -26,10 +27,15 @@ from ._spare import end_spare_threads
 # counting loop work as a node's for the watchdog (``working_for``).
 __all__ = [
     "HAS_PUBLISHER_GID",
+    "Accounting",
     "AsyncioExecutor",
     "CallbackErrorHandler",
+    "CallbackLoad",
+    "ContainerLoad",
     "Escaped",
     "ExecutorState",
+    "GroupLoad",
+    "NodeLoad",
     "contained",
     "describe",
     "end_spare_threads",

@@ -30,6 +30,7 @@ from typing import Any, TypeVar
 from rclpy.task import Future as RclFuture
 
 from .._compat import running_loop, sleeps_zero
+from ._fastpath import Work
 from ._spare import run_on_spare_thread
 
 __all__ = [
@@ -137,6 +138,7 @@ def drive(
     started: bool = False,
     on_suspend: Callable[[], object] | None = None,
     context: contextvars.Context | None = None,
+    work: Work | None = None,
 ) -> Generator[Any, Any, T]:
     """Run ``coro`` inside a task, turning rclpy's bare ``yield`` into a real wait.
 
@@ -156,6 +158,7 @@ def drive(
         when started): where rclpy's ``spin_once`` counts a callback as run.
     :param context: each step of ``coro`` runs in it (a callback's own
         copy of its runner task's context); else in the task's.
+    :param work: the callback's work, whose meter times each step.
     """
     send: Callable[[Any], Any] = coro.send
     throw: Callable[[BaseException], Any] = coro.throw
@@ -163,6 +166,9 @@ def drive(
         run: Callable[..., Any] = context.run
         send = functools.partial(run, coro.send)
         throw = functools.partial(run, coro.throw)
+    if work is not None and work.meter is not None:
+        send = functools.partial(work.step, send)
+        throw = functools.partial(work.step, throw)
     if not started:
         try:
             yielded = send(None)

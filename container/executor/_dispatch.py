@@ -40,10 +40,12 @@ from .._compat import (
     loop_ready_queue,
     subscription_wants_info,
 )
+from ._accounting import Accounting
 from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
 from ._fastpath import (
     Express,
     Handoff,
+    Meter,
     Notifier,
     Token,
     Work,
@@ -90,8 +92,11 @@ class Dispatcher:
         reentrant_limit: int,
         future_executor: Executor,
         loop_waits: bool = True,
+        accounting: Accounting | None = None,
     ) -> None:
         self.context = context
+        #: Every entity's meter (``None``: accounting is off).
+        self.accounting = accounting
         self.handoff = Handoff()
         #: Whether the loop's own thread waits in rcl (the executor's loop);
         #: on a loop of the user's (``spin_async``) a waiter thread does.
@@ -276,7 +281,9 @@ class Dispatcher:
             is_async, depth = False, 1
         else:
             is_async, depth = inspect.iscoroutinefunction(entity.callback), _COALESCED
+        accounting = self.accounting
         return Entry(
+            meter=accounting.meter(entity, node, kind) if accounting is not None else None,
             wants_info=kind == "subscription" and subscription_wants_info(entity),
             entity=entity,
             node=node,
@@ -446,18 +453,25 @@ class Dispatcher:
             cancelled_error=asyncio.CancelledError,
         )
 
-    def _work(self, entry: Entry, message: object) -> Work:
+    def _work(self, entry: Entry, message: object, started: int = 0) -> Work:
         """The work of a message the C path took (``None``: of a timer it called)."""
-        return express_work(entry, () if message is None else (message,))
+        return express_work(entry, () if message is None else (message,), started=started)
 
     def _express_slow(self, entry: Entry, message: object) -> None:
         """A message the C path took whose lane cannot start it there (busy, locked, no idle runner)."""
         entry.lane.run_express(self._work(entry, message))
 
     def _express_suspended(
-        self, entry: Entry, message: object, runner: Any, coro: Any, yielded: Any, context: contextvars.Context
+        self,
+        entry: Entry,
+        message: object,
+        runner: Any,
+        coro: Any,
+        yielded: Any,
+        context: contextvars.Context,
+        started: int,
     ) -> None:
-        entry.lane.express_suspended(runner, self._work(entry, message), coro, yielded, context)
+        entry.lane.express_suspended(runner, self._work(entry, message, started), coro, yielded, context)
 
     def _express_failed(self, entry: Entry, message: object, error: BaseException | None) -> None:
         entry.lane.express_finished(self._work(entry, message), error)
@@ -478,6 +492,10 @@ class Dispatcher:
         """The token of work the executor runs for ``node`` itself (transitions)."""
         return self._token(node, node)
 
+    def node_meter(self, node: Node) -> Meter | None:
+        """The meter of work the executor runs for ``node`` itself (transitions)."""
+        return self.accounting.meter(node, node, "transition") if self.accounting is not None else None
+
     def _sweep_tokens(self) -> None:
         """Retire the tokens of entities and nodes that left the executor."""
         nodes = self.nodes()
@@ -493,6 +511,8 @@ class Dispatcher:
                 token.retired = True
             for key in [key for key in self._entries if key not in live]:
                 del self._entries[key]
+        if self.accounting is not None:
+            self.accounting.forget(live)
 
     def retire(self, node: Node, *, sweep: bool = True) -> None:
         """Drop and cancel ``node``'s work: it was removed (on the loop thread, or not running).
@@ -512,13 +532,31 @@ class Dispatcher:
 
     # -- lanes ----------------------------------------------------------------
     def submit(
-        self, entry: Entry, callback: Callable[..., Any], args: tuple[Any, ...], *, burst: bool | None = None
+        self,
+        entry: Entry,
+        callback: Callable[..., Any],
+        args: tuple[Any, ...],
+        *,
+        burst: bool | None = None,
+        late_ns: int = 0,
     ) -> None:
         """Hand ``callback(*args)`` to the entry's lane (through the gate, if one is set).
 
         :param burst: :meth:`_dispatching_burst`, if the caller asked already.
+        :param late_ns: how long ago the work was due (a timer's overdue
+            firing), for its lateness; else it arrived now.
         """
-        work = Work(entry.entity, callback, entry.is_async, entry.depth, entry.done, entry.token, args)
+        work = Work(
+            entry.entity,
+            callback,
+            entry.is_async,
+            entry.depth,
+            entry.done,
+            entry.token,
+            args,
+            meter=entry.meter,
+            arrived=time.monotonic_ns() - late_ns if late_ns > 0 else 0,
+        )
         if burst is None:
             burst = self._dispatching_burst()
         if entry.is_async and burst and self.gate.permits is None:

@@ -15,6 +15,7 @@ from typing import Any
 from rclpy.node import Node
 
 from ._fastpath import (
+    Meter,
     Taker,
     Token,
     Work,
@@ -48,6 +49,8 @@ class Entry:
     taker: Taker | None = None
     #: A subscription whose callback takes ``(message, message_info)``.
     wants_info: bool = False
+    #: What its callbacks cost is told (``None``: accounting is off).
+    meter: Meter | None = None
 
 
 
@@ -69,10 +72,13 @@ def format_error(entity: object, error: BaseException) -> str:
 
 
 
-def express_work(entry: Entry, args: tuple[Any, ...]) -> Work:
-    """Async work of ``entry``'s callback called with ``args``, as the C path runs it."""
+def express_work(entry: Entry, args: tuple[Any, ...], *, started: int = 0) -> Work:
+    """Async work of ``entry``'s callback called with ``args``, as the C path runs it
+    (``started``: when the C path began its first step, in monotonic ns)."""
     entity = entry.entity
-    return Work(entity, entity.callback, True, entry.depth, entry.done, entry.token, args)
+    return Work(
+        entity, entity.callback, True, entry.depth, entry.done, entry.token, args, meter=entry.meter, started=started
+    )
 
 
 

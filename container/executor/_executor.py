@@ -48,6 +48,7 @@ from .._compat import (
     wraps_an_awaitable,
 )
 from .._errors import ExecutorError
+from ._accounting import Accounting
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._culprit import Culprit, TaskOrigins
 from ._dispatch import Dispatcher
@@ -128,6 +129,8 @@ class AsyncioExecutor(Executor):
     :param num_threads: ``MultiThreadedExecutor``'s keyword, so code written
         for it runs unchanged: here it sets ``reentrant_limit`` (plain
         callbacks of different groups always run on threads of their own).
+    :param accounting: time every callback per node, group and callback
+        (:attr:`accounting`); ``False`` only to measure what it costs.
     """
 
     def __init__(
@@ -140,6 +143,7 @@ class AsyncioExecutor(Executor):
         stall_after: float | None = 1.0,
         watchdog_reports: bool = True,
         num_threads: int | None = None,
+        accounting: bool = True,
     ) -> None:
         super().__init__(context=context)
         # Refused after rclpy's part is built: its __del__ needs it, and
@@ -178,6 +182,10 @@ class AsyncioExecutor(Executor):
         #: Nodes removed while nobody spun (and what they had then), retired
         #: when the next spin starts unless added back first (see :meth:`remove_node`).
         self._removed_idle: weakref.WeakKeyDictionary[Node, tuple[object, ...]] = weakref.WeakKeyDictionary()
+        #: What each node's callbacks cost (see ``accounting``).
+        self._accounting = (
+            Accounting(loop_thread=self._loop_thread_ident, stuck_after_s=stall_after or 1.0) if accounting else None
+        )
         self._dispatcher = self._make_dispatcher(self._loop)
         self._stopped: asyncio.Future[None] | None = None
         self._progress: asyncio.Future[None] | None = None
@@ -195,6 +203,14 @@ class AsyncioExecutor(Executor):
     def shutdown_timeout(self) -> float:
         """Seconds :meth:`shutdown` waits for running callbacks by default."""
         return self._shutdown_timeout
+
+    @property
+    def accounting(self) -> Accounting | None:
+        """What each node's callbacks cost, per window (``None``: built with ``accounting=False``)."""
+        return self._accounting
+
+    def _loop_thread_ident(self) -> int | None:
+        return self._dispatcher.loop_thread
 
     @property
     def watchdog(self) -> LoopWatchdog | None:
@@ -474,7 +490,8 @@ class AsyncioExecutor(Executor):
 
         lane = self._dispatcher.lane_for(group, node)
         token = self._dispatcher.node_token(node) if node is not None else None
-        lane.submit(Work(call, capture, is_async, 1 << 16, done, token))
+        meter = self._dispatcher.node_meter(node) if node is not None else None
+        lane.submit(Work(call, capture, is_async, 1 << 16, done, token, meter=meter))
         return outcome
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
@@ -712,6 +729,7 @@ class AsyncioExecutor(Executor):
             reentrant_limit=self._reentrant_limit,
             future_executor=self,
             loop_waits=loop is self._loop,
+            accounting=self._accounting,
         )
 
     def _own_guards(self) -> list[tuple[Any, int]]:

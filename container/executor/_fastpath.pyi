@@ -146,6 +146,12 @@ class Work:
     token: Token | None
     #: What ``call`` is called with (a taken message).
     args: tuple[Any, ...]
+    #: What its callback costs is told (``None``: not metered).
+    meter: Meter | None
+    #: When it arrived (monotonic ns: taken, or a timer's due time; 0 when not metered).
+    arrived: int
+    #: When its first step started (monotonic ns; 0: not yet, or not metered).
+    started: int
     def __init__(
         self,
         entity: object,
@@ -155,7 +161,30 @@ class Work:
         done: Callable[[Work, BaseException | None], None],
         token: Token | None = None,
         args: tuple[Any, ...] = (),
+        *,
+        meter: Meter | None = None,
+        arrived: int = 0,
+        started: int = 0,
     ) -> None: ...
+    def run(self, context: contextvars.Context, /) -> Any:
+        """A plain callback: ``call(*args)`` in ``context``, metered."""
+    def step(self, send: Callable[[Any], Any], value: Any, /) -> Any:
+        """``send(value)``: one step of the async callback's coroutine, metered (the first
+        begins it; one that raises, ``StopIteration`` included, ends it)."""
+
+class Meter:
+    """What one entity's callbacks cost, per window (see ``fastpath/meter.c``)."""
+
+    #: How long its step running now has run (0: none runs).
+    running_ns: int
+    def take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
+        """``(runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50,
+        duration_p99, duration_max, dropped, stuck, running_ns)``: this window's, then a new one."""
+    def drop(self) -> None:
+        """One waiting invocation was dropped (keep-last)."""
+
+def stuck_after(ns: int, /) -> None:
+    """How long one step of a callback runs before its meter counts it stuck (every meter)."""
 
 class Runner:
     """A runner task of a lane, the future it idles on, the context it runs in."""

@@ -312,7 +312,7 @@ class Lane:
                 error = Retired()
             else:
                 try:
-                    self._context.copy().run(work.call, *work.args)
+                    work.run(self._context.copy())
                 except BaseException as exc:  # reported, never fatal: sys.exit() included
                     error = exc
             work.done(work, error)
@@ -475,7 +475,7 @@ class Lane:
                 elif isinstance(item, Work):
                     context = contextvars.copy_context()  # of the runner's, as a task's
                     coro = context.run(work.call, *work.args)
-                    await drive(coro, self._progress, on_suspend=self._on_suspend, context=context)
+                    await drive(coro, self._progress, on_suspend=self._on_suspend, context=context, work=work)
                 else:
                     await drive(
                         item.coro,
@@ -484,6 +484,7 @@ class Lane:
                         thrown=thrown,
                         started=True,
                         context=item.context,
+                        work=work,
                     )
             except asyncio.CancelledError:
                 if self._closed:

@@ -37,17 +37,22 @@ _KEEP_ALL_DRAINED = 1024
 
 def take_timer(dispatcher: Dispatcher, entry: Entry) -> None:
     tmr = entry.entity
+    late_ns = 0
     try:
         with tmr.handle:
+            if entry.meter is not None:
+                # Due that long ago: its lateness counts from then, not from this take.
+                until = tmr.handle.time_until_next_call()
+                late_ns = -until if until is not None and until < 0 else 0
             arguments = fire_timer(tmr)
     except InvalidHandle:
         return
     if arguments is None:
         return
     if arguments:
-        dispatcher.submit(entry, functools.partial(tmr.callback, **arguments), ())
+        dispatcher.submit(entry, functools.partial(tmr.callback, **arguments), (), late_ns=late_ns)
     else:
-        dispatcher.submit(entry, tmr.callback, ())
+        dispatcher.submit(entry, tmr.callback, (), late_ns=late_ns)
 
 def take_messages(dispatcher: Dispatcher, entry: Entry, count: int) -> None:
     """Take up to ``count`` messages: what its new-data callbacks reported (fewer if

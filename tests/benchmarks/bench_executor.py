@@ -56,6 +56,9 @@ KINDS = {
 #: last (see :func:`_spin_until`): a finite deadline, far beyond any run.
 EVENTS_SPIN_S = 3600.0
 
+#: ``off`` builds the AsyncioExecutor with ``accounting=False`` (bench_accounting.py).
+ACCOUNTING_VARIABLE = "BENCH_ACCOUNTING"
+
 #: The floor has no callback groups, no isolation: ping-pong and load only.
 FLOORLESS = {"gap", "services"}
 
@@ -112,7 +115,8 @@ def _executor(kind: str) -> Any:
     if kind.startswith("asyncio"):
         from container import AsyncioExecutor
 
-        return AsyncioExecutor()
+        # bench_accounting.py measures the executor with its accounting off too.
+        return AsyncioExecutor(accounting=os.environ.get(ACCOUNTING_VARIABLE, "on") != "off")
     if kind == "events":
         from rclpy.experimental.events_executor import EventsExecutor
 
@@ -387,9 +391,11 @@ def _child(measure: str, kind: str, seconds: float) -> None:
     os._exit(0)  # rclpy's MultiThreadedExecutor may leave threads behind
 
 
-def _run_child(measure: str, kind: str, seconds: float, python: str) -> tuple[float, str]:
+def _run_child(
+    measure: str, kind: str, seconds: float, python: str, *, env_extra: dict[str, str] | None = None
+) -> tuple[float, str]:
     """Run one measurement in a fresh process of ``python``: its value and its note (stderr's last line)."""
-    env = dict(os.environ)
+    env = dict(os.environ) | (env_extra or {})
     env["ROS_DOMAIN_ID"] = str(random.randint(1, 200))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     cmd = [python, __file__, "--child", measure, kind, str(seconds)]

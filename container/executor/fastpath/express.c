@@ -49,7 +49,7 @@ typedef struct {
   PyObject * on_done;
   PyObject * done_waiters; /* on_done is called only while this is non-empty */
   PyObject * slow;        /* slow(entry, message) */
-  PyObject * suspended;   /* suspended(entry, message, runner, coro, yielded, context) */
+  PyObject * suspended;   /* suspended(entry, message, runner, coro, yielded, context, started) */
   PyObject * failed;      /* failed(entry, message, error or None) */
   PyObject * release_pending; /* release_pending(lane, marker): the slot goes to waiting work */
   PyObject * take_rest;   /* take_rest([(address, count)]): what has no route */
@@ -178,12 +178,13 @@ static int release(ExpressObject * self, RouteObject * route)
 
 static int first_step(
   PyObject * loop, PyObject * enter_task, PyObject * leave_task, RunnerObject * runner, PyObject * current,
-  PyObject * call, PyObject * const * args, Py_ssize_t nargs, PyObject ** coro, PyObject ** yielded,
-  PyObject ** context)
+  PyObject * call, PyObject * const * args, Py_ssize_t nargs, MeterObject * meter, long long arrived,
+  long long * started, PyObject ** coro, PyObject ** yielded, PyObject ** context)
 {
   PyObject * result, * type, * value, * traceback;
   PySendResult status;
   *coro = *yielded = NULL;
+  *started = 0;
   if ((*context = PyContext_Copy(runner->context)) == NULL) {
     return STEP_BROKEN;
   }
@@ -197,8 +198,18 @@ static int first_step(
     goto broken;
   }
   Py_DECREF(result);
+  if (meter != NULL) {
+    *started = meter_begin(meter, arrived);
+  }
   *coro = PyObject_Vectorcall(call, args, (size_t)nargs, NULL);
   status = *coro != NULL ? PyIter_Send(*coro, Py_None, yielded) : PYGEN_ERROR;
+  if (meter != NULL) {
+    if (status == PYGEN_NEXT) {
+      meter_pause(meter, *started);
+    } else {
+      meter_end(meter, *started, *started);
+    }
+  }
   PyErr_Fetch(&type, &value, &traceback);
   result = call2(leave_task, loop, runner->task);
   PyContext_Exit(*context);
@@ -265,6 +276,7 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
   PyObject * callback, * coro, * yielded, * context, * result;
   RunnerObject * runner;
   Py_ssize_t waiting;
+  long long started;
   int status;
 
   if (route->token->retired) {
@@ -283,7 +295,8 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
   callback = PyObject_GetAttr(route->entity, route->callback);
   status = callback == NULL ? STEP_BROKEN : first_step(
     self->loop, self->enter_task, self->leave_task, runner, route->marker, callback, &message,
-    message != NULL ? 1 : 0, &coro, &yielded, &context);
+    message != NULL ? 1 : 0, ((WorkObject *)route->marker)->meter, route->arrived, &started, &coro, &yielded,
+    &context);
   Py_XDECREF(callback);
   if (status == STEP_BROKEN) {
     slots_undo_first_step(route->slots);
@@ -304,8 +317,10 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
     return release(self, route);
   }
   if (status == PYGEN_NEXT) {
-    PyObject * args[6] = {entry, given, (PyObject *)runner, coro, yielded, context};
-    result = PyObject_Vectorcall(self->suspended, args, 6, NULL);
+    PyObject * start = PyLong_FromLongLong(started);
+    PyObject * args[7] = {entry, given, (PyObject *)runner, coro, yielded, context, start};
+    result = start != NULL ? PyObject_Vectorcall(self->suspended, args, 7, NULL) : NULL;
+    Py_XDECREF(start);
     Py_DECREF(coro);
     Py_DECREF(yielded);
     Py_DECREF(context);
@@ -345,7 +360,7 @@ static PyObject * first_step_py(PyObject * Py_UNUSED(module), PyObject * const *
   call_args = work->args;
   status = first_step(
     args[0], args[1], args[2], runner, (PyObject *)work, work->call, &PyTuple_GET_ITEM(call_args, 0),
-    PyTuple_GET_SIZE(call_args), &coro, &yielded, &context);
+    PyTuple_GET_SIZE(call_args), work->meter, work->arrived, &work->started, &coro, &yielded, &context);
   if (status == STEP_BROKEN) {
     return NULL;
   }
@@ -378,6 +393,7 @@ static int take_batch(ExpressObject * self, PyObject * batch)
   PyObject * result, * type = NULL, * value = NULL, * traceback = NULL;
   Py_ssize_t i, n;
   int status = 1;
+  long long now = monotonic_ns();
 
   if (!lock_try((LockObject *)self->take_lock)) {
     /* A worker is carrying: whoever holds it takes what is plain; the
@@ -421,6 +437,7 @@ static int take_batch(ExpressObject * self, PyObject * batch)
         status = -1;
         goto out;
       }
+      ((RouteObject *)route)->arrived = now;
       message = taker_take((TakerObject *)((RouteObject *)route)->first, 0);
       if (message == NULL) {
         /* Run what was taken, then report this. */
@@ -566,6 +583,7 @@ static PyObject * Express_call_timers(ExpressObject * self, PyObject * const * a
     PyObject * route = PyDict_GetItemWithError(routes, key);
     rcl_timer_t * timer;
     bool is_ready = false;
+    int64_t until = 0;
     if (route == NULL) {
       if (PyErr_Occurred() || PyList_Append(rest, key) < 0) {
         goto fail;
@@ -580,6 +598,12 @@ static PyObject * Express_call_timers(ExpressObject * self, PyObject * const * a
     if (timer == NULL && PyErr_Occurred()) {
       goto fail;
     }
+    /* Its due time, for its lateness: it was due `until` ago (until <= 0). */
+    if (rcl_timer_get_time_until_next_call(timer, &until) != RCL_RET_OK) {
+      rcl_reset_error();
+      until = 0;
+    }
+    ((RouteObject *)route)->arrived = monotonic_ns() + (until < 0 ? until : 0);
     if (rcl_timer_is_ready(timer, &is_ready) != RCL_RET_OK || !is_ready || rcl_timer_call(timer) != RCL_RET_OK) {
       rcl_reset_error();
       if (PyList_Append(rest, key) < 0) {

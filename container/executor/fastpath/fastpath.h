@@ -6,7 +6,8 @@
  * message), lock.c (a mutex both languages use), lanes.c (the callback
  * groups' slot state and the objects both languages read: work, tokens,
  * runners, routes), express.c (the loop thread's async chain), watcher.c
- * (asyncio's file descriptors wake the loop's rcl wait). Every
+ * (asyncio's file descriptors wake the loop's rcl wait), meter.c (what each
+ * entity's callbacks cost). Every
  * object one file reads of another's is a compiled type declared here:
  * no file reads a Python attribute of the executor's own classes by name.
  */
@@ -172,6 +173,32 @@ static inline void lock_release(LockObject * self)
   PyThread_release_lock(self->lock);
 }
 
+/* -- meter.c ----------------------------------------------------------------- */
+#define METER_SUB 8
+#define METER_BUCKETS (40 * METER_SUB)
+
+typedef struct {
+  PyObject_HEAD
+  unsigned long long runs, finished, dropped, stuck, late_n, dur_n;
+  long long busy_ns, cpu_ns, late_max, dur_max;
+  long long step_since; /* when in_step last went from 0 to 1 */
+  int in_step;          /* steps running now */
+  char stuck_counted;   /* the step running now was counted stuck */
+  uint32_t late[METER_BUCKETS];
+  uint32_t dur[METER_BUCKETS];
+} MeterObject;
+
+extern PyTypeObject MeterType;
+extern PyMethodDef meter_functions[];
+/* A callback's first step starts (arrived: when its work arrived, 0 unknown): its start (ns). */
+long long meter_begin(MeterObject * self, long long arrived);
+/* A later step of a suspended callback starts: its start (ns). */
+long long meter_resume(MeterObject * self);
+/* The step that started at step_start suspended. */
+void meter_pause(MeterObject * self, long long step_start);
+/* The step that started at step_start ended the callback, whose first step started at started. */
+void meter_end(MeterObject * self, long long step_start, long long started);
+
 /* -- lanes.c ----------------------------------------------------------------- */
 typedef struct {
   PyObject_HEAD
@@ -186,6 +213,9 @@ typedef struct {
   PyObject * done;
   PyObject * token; /* a Token, or None */
   PyObject * args;  /* a tuple */
+  MeterObject * meter; /* NULL: not metered */
+  long long arrived;   /* monotonic ns: taken, or due (a timer) */
+  long long started;   /* monotonic ns of its first step's start, 0 before */
   Py_ssize_t depth;
   char is_async;
 } WorkObject;
@@ -228,6 +258,7 @@ typedef struct {
   PyObject * entity;
   TokenObject * token;
   PyObject * callback; /* str: the entity's attribute holding its callback */
+  long long arrived;   /* when what it runs next arrived (monotonic ns): taken, or the timer's due time */
 } RouteObject;
 
 typedef struct {

@@ -78,17 +78,23 @@ PyTypeObject TokenType = {
 
 static int Work_init(WorkObject * self, PyObject * args, PyObject * kwargs)
 {
-  static char * keywords[] = {"entity", "call", "is_async", "depth", "done", "token", "args", NULL};
-  PyObject * entity, * call, * done, * token = Py_None, * call_args = NULL;
+  static char * keywords[] = {
+    "entity", "call", "is_async", "depth", "done", "token", "args", "meter", "arrived", "started", NULL};
+  PyObject * entity, * call, * done, * token = Py_None, * call_args = NULL, * meter = Py_None;
+  long long arrived = 0, started = 0;
   int is_async;
   Py_ssize_t depth;
   if (!PyArg_ParseTupleAndKeywords(
-        args, kwargs, "OOpnO|OO!:Work", keywords, &entity, &call, &is_async, &depth, &done, &token,
-        &PyTuple_Type, &call_args)) {
+        args, kwargs, "OOpnO|OO!$OLL:Work", keywords, &entity, &call, &is_async, &depth, &done, &token,
+        &PyTuple_Type, &call_args, &meter, &arrived, &started)) {
     return -1;
   }
   if (token != Py_None && !PyObject_TypeCheck(token, &TokenType)) {
     PyErr_SetString(PyExc_TypeError, "Work: token must be a Token or None");
+    return -1;
+  }
+  if (meter != Py_None && !PyObject_TypeCheck(meter, &MeterType)) {
+    PyErr_SetString(PyExc_TypeError, "Work: meter must be a Meter or None");
     return -1;
   }
   Py_XSETREF(self->entity, Py_NewRef(entity));
@@ -96,6 +102,10 @@ static int Work_init(WorkObject * self, PyObject * args, PyObject * kwargs)
   Py_XSETREF(self->done, Py_NewRef(done));
   Py_XSETREF(self->token, Py_NewRef(token));
   Py_XSETREF(self->args, call_args != NULL ? Py_NewRef(call_args) : PyTuple_New(0));
+  Py_XSETREF(self->meter, meter != Py_None ? (MeterObject *)Py_NewRef(meter) : NULL);
+  /* Stamped only when metered: nothing else reads it. */
+  self->arrived = arrived > 0 || self->meter == NULL ? arrived : monotonic_ns();
+  self->started = started;
   self->is_async = (char)is_async;
   self->depth = depth;
   return self->args == NULL ? -1 : 0;
@@ -108,6 +118,7 @@ static int Work_traverse(WorkObject * self, visitproc visit, void * arg)
   Py_VISIT(self->done);
   Py_VISIT(self->token);
   Py_VISIT(self->args);
+  Py_VISIT(self->meter);
   return 0;
 }
 
@@ -118,6 +129,7 @@ static int Work_clear(WorkObject * self)
   Py_CLEAR(self->done);
   Py_CLEAR(self->token);
   Py_CLEAR(self->args);
+  Py_CLEAR(self->meter);
   return 0;
 }
 
@@ -134,6 +146,80 @@ static PyObject * Work_repr(WorkObject * self)
                               self->is_async ? "True" : "False", self->depth);
 }
 
+/* run(context) -> object: the plain callback, call(*args) in context, timed by its meter. */
+static PyObject * Work_run(WorkObject * self, PyObject * context)
+{
+  PyObject * result;
+  long long start = 0;
+  if (!PyContext_CheckExact(context)) {
+    PyErr_SetString(PyExc_TypeError, "run(context): a contextvars.Context");
+    return NULL;
+  }
+  if (PyContext_Enter(context) < 0) {
+    return NULL;
+  }
+  if (self->meter != NULL) {
+    start = self->started = meter_begin(self->meter, self->arrived);
+  }
+  result = PyObject_Call(self->call, self->args, NULL);
+  if (self->meter != NULL) {
+    meter_end(self->meter, start, start);
+  }
+  if (PyContext_Exit(context) < 0) {
+    Py_XDECREF(result);
+    return NULL;
+  }
+  return result;
+}
+
+/* step(send, value) -> object: one step of the async callback's coroutine
+ * (send is its send or throw), timed by its meter: the first step begins it,
+ * a step that raises (StopIteration included) ends it. */
+static PyObject * Work_step(WorkObject * self, PyObject * const * args, Py_ssize_t nargs)
+{
+  PyObject * result;
+  long long start;
+  MeterObject * meter = self->meter;
+  if (nargs != 2) {
+    PyErr_SetString(PyExc_TypeError, "step(send, value)");
+    return NULL;
+  }
+  if (meter == NULL) {
+    return PyObject_CallOneArg(args[0], args[1]);
+  }
+  if (self->started == 0) {
+    start = self->started = meter_begin(meter, self->arrived);
+  } else {
+    start = meter_resume(meter);
+  }
+  Py_INCREF(meter); /* the step may drop the last reference to this work */
+  result = PyObject_CallOneArg(args[0], args[1]);
+  if (result != NULL) {
+    meter_pause(meter, start);
+  } else {
+    meter_end(meter, start, self->started);
+  }
+  Py_DECREF(meter);
+  return result;
+}
+
+static PyMethodDef Work_methods[] = {
+  {"run", (PyCFunction)Work_run, METH_O, "run(context) -> object: call(*args) in context (a plain callback), metered"},
+  {"step", (PyCFunction)(void (*)(void))Work_step, METH_FASTCALL,
+   "step(send, value) -> object: send(value), one step of the async callback's coroutine, metered"},
+  {NULL, NULL, 0, NULL},
+};
+
+static PyObject * Work_get_meter(WorkObject * self, void * Py_UNUSED(closure))
+{
+  return Py_NewRef(self->meter != NULL ? (PyObject *)self->meter : Py_None);
+}
+
+static PyGetSetDef Work_getset[] = {
+  {"meter", (getter)Work_get_meter, NULL, "What its callbacks cost is told (a Meter, or None).", NULL},
+  {NULL, NULL, NULL, NULL, NULL},
+};
+
 static PyMemberDef Work_members[] = {
   {"entity", T_OBJECT, offsetof(WorkObject, entity), READONLY, "The rclpy entity whose callback this is (identity only)."},
   {"call", T_OBJECT, offsetof(WorkObject, call), READONLY, "Runs the callback with args; returns a coroutine when is_async."},
@@ -142,6 +228,8 @@ static PyMemberDef Work_members[] = {
   {"done", T_OBJECT, offsetof(WorkObject, done), READONLY, "done(work, error): told the outcome where call ran."},
   {"token", T_OBJECT, offsetof(WorkObject, token), READONLY, "Whose work this is (a Token, or None)."},
   {"args", T_OBJECT, offsetof(WorkObject, args), READONLY, "What call is called with (a taken message)."},
+  {"arrived", T_LONGLONG, offsetof(WorkObject, arrived), READONLY, "When it arrived (monotonic ns; 0: not metered)."},
+  {"started", T_LONGLONG, offsetof(WorkObject, started), READONLY, "When its first step started (monotonic ns; 0: not yet, or not metered)."},
   {NULL, 0, 0, 0, NULL},
 };
 
@@ -158,6 +246,8 @@ PyTypeObject WorkType = {
   .tp_clear = (inquiry)Work_clear,
   .tp_repr = (reprfunc)Work_repr,
   .tp_members = Work_members,
+  .tp_methods = Work_methods,
+  .tp_getset = Work_getset,
 };
 
 /* -- Runner ----------------------------------------------------------------- */
@@ -339,6 +429,13 @@ int keeplast_push(KeepLastObject * self, PyObject * item, PyObject * entity, Py_
     n = PyList_GET_SIZE(self->entities);
     for (i = self->head; i < n; ++i) {
       if (PyList_GET_ITEM(self->entities, i) == entity) {
+        PyObject * older = PyList_GET_ITEM(self->items, i);
+        if (PyObject_TypeCheck(older, &WorkType) && PyObject_TypeCheck(item, &WorkType) &&
+            ((WorkObject *)older)->arrived > 0 && ((WorkObject *)older)->arrived < ((WorkObject *)item)->arrived) {
+          /* The entity's callback has been owed since the older one arrived:
+           * its lateness counts from then (a timer's first missed firing). */
+          ((WorkObject *)item)->arrived = ((WorkObject *)older)->arrived;
+        }
         if (remove_at(self, i) < 0) {
           Py_DECREF(key);
           return -1;
@@ -593,6 +690,9 @@ static PyObject * Slots_admit(SlotsObject * self, PyObject * work)
     return NULL;
   }
   self->dropped += dropped;
+  if (dropped && AS_WORK(work)->meter != NULL) {
+    AS_WORK(work)->meter->dropped++; /* the dropped one was of the same entity */
+  }
   Py_RETURN_FALSE;
 }
 

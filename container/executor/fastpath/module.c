@@ -38,6 +38,9 @@
  * Python lanes and the async chain follow one admission protocol and
  * neither depends on the other's attribute names.
  *
+ * Meter (meter.c): what one entity's callbacks cost, timed where each step
+ * runs, whichever path runs it.
+ *
  * Express: the loop thread's chain of async def subscription callbacks
  * (take, admit to the callback group's lane, first step, release) without
  * returning to Python between messages, and the same for async def timer
@@ -134,7 +137,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     {"Notifier", &NotifierType}, {"Lock", &LockType}, {"Taker", &TakerType}, {"WaitSet", &WaitSetType},
     {"Express", &ExpressType}, {"Token", &TokenType}, {"Work", &WorkType}, {"Runner", &RunnerType},
     {"KeepLast", &KeepLastType}, {"Slots", &SlotsType}, {"Route", &RouteType}, {"Routes", &RoutesType},
-    {"FdWatcher", &FdWatcherType}, {"Handoff", &HandoffType},
+    {"FdWatcher", &FdWatcherType}, {"Handoff", &HandoffType}, {"Meter", &MeterType},
   };
   size_t i;
   PyObject * m;
@@ -155,7 +158,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
       return NULL;
     }
   }
-  if (PyModule_AddFunctions(m, express_functions) < 0 ||
+  if (PyModule_AddFunctions(m, express_functions) < 0 || PyModule_AddFunctions(m, meter_functions) < 0 ||
       PyModule_AddIntConstant(m, "SUBSCRIPTION", KIND_SUBSCRIPTION) < 0 ||
       PyModule_AddIntConstant(m, "CLIENT", KIND_CLIENT) < 0 ||
       PyModule_AddIntConstant(m, "SERVICE", KIND_SERVICE) < 0 ||

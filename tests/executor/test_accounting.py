@@ -1,0 +1,242 @@
+"""Per-node accounting: the executor's figures against what the callbacks really did."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.task import Future
+
+from container import AsyncioExecutor
+from container.executor import CallbackLoad, ContainerLoad, NodeLoad
+from container.executor._fastpath import Meter, Work
+from tests.component_support import burn
+from tests.waiting import wait_until
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture
+def nodes(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[[str], Node]]:
+    made: list[Node] = []
+
+    def make(name: str) -> Node:
+        node = Node(name, context=context)
+        executor.add_node(node)
+        made.append(node)
+        return node
+
+    yield make
+    for node in made:
+        executor.remove_node(node)
+        node.destroy_node()
+
+
+def _spin_until(executor: AsyncioExecutor, done: Future[None], what: str, *, timeout: float = 20.0) -> None:
+    executor.spin_until_future_complete(done, timeout_sec=timeout)
+    assert done.done(), f"not within {timeout} s: {what}"
+
+
+def _node(load: ContainerLoad, name: str) -> NodeLoad:
+    return next(node for node in load.nodes if node.name == name)
+
+
+def _callback(node: NodeLoad, name: str) -> CallbackLoad:
+    return next(callback for callback in node.callbacks if callback.name.endswith(name))
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_a_node_burning_cpu_comes_first_with_what_it_burned_and_idle_nodes_near_zero(
+    executor: AsyncioExecutor, nodes: Callable[[str], Node], style: str
+) -> None:
+    """A timer burns 15 ms of thread CPU every 50 ms (0.3 of a core) beside three
+    idle nodes: the window shows the burner first, its CPU within 20% of the
+    CPU time its callbacks measured themselves, and the idle nodes near zero."""
+    burned: list[float] = []
+    enough: Future[None] = Future()
+    target = [10**9]
+
+    def record(spent: float) -> None:
+        burned.append(spent)
+        if len(burned) >= target[0] and not enough.done():
+            enough.set_result(None)
+
+    def tick() -> None:
+        start = time.thread_time()
+        burn(0.015)
+        record(time.thread_time() - start)
+
+    async def tick_async() -> None:
+        tick()
+
+    # rclpy 9 annotates timer callbacks as plain
+    nodes("burner").create_timer(0.05, tick if style == "plain" else tick_async)  # type: ignore[arg-type, unused-ignore]
+    for index in range(3):
+        nodes(f"idle{index}").create_timer(0.2, lambda: None)
+    target[0] = 3
+    _spin_until(executor, enough, "three ticks")
+    accounting = executor.accounting
+    assert accounting is not None
+    accounting.sample()
+    first = len(burned)
+    target[0] = first + 30
+    enough = Future()
+    _spin_until(executor, enough, "thirty more ticks")
+    load = accounting.sample()
+    spent = sum(burned[first:])
+
+    assert load.nodes[0].name == "/burner", [(node.name, node.cpu) for node in load.nodes]
+    burner = load.nodes[0]
+    measured = burner.cpu * load.period
+    assert measured == pytest.approx(spent, rel=0.2), (measured, spent)
+    assert _callback(burner, "tick" if style == "plain" else "tick_async").rate == pytest.approx(20, rel=0.3)
+    for index in range(3):
+        idle = _node(load, f"/idle{index}")
+        assert idle.cpu < 0.01, idle
+        assert idle.rate == pytest.approx(5, abs=2.5)
+    assert load.callbacks_cpu >= burner.cpu
+    assert load.cpu >= load.callbacks_cpu * 0.9
+
+
+def test_lateness_rises_for_a_node_whose_group_is_kept_busy(
+    executor: AsyncioExecutor, nodes: Callable[[str], Node]
+) -> None:
+    """One node's 100 Hz timer shares a group with a callback that holds it 60 ms of
+    every 100 (sleeping: the GIL stays free); another node's 100 Hz timer has its
+    group to itself. The first waits for its group, the second does not."""
+    calm_ticks: list[float] = []
+    enough: Future[None] = Future()
+
+    def hold() -> None:
+        time.sleep(0.06)
+
+    def fast_tick() -> None:
+        pass
+
+    def calm_tick() -> None:
+        calm_ticks.append(time.monotonic())
+        if len(calm_ticks) >= 150 and not enough.done():
+            enough.set_result(None)
+
+    busy = nodes("kept_busy")
+    group = MutuallyExclusiveCallbackGroup()
+    busy.create_timer(0.1, hold, callback_group=group)
+    busy.create_timer(0.01, fast_tick, callback_group=group)
+    nodes("calm").create_timer(0.01, calm_tick)
+    accounting = executor.accounting
+    assert accounting is not None
+    accounting.sample()
+    _spin_until(executor, enough, "150 calm ticks")
+    load = accounting.sample()
+
+    kept_busy = _callback(_node(load, "/kept_busy"), "fast_tick")
+    calm = _callback(_node(load, "/calm"), "calm_tick")
+    assert kept_busy.lateness_p99 >= 0.03, kept_busy
+    assert calm.lateness_p99 < kept_busy.lateness_p99 / 2, (calm, kept_busy)
+    assert _node(load, "/kept_busy").lateness_p99 >= kept_busy.lateness_p99
+    # Its firings while the group was held were coalesced to one: keep-last drops.
+    assert kept_busy.dropped > 0
+    assert calm.dropped == 0
+    hold_figures = _callback(_node(load, "/kept_busy"), "hold")
+    assert hold_figures.duration_p50 == pytest.approx(0.06, abs=0.02)
+    # Sleeping is no CPU: the thread's clock says so, not the wall clock.
+    assert hold_figures.cpu < 0.05, hold_figures
+
+
+def test_a_stuck_callback_is_flagged_while_it_lasts_and_counted_once(context: Context) -> None:
+    """A plain callback blocks past the threshold (0.3 s here): its node is flagged
+    stuck while it lasts, as one episode, and free again once it returns. The
+    executor spins on a thread of its own: ``spin_once`` would wait for the callback."""
+    executor = AsyncioExecutor(context=context, stall_after=0.3)
+    node = Node("stuck", context=context)
+    started, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        if not started.is_set():
+            started.set()
+            release.wait(20)
+
+    node.create_timer(0.02, hold)
+    executor.add_node(node)
+    accounting = executor.accounting
+    assert accounting is not None
+    spinning = threading.Thread(target=executor.spin, name="spin")
+    spinning.start()
+    windows: list[ContainerLoad] = []
+
+    def sampled(check: Callable[[NodeLoad], bool]) -> bool:
+        windows.append(accounting.sample())
+        return any(check(item) for item in windows[-1].nodes if item.name == "/stuck")
+
+    try:
+        assert started.wait(10), "the callback did not start"
+        # Polled: nothing signals "stuck for 0.3 s" but the figures themselves.
+        wait_until(lambda: sampled(lambda item: item.stuck_for >= 0.3), "the node to be stuck")
+        assert _callback(_node(windows[-1], "/stuck"), "hold").stuck_for >= 0.3
+        release.set()
+        wait_until(lambda: sampled(lambda item: item.stuck_for == 0 and item.rate > 0), "the node to be free")
+        assert sum(_node(window, "/stuck").stuck for window in windows) == 1
+    finally:
+        release.set()
+        executor.shutdown(timeout_sec=5.0)
+        spinning.join(5.0)
+        executor.remove_node(node)
+        node.destroy_node()
+
+
+def test_without_accounting_callbacks_run_unmetered(context: Context) -> None:
+    executor = AsyncioExecutor(context=context, accounting=False)
+    node = Node("unmetered", context=context)
+    ticks: list[int] = []
+    node.create_timer(0.01, lambda: ticks.append(1))
+    executor.add_node(node)
+    try:
+        assert executor.accounting is None
+        wait_until(lambda: len(ticks) >= 3, "three ticks", executor=executor)
+    finally:
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown(timeout_sec=5.0)
+
+
+def test_a_meter_times_plain_runs_and_each_step_of_a_coroutine() -> None:
+    import contextvars
+    import types
+
+    meter = Meter()
+    arrived = time.monotonic_ns() - 5_000_000  # arrived 5 ms ago
+    plain = Work("entity", time.sleep, False, 1, lambda *_: None, None, (0.02,), meter=meter, arrived=arrived)
+    plain.run(contextvars.copy_context())
+    runs, finished, busy, cpu, late50, _, _, dur50, _, dur_max, dropped, stuck, running = meter.take()
+    assert (runs, finished, dropped, stuck, running) == (1, 1, 0, 0, 0)
+    assert late50 == pytest.approx(5e6, rel=0.2)
+    assert dur50 == pytest.approx(2e7, rel=0.15) and dur_max >= 2e7
+    assert busy >= 2e7
+    assert cpu < 5e6  # it slept
+
+    @types.coroutine
+    def two_steps() -> Iterator[None]:
+        burn(0.01)
+        yield
+        time.sleep(0.03)
+
+    async def callback() -> None:
+        await two_steps()
+
+    work = Work("entity", callback, True, 1, lambda *_: None, None, meter=meter)
+    coro = callback()
+    work.step(coro.send, None)
+    assert work.started > 0
+    assert meter.take()[:2] == (1, 0)  # begun, not finished
+    with pytest.raises(StopIteration):
+        work.step(coro.send, None)
+    runs, finished, busy, cpu, *_ = meter.take()
+    assert (runs, finished) == (0, 1)
+    assert busy >= 3e7
+    assert cpu < 1e7
+    assert meter.take()[9] == 0  # a new window: no duration yet

@@ -151,7 +151,7 @@ def test_index_adds_a_new_plugin_and_removes_it_when_it_is_gone(tmp_path: Path) 
         assert result.returncode == 0, result.stderr
         return result.stdout
 
-    assert "test_nodes: 2 node type(s)" in index(env)
+    assert "test_nodes: 4 node type(s)" in index(env)
     env_prefix = dict(os.environ, AMENT_PREFIX_PATH=str(prefix))
     check = (
         "from ament_index_python import get_packages_with_prefixes as p, get_resource as r;"

@@ -91,6 +91,8 @@ def test_the_operators_enclave_may_call_what_the_command_line_calls() -> None:
     assert {n for n in container["reply"] if "/_container/" in n} <= operator["request"]
     assert {f"/ldlidar/{s}" for s in ("change_state", "get_state", "get_available_transitions")} <= operator["request"]
     assert operator["request"] <= container["reply"] | lidar["reply"]
+    # container top reads what the container publishes of its nodes' load.
+    assert {"/ComponentManager/load"} <= operator["subscribe"] <= container["publish"] | lidar["publish"]
 
 
 def test_the_policy_file_is_the_one_the_security_guide_points_at() -> None:

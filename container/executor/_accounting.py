@@ -160,6 +160,8 @@ class Accounting:
         self._stuck_after_ns = int(stuck_after_s * 1e9)
         stuck_after(self._stuck_after_ns)  # process-wide: the meters are the compiled module's
         self._lock = threading.Lock()
+        #: One window closes at a time (its totals are added up outside ``_lock``).
+        self._sampling = threading.Lock()
         self._metered: dict[int, _Metered] = {}
         #: (node id, group id) -> (the group, its name), numbered per node as first seen.
         self._groups: dict[tuple[int, int], tuple[object, str]] = {}
@@ -209,7 +211,15 @@ class Accounting:
                 del self._groups[pair]
 
     def sample(self) -> ContainerLoad:
-        """Close the window: every callback's figures since the last sample, summed up."""
+        """Close the window: every callback's figures since the last sample, summed up.
+
+        Each call closes a window for every reader: in a container the
+        ``~/load`` reporter is the one that does (``container._load``).
+        """
+        with self._sampling:
+            return self._sample()
+
+    def _sample(self) -> ContainerLoad:
         now = time.monotonic_ns()
         process = time.process_time_ns()
         with self._lock:

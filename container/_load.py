@@ -16,6 +16,9 @@ The timer is plain, so a window closes on its lane's thread even while an
 
 from __future__ import annotations
 
+from typing import Any
+
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from lifecycle_container_interfaces.msg import (
     CallbackLoad as CallbackLoadMsg,
@@ -125,62 +128,23 @@ def _status(owner: str, node: NodeLoad) -> DiagnosticStatus:
     )
 
 
+def _copied(message_type: Any, source: object, **given: Any) -> Any:
+    """A ``message_type`` whose fields other than ``given`` are ``source``'s attributes of the same names
+    (the message files name their fields as the accounting's dataclasses do)."""
+    fields = {name: getattr(source, name) for name in message_type.get_fields_and_field_types() if name not in given}
+    return message_type(**fields, **given)
+
+
 def to_message(load: ContainerLoad, *, container: str) -> ContainerLoadMsg:
     """``load`` as the message ``~/load`` carries (without its stamp)."""
-    return ContainerLoadMsg(
-        container=container,
-        period=load.period,
-        cpu=load.cpu,
-        callbacks_cpu=load.callbacks_cpu,
-        executor_cpu=load.executor_cpu,
-        loop_cpu=load.loop_cpu,
-        loop_idle=load.loop_idle,
-        nodes=[
-            NodeLoadMsg(
-                name=node.name,
-                cpu=node.cpu,
-                rate=node.rate,
-                lateness_p99=node.lateness_p99,
-                duration_p99=node.duration_p99,
-                dropped=node.dropped,
-                stuck=node.stuck,
-                stuck_for=node.stuck_for,
-                cpu_seconds_total=node.cpu_seconds_total,
-                groups=[
-                    GroupLoadMsg(
-                        name=group.name,
-                        cpu=group.cpu,
-                        rate=group.rate,
-                        lateness_p99=group.lateness_p99,
-                        dropped=group.dropped,
-                        stuck=group.stuck,
-                        stuck_for=group.stuck_for,
-                    )
-                    for group in node.groups
-                ],
-                callbacks=[
-                    CallbackLoadMsg(
-                        node=c.node,
-                        group=c.group,
-                        kind=c.kind,
-                        name=c.name,
-                        cpu=c.cpu,
-                        rate=c.rate,
-                        lateness_p50=c.lateness_p50,
-                        lateness_p99=c.lateness_p99,
-                        lateness_max=c.lateness_max,
-                        duration_p50=c.duration_p50,
-                        duration_p99=c.duration_p99,
-                        duration_max=c.duration_max,
-                        dropped=c.dropped,
-                        stuck=c.stuck,
-                        stuck_for=c.stuck_for,
-                        runs_total=c.runs_total,
-                        cpu_seconds_total=c.cpu_seconds_total,
-                    )
-                    for c in node.callbacks
-                ],
-            )
-            for node in load.nodes
-        ],
-    )
+    nodes = [
+        _copied(
+            NodeLoadMsg,
+            node,
+            groups=[_copied(GroupLoadMsg, group) for group in node.groups],
+            callbacks=[_copied(CallbackLoadMsg, callback) for callback in node.callbacks],
+        )
+        for node in load.nodes
+    ]
+    message: ContainerLoadMsg = _copied(ContainerLoadMsg, load, stamp=Time(), container=container, nodes=nodes)
+    return message

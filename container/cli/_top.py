@@ -115,6 +115,10 @@ class _Reports:
     def topics(self) -> int:
         return len(self._subscribed)
 
+    def loads(self) -> list[ContainerLoad]:
+        """The latest window of each container heard from, by container name."""
+        return [self.latest[name] for name in sorted(self.latest)]
+
 
 def _run(args: argparse.Namespace) -> int:
     from .._session import Session, run_session
@@ -145,7 +149,7 @@ async def _once(reports: _Reports, args: argparse.Namespace) -> int:
         which = f"container {reports.only}" if reports.only else "any container"
         print(f"no load report from {which} within {args.timeout:g} s", file=sys.stderr)
         return 1
-    loads = [reports.latest[name] for name in sorted(reports.latest)]
+    loads = reports.loads()
     if args.json:
         print(json.dumps([as_dict(load) for load in loads], indent=2))
     else:
@@ -341,11 +345,8 @@ async def _live(reports: _Reports, args: argparse.Namespace, stopping: asyncio.E
     view = _View(sort=_SORT_NAMES[args.sort])
     console = Console()
 
-    def loads() -> list[ContainerLoad]:
-        return [reports.latest[name] for name in sorted(reports.latest)]
-
     def on_key(key: str) -> None:
-        current = loads()
+        current = reports.loads()
         view.key(key, current[view.container % len(current)] if current else None, len(current))
         reports.changed.set()
 
@@ -358,5 +359,5 @@ async def _live(reports: _Reports, args: argparse.Namespace, stopping: asyncio.E
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(reports.changed.wait(), timeout=1.0)
             reports.changed.clear()
-            live.update(view.render(loads()), refresh=True)
+            live.update(view.render(reports.loads()), refresh=True)
     return 0

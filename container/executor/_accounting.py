@@ -25,6 +25,7 @@ import weakref
 from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from rclpy.node import Node
 
@@ -285,6 +286,18 @@ class Accounting:
         )
 
 
+def _summed(members: list[CallbackLoad]) -> dict[str, Any]:
+    """What a group and a node add up alike from their callbacks: sums, and the worst lateness and stuck time."""
+    return {
+        "cpu": sum(c.cpu for c in members),
+        "rate": sum(c.rate for c in members),
+        "lateness_p99": max(c.lateness_p99 for c in members),
+        "dropped": sum(c.dropped for c in members),
+        "stuck": sum(c.stuck for c in members),
+        "stuck_for": max(c.stuck_for for c in members),
+    }
+
+
 def _nodes(callbacks: list[CallbackLoad]) -> tuple[NodeLoad, ...]:
     by_node: dict[str, list[CallbackLoad]] = defaultdict(list)
     for callback in callbacks:
@@ -296,28 +309,13 @@ def _nodes(callbacks: list[CallbackLoad]) -> tuple[NodeLoad, ...]:
         for callback in own:
             by_group[callback.group].append(callback)
         groups = tuple(
-            GroupLoad(
-                node=name,
-                name=group,
-                cpu=sum(c.cpu for c in members),
-                rate=sum(c.rate for c in members),
-                lateness_p99=max(c.lateness_p99 for c in members),
-                dropped=sum(c.dropped for c in members),
-                stuck=sum(c.stuck for c in members),
-                stuck_for=max(c.stuck_for for c in members),
-            )
-            for group, members in sorted(by_group.items())
+            GroupLoad(node=name, name=group, **_summed(members)) for group, members in sorted(by_group.items())
         )
         nodes.append(
             NodeLoad(
                 name=name,
-                cpu=sum(c.cpu for c in own),
-                rate=sum(c.rate for c in own),
-                lateness_p99=max(c.lateness_p99 for c in own),
+                **_summed(own),
                 duration_p99=max(c.duration_p99 for c in own),
-                dropped=sum(c.dropped for c in own),
-                stuck=sum(c.stuck for c in own),
-                stuck_for=max(c.stuck_for for c in own),
                 cpu_seconds_total=sum(c.cpu_seconds_total for c in own),
                 groups=groups,
                 callbacks=tuple(own),

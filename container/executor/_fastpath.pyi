@@ -175,13 +175,9 @@ class Work:
 class Meter:
     """What one entity's callbacks cost, per window (see ``fastpath/meter.c``)."""
 
-    #: How long its step running now has run (0: none runs).
-    running_ns: int
     def take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
         """``(runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50,
         duration_p99, duration_max, dropped, stuck, running_ns)``: this window's, then a new one."""
-    def drop(self) -> None:
-        """One waiting invocation was dropped (keep-last)."""
 
 def stuck_after(ns: int, /) -> None:
     """How long one step of a callback runs before its meter counts it stuck (every meter)."""

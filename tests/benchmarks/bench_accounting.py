@@ -33,11 +33,10 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
 
-from tests.benchmarks.bench_executor import ACCOUNTING_VARIABLE, _run_child
+from tests.benchmarks.bench_executor import ACCOUNTING_VARIABLE, _run_child, load_nodes
 
 #: measure -> (what it prints, whether more is better).
 MEASURES = {
@@ -54,32 +53,11 @@ def _load_in_one_process(kind: str, seconds: float) -> list[tuple[float, float]]
     """CPU % of the ten-node load (bench_executor's ``load``) under executors with
     the accounting on and off, taking turns in this process: ``(on, off)`` pairs."""
     import rclpy
-    from rclpy.node import Node
-    from std_msgs.msg import Int64
 
     from container import AsyncioExecutor
 
     rclpy.init()
-    nodes = [Node(f"bench_load_{i}") for i in range(10)]
-    received = [0]
-    is_async = kind == "asyncio-async"
-    for i, node in enumerate(nodes):
-        pub = node.create_publisher(Int64, f"load_{i}", 10)
-
-        def fire(pub: Any = pub) -> None:
-            pub.publish(Int64(data=1))
-
-        def got(msg: Int64) -> None:
-            received[0] += 1
-
-        async def fire_async(pub: Any = pub) -> None:
-            fire(pub)
-
-        async def got_async(msg: Int64) -> None:
-            got(msg)
-
-        node.create_timer(0.01, fire_async if is_async else fire)  # type: ignore[arg-type, unused-ignore]
-        node.create_subscription(Int64, f"load_{(i + 1) % 10}", got_async if is_async else got, 10)  # type: ignore[arg-type]
+    nodes, received = load_nodes(kind)
 
     def turn(accounting: bool) -> float:
         executor = AsyncioExecutor(accounting=accounting)

@@ -288,31 +288,9 @@ def load(kind: str, seconds: float) -> float:
     dropped): an executor that cannot keep up shows it there.
     """
     import rclpy
-    from rclpy.node import Node
-    from std_msgs.msg import Int64
 
     rclpy.init()
-    nodes = [Node(f"bench_load_{i}") for i in range(10)]
-    received = [0]
-    is_async = kind == "asyncio-async"
-    for i, node in enumerate(nodes):
-        pub = node.create_publisher(Int64, f"load_{i}", 10)
-
-        def fire(pub: Any = pub) -> None:
-            pub.publish(Int64(data=1))
-
-        def got(msg: Int64) -> None:
-            received[0] += 1
-
-        async def fire_async(pub: Any = pub) -> None:
-            fire(pub)
-
-        async def got_async(msg: Int64) -> None:
-            got(msg)
-
-        # rclpy 9 annotates timer callbacks as plain; the executors run async ones.
-        node.create_timer(0.01, fire_async if is_async else fire)  # type: ignore[arg-type, unused-ignore]
-        node.create_subscription(Int64, f"load_{(i + 1) % 10}", got_async if is_async else got, 10)  # type: ignore[arg-type]
+    nodes, received = load_nodes(kind)
     executor = _executor(kind)
     for node in nodes:
         executor.add_node(node)
@@ -334,6 +312,35 @@ def load(kind: str, seconds: float) -> float:
     threading.Thread(target=measure, daemon=True).start()
     _spin_until(executor, done, seconds + 60.0)
     return result[0] if result else float("nan")
+
+
+def load_nodes(kind: str) -> tuple[list[Any], list[int]]:
+    """The ten nodes of :func:`load` (rclpy initialised), and the count their subscriptions raise."""
+    from rclpy.node import Node
+    from std_msgs.msg import Int64
+
+    nodes = [Node(f"bench_load_{i}") for i in range(10)]
+    received = [0]
+    is_async = kind == "asyncio-async"
+    for i, node in enumerate(nodes):
+        pub = node.create_publisher(Int64, f"load_{i}", 10)
+
+        def fire(pub: Any = pub) -> None:
+            pub.publish(Int64(data=1))
+
+        def got(msg: Int64) -> None:
+            received[0] += 1
+
+        async def fire_async(pub: Any = pub) -> None:
+            fire(pub)
+
+        async def got_async(msg: Int64) -> None:
+            got(msg)
+
+        # rclpy 9 annotates timer callbacks as plain; the executors run async ones.
+        node.create_timer(0.01, fire_async if is_async else fire)  # type: ignore[arg-type, unused-ignore]
+        node.create_subscription(Int64, f"load_{(i + 1) % 10}", got_async if is_async else got, 10)  # type: ignore[arg-type]
+    return nodes, received
 
 
 def services(kind: str, seconds: float) -> float:

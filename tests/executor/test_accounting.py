@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import pytest
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -19,22 +20,6 @@ from tests.component_support import burn
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.timeout(60)
-
-
-@pytest.fixture
-def nodes(context: Context, executor: AsyncioExecutor) -> Iterator[Callable[[str], Node]]:
-    made: list[Node] = []
-
-    def make(name: str) -> Node:
-        node = Node(name, context=context)
-        executor.add_node(node)
-        made.append(node)
-        return node
-
-    yield make
-    for node in made:
-        executor.remove_node(node)
-        node.destroy_node()
 
 
 def _spin_until(executor: AsyncioExecutor, done: Future[None], what: str, *, timeout: float = 20.0) -> None:
@@ -52,7 +37,7 @@ def _callback(node: NodeLoad, name: str) -> CallbackLoad:
 
 @pytest.mark.parametrize("style", ["plain", "async"])
 def test_a_node_burning_cpu_comes_first_with_what_it_burned_and_idle_nodes_near_zero(
-    executor: AsyncioExecutor, nodes: Callable[[str], Node], style: str
+    executor: AsyncioExecutor, host: Callable[..., Any], style: str
 ) -> None:
     """A timer burns 15 ms of thread CPU every 50 ms (0.3 of a core) beside three
     idle nodes: the window shows the burner first, its CPU within 20% of the
@@ -75,9 +60,9 @@ def test_a_node_burning_cpu_comes_first_with_what_it_burned_and_idle_nodes_near_
         tick()
 
     # rclpy 9 annotates timer callbacks as plain
-    nodes("burner").create_timer(0.05, tick if style == "plain" else tick_async)  # type: ignore[arg-type, unused-ignore]
+    host(Node, "burner").create_timer(0.05, tick if style == "plain" else tick_async)  # type: ignore[arg-type, unused-ignore]
     for index in range(3):
-        nodes(f"idle{index}").create_timer(0.2, lambda: None)
+        host(Node, f"idle{index}").create_timer(0.2, lambda: None)
     target[0] = 3
     _spin_until(executor, enough, "three ticks")
     accounting = executor.accounting
@@ -104,7 +89,7 @@ def test_a_node_burning_cpu_comes_first_with_what_it_burned_and_idle_nodes_near_
 
 
 def test_lateness_rises_for_a_node_whose_group_is_kept_busy(
-    executor: AsyncioExecutor, nodes: Callable[[str], Node]
+    executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
     """One node's 100 Hz timer shares a group with a callback that holds it 60 ms of
     every 100 (sleeping: the GIL stays free); another node's 100 Hz timer has its
@@ -123,11 +108,11 @@ def test_lateness_rises_for_a_node_whose_group_is_kept_busy(
         if len(calm_ticks) >= 150 and not enough.done():
             enough.set_result(None)
 
-    busy = nodes("kept_busy")
+    busy = host(Node, "kept_busy")
     group = MutuallyExclusiveCallbackGroup()
     busy.create_timer(0.1, hold, callback_group=group)
     busy.create_timer(0.01, fast_tick, callback_group=group)
-    nodes("calm").create_timer(0.01, calm_tick)
+    host(Node, "calm").create_timer(0.01, calm_tick)
     accounting = executor.accounting
     assert accounting is not None
     accounting.sample()

@@ -209,28 +209,11 @@ static PyObject * Meter_take(MeterObject * self, PyObject * Py_UNUSED(ignored))
   return figures;
 }
 
-static PyObject * Meter_drop(MeterObject * self, PyObject * Py_UNUSED(ignored))
-{
-  self->dropped++;
-  Py_RETURN_NONE;
-}
-
 static PyMethodDef Meter_methods[] = {
   {"take", (PyCFunction)Meter_take, METH_NOARGS,
    "take() -> (runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50, duration_p99, "
    "duration_max, dropped, stuck, running_ns): this window's figures (ns), then a new window"},
-  {"drop", (PyCFunction)Meter_drop, METH_NOARGS, "drop() -> None: one waiting invocation was dropped (keep-last)"},
   {NULL, NULL, 0, NULL},
-};
-
-static PyObject * Meter_get_running(MeterObject * self, void * Py_UNUSED(closure))
-{
-  return PyLong_FromLongLong(self->in_step > 0 ? monotonic_ns() - self->step_since : 0);
-}
-
-static PyGetSetDef Meter_getset[] = {
-  {"running_ns", (getter)Meter_get_running, NULL, "How long its current step has run (0: none runs)", NULL},
-  {NULL, NULL, NULL, NULL, NULL},
 };
 
 PyTypeObject MeterType = {
@@ -241,7 +224,6 @@ PyTypeObject MeterType = {
   .tp_flags = Py_TPFLAGS_DEFAULT,
   .tp_new = PyType_GenericNew,
   .tp_methods = Meter_methods,
-  .tp_getset = Meter_getset,
 };
 
 /* stuck_after(ns) -> None: how long a step runs before it counts as stuck (all meters). */

@@ -6,12 +6,14 @@ DDS's rmw then blocks up to the writer's blocking time (100 ms) and gives up
 with "client will not receive response", and the caller waits forever
 (``ros2 component load`` right after a container starts; seen in this
 project's tests about once in a few thousand calls, more on a loaded
-machine). rclpy reports that one failure as a ``RuntimeWarning`` from C++,
-which a caller cannot catch, so this module turns exactly that warning into
-an error for the whole process and sends the answer again, for a few
-seconds, from one thread of its own: never on the event loop, and bounded,
-so a peer whose response reader can never match (an incompatible QoS, on
-purpose or not) costs at most that one thread.
+machine). The compiled send (``_fastpath.Server``) says so by returning
+``False``; rclpy's ``send_response``, used for a service the compiled path
+cannot serve, reports it as a ``RuntimeWarning`` from C++, which a caller
+cannot catch, so this module turns exactly that warning into an error for
+the whole process. Either way the answer is sent again, for a few seconds,
+from one thread of its own: never on the event loop, and bounded, so a peer
+whose response reader can never match (an incompatible QoS, on purpose or
+not) costs at most that one thread.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Any
 from rclpy.exceptions import InvalidHandle
 
 from .._compat import RCLError
+from ._fastpath import Server
 
 __all__ = ["respond"]
 
@@ -41,14 +44,22 @@ RETRY_EVERY_S = 0.05
 MAX_WAITING = 64
 
 
-def respond(srv: Any, response: Any, header: Any) -> None:
-    """Send ``response``; if its client is not matched yet, again from the resender thread."""
-    if not _sent(srv, response, header):
-        _resender.add(srv, response, header)
+def respond(srv: Any, response: Any, header: Any, *, server: Server | None = None) -> None:
+    """Send ``response``; if its client is not matched yet, again from the resender thread.
+
+    ``server``: the service's compiled answers, which ``header`` came from
+    (``None``: rclpy's ``send_response``, with rclpy's header).
+    """
+    if not _sent(srv, server, response, header):
+        _resender.add(srv, server, response, header)
 
 
-def _sent(srv: Any, response: Any, header: Any) -> bool:
+def _sent(srv: Any, server: Server | None, response: Any, header: Any) -> bool:
     """Send once; ``False`` when the client's response reader is not matched (yet)."""
+    if server is not None:
+        # Entered: an answer sent after an await may outlive the wait set's hold on it.
+        with srv.handle:
+            return server.send(response, header)
     try:
         srv.send_response(response, header)
     except RuntimeWarning as warning:
@@ -73,12 +84,12 @@ class _Resender:
     """One thread that sends waiting answers again until their clients match or time runs out."""
 
     def __init__(self) -> None:
-        self._waiting: collections.deque[tuple[float, Any, Any, Any]] = collections.deque()
+        self._waiting: collections.deque[tuple[float, Any, Server | None, Any, Any]] = collections.deque()
         self._wake = threading.Condition()
         self._thread: threading.Thread | None = None
         self.dropped = 0
 
-    def add(self, srv: Any, response: Any, header: Any) -> None:
+    def add(self, srv: Any, server: Server | None, response: Any, header: Any) -> None:
         with self._wake:
             if len(self._waiting) >= MAX_WAITING:
                 self.dropped += 1
@@ -87,7 +98,7 @@ class _Resender:
                     _name(srv), len(self._waiting),
                 )
                 return
-            self._waiting.append((time.monotonic() + RETRY_S, srv, response, header))
+            self._waiting.append((time.monotonic() + RETRY_S, srv, server, response, header))
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="respond-again", daemon=True)
                 self._thread.start()
@@ -106,10 +117,10 @@ class _Resender:
                 self._waiting.extendleft(reversed(still))
 
     @staticmethod
-    def _retry(deadline: float, srv: Any, response: Any, header: Any) -> bool:
+    def _retry(deadline: float, srv: Any, server: Server | None, response: Any, header: Any) -> bool:
         """Try once more; ``True`` when done with the answer (sent, or given up)."""
         try:
-            if _sent(srv, response, header):
+            if _sent(srv, server, response, header):
                 return True
         except InvalidHandle:
             return True  # the service is gone, and its client's wait with it

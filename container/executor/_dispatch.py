@@ -107,6 +107,8 @@ class Dispatcher:
         self._nodes = hooks.nodes
         self._loop = loop
         self._post = hooks.post
+        self._posted = hooks.posted
+        self._run_posted = hooks.run_posted
         self._reentrant_limit = reentrant_limit
         #: Whose futures the responses complete (rclpy's ``Future._set_executor``).
         self.future_executor = future_executor
@@ -312,7 +314,16 @@ class Dispatcher:
                 timeout_ns = 0  # a poll, then that work runs
             flags = self._wait_and_dispatch_once(timeout_ns)
         if not flags and self._dispatching_burst():
-            self._hot.burst(self._loop, self._eager, self._run_eager, express=self.gate.permits is None)
+            express = self.gate.permits is None
+            self._hot.burst(
+                self._loop,
+                self._eager,
+                self._run_eager,
+                express=express,
+                # spin_once runs no more than the wait it made.
+                posted=self._posted if express else (),
+                run_posted=self._run_posted,
+            )
         return flags
 
     def ros_turn_due(self) -> bool:

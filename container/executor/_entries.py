@@ -15,7 +15,9 @@ from typing import Any
 from rclpy.node import Node
 
 from ._fastpath import (
+    Caller,
     Meter,
+    Server,
     Taker,
     Token,
     Work,
@@ -47,6 +49,10 @@ class Entry:
     token: Token
     #: Takes the subscription's messages in C (``None``: rclpy's take, e.g. raw).
     taker: Taker | None = None
+    #: Takes the service's requests and sends its answers in C (``None``: rclpy's).
+    server: Server | None = None
+    #: Takes the client's responses in C (``None``: rclpy's take).
+    caller: Caller | None = None
     #: A subscription whose callback takes ``(message, message_info)``.
     wants_info: bool = False
     #: What its callbacks cost is told (``None``: accounting is off).

@@ -97,6 +97,23 @@ class Taker:
     def take_with_info(self) -> tuple[object, dict[str, Any]] | None:
         """With the keys rclpy's ``take_message`` gives (``publisher_gid`` when made with it)."""
 
+class Server:
+    """One service's requests, taken into a kept C message, and its answers."""
+
+    def __init__(self, *, service: int, srv_type: type) -> None: ...
+    def take(self) -> tuple[Any, bytes] | None:
+        """``(request, header)``; the header is for :meth:`send` only."""
+    def send(self, response: Any, header: bytes, /) -> bool:
+        """``False`` while the client's response reader is not matched; ``TypeError``
+        for a response of another type."""
+
+class Caller:
+    """One client's responses, taken into a kept C message."""
+
+    def __init__(self, *, client: int, srv_type: type) -> None: ...
+    def take(self) -> tuple[int, Any] | None:
+        """``(sequence_number, response)``."""
+
 #: What :meth:`WaitSet.wait` gives: the ready handle addresses of each kind
 #: (subscriptions, guard conditions, timers, clients, services, events), or
 #: an empty tuple when it timed out.

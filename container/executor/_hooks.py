@@ -40,6 +40,13 @@ class ExecutorHooks(Protocol):
     def post(self, callback: Callable[..., object], *args: Any) -> None:
         """Run ``callback(*args)`` on the dispatching loop's thread soon (any thread)."""
 
+    @property
+    def posted(self) -> Sized:
+        """What :meth:`post` queued for the loop's thread and has not run yet."""
+
+    def run_posted(self) -> None:
+        """Run it now (on the loop's thread, dispatching)."""
+
     def report_error(self, node: Node, entity: object, error: BaseException) -> None:
         """A callback of ``node``'s ``entity`` raised ``error``."""
 

@@ -89,3 +89,6 @@ class Inbox:
 
     def __bool__(self) -> bool:
         return bool(self._queue)
+
+    def __len__(self) -> int:
+        return len(self._queue)

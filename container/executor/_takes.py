@@ -24,6 +24,7 @@ from .._compat import (
 from . import _fastpath
 from ._answers import respond
 from ._entries import Entry
+from ._fastpath import Server
 
 if TYPE_CHECKING:
     from ._dispatch import Dispatcher
@@ -96,22 +97,29 @@ def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.D
     reader holds responses.
     """
     cli = entry.entity
+    caller = entry.caller
     drain = count >= _fastpath.DRAIN
     empty_left = _held_at_most(cli.qos_profile) if drain else 0
     for _ in itertools.repeat(None) if drain else range(count):
-        try:
-            with cli.handle:
-                header, response = cli.handle.take_response(cli.srv_type.Response)
-        except InvalidHandle:
-            return
-        if header is None:
+        if caller is not None:
+            # The wait set holds the client's handle while it can be taken.
+            taken = caller.take()
+        else:
+            try:
+                with cli.handle:
+                    header, response = cli.handle.take_response(cli.srv_type.Response)
+            except InvalidHandle:
+                return
+            taken = None if header is None else (header.request_id.sequence_number, response)
+        if taken is None:
             if drain:
                 empty_left -= 1
                 if empty_left <= 0:
                     return
             continue  # another client's response (or, draining, none left)
+        sequence, response = taken
         try:
-            future = cli.get_pending_request(header.request_id.sequence_number)
+            future = cli.get_pending_request(sequence)
         except KeyError:
             continue  # the caller cancelled the request
         adopt_future(future, dispatcher.response_executor)
@@ -129,17 +137,25 @@ def take_request(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.DR
     take comes back empty to say so: 1.5 us of a 40 us round trip.
     """
     srv = entry.entity
+    server = entry.server
     serve = _serve_async if entry.is_async else _serve
     callback, request_type, response_type = srv.callback, srv.srv_type.Request, srv.srv_type.Response
     for _ in itertools.repeat(None) if count >= _fastpath.DRAIN else range(count):
-        try:
-            with srv.handle:
-                request, header = srv.handle.service_take_request(request_type)
-        except InvalidHandle:
-            return
-        if header is None:
-            return
-        dispatcher.submit(entry, serve, (srv, callback, response_type, request, header))
+        if server is not None:
+            # The wait set holds the service's handle while it can be taken.
+            taken = server.take()
+            if taken is None:
+                return
+            request, header = taken
+        else:
+            try:
+                with srv.handle:
+                    request, header = srv.handle.service_take_request(request_type)
+            except InvalidHandle:
+                return
+            if header is None:
+                return
+        dispatcher.submit(entry, serve, (srv, server, callback, response_type, request, header))
 
 def take_waitable(dispatcher: Dispatcher, entry: Entry) -> None:
     waitable = entry.entity
@@ -165,15 +181,19 @@ def _held_at_most(qos: QoSProfile) -> int:
 
 
 
-async def _serve_async(srv: Any, callback: Callable[..., Any], response_type: type, request: Any, header: Any) -> None:
+async def _serve_async(
+    srv: Any, server: Server | None, callback: Callable[..., Any], response_type: type, request: Any, header: Any
+) -> None:
     """Run an ``async def`` service callback on ``request`` and send its answer.
 
     A module function given its arguments, not a closure made per request:
     a closure and its coroutine function cost a few percent of a service
     round trip."""
-    respond(srv, await callback(request, response_type()), header)
+    respond(srv, await callback(request, response_type()), header, server=server)
 
 
-def _serve(srv: Any, callback: Callable[..., Any], response_type: type, request: Any, header: Any) -> None:
+def _serve(
+    srv: Any, server: Server | None, callback: Callable[..., Any], response_type: type, request: Any, header: Any
+) -> None:
     """Run a plain service callback on ``request`` and send its answer."""
-    respond(srv, callback(request, response_type()), header)
+    respond(srv, callback(request, response_type()), header, server=server)

@@ -53,11 +53,13 @@ from ._fastpath import (
     EVENT,
     SERVICE,
     SUBSCRIPTION,
+    Caller,
     Express,
     Lock,
     Notifier,
     Route,
     Routes,
+    Server,
     Taker,
 )
 from ._fastpath import WaitSet as FastWaitSet
@@ -152,6 +154,10 @@ _POLL_MAX_NS = 1_000_000
 _WATCHED = {"subscription": SUBSCRIPTION, "service": SERVICE, "client": CLIENT}
 
 
+def _nothing() -> None:
+    pass
+
+
 
 class EntityWaitSet:
     """One rcl wait set over some kinds of entity, used by one thread at a time."""
@@ -238,6 +244,10 @@ class EntityWaitSet:
                         table.by_pointer[kind][entity.handle.pointer] = entry
                         if kind == "subscription":
                             table.subscriptions[id(entity)] = entry
+                        if kind == "service" and entry.server is None:  # entries are kept across rebuilds
+                            entry.server = _server(entity)
+                        elif kind == "client" and entry.caller is None:
+                            entry.caller = _caller(entity)
                         watched = _WATCHED.get(kind)
                         if watched is None or not self._watch(
                             entity.handle.pointer, watched, plain=kind == "subscription" and not entry.is_async
@@ -371,14 +381,24 @@ class EntityWaitSet:
                 return WOKEN
 
     def burst(
-        self, loop: asyncio.AbstractEventLoop, eager: Sized, run_eager: Callable[[], None], *, express: bool
+        self,
+        loop: asyncio.AbstractEventLoop,
+        eager: Sized,
+        run_eager: Callable[[], None],
+        *,
+        express: bool,
+        posted: Sized = (),
+        run_posted: Callable[[], None] = _nothing,
     ) -> None:
         """Take what the notifier reports and run it, without waiting, for as
         long as asyncio has nothing to run and no wait is due (timers and
         guard conditions looked at within ``_POLL_MAX_NS``).
 
         The hot path of a chain of callbacks in one process: one call per
-        round, the checks inlined.
+        round, the checks inlined. What was ``posted`` to the loop's thread
+        meanwhile runs here as well (``run_posted``): a response's
+        done-callbacks, which make the next call, so a chain of service
+        calls stays in this loop too.
         """
         notifier = self._notifier
         fast = self._express if express else None
@@ -401,7 +421,10 @@ class EntityWaitSet:
                     except Exception:
                         self._taking_failed()
             elif not eager:
-                return
+                if not posted:
+                    return
+                run_posted()
+                continue
             run_eager()
 
     def _wait_and_dispatch(self, table: Table, timeout_ns: int) -> int:
@@ -739,6 +762,22 @@ def _taker(subscription: Any) -> Taker | None:
     except (AttributeError, TypeError, ValueError, MemoryError):
         return None
 
+
+
+def _server(service: Any) -> Server | None:
+    """Compiled takes and answers for ``service``; ``None`` (rclpy's) for a type it cannot handle."""
+    try:
+        return Server(service=service.handle.pointer, srv_type=service.srv_type)
+    except (AttributeError, TypeError, ValueError, MemoryError):
+        return None
+
+
+def _caller(client: Any) -> Caller | None:
+    """Compiled takes of ``client``'s responses; ``None`` (rclpy's) for a type it cannot handle."""
+    try:
+        return Caller(client=client.handle.pointer, srv_type=client.srv_type)
+    except (AttributeError, TypeError, ValueError, MemoryError):
+        return None
 
 
 def _hold(held: Held, handle: Any) -> bool:

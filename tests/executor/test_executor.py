@@ -27,7 +27,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.task import Future as RclFuture
 from std_msgs.msg import Int64
-from std_srvs.srv import Trigger
+from std_srvs.srv import SetBool, Trigger
 
 from container import AsyncioExecutor, ExecutorError, _compat
 
@@ -923,12 +923,20 @@ def test_program_that_forgets_shutdown_still_exits_cleanly(tmp_path: Path) -> No
     assert (result.returncode, result.stdout) == (0, "done\n"), result.stderr[-2000:]
 
 
+@pytest.mark.parametrize("path", ["compiled", "rclpy"])
 @pytest.mark.parametrize("style", ["plain", "async"])
 def test_an_answer_the_client_cannot_receive_yet_is_sent_again(
-    style: str, host: Callable[..., Any], executor: AsyncioExecutor
+    style: str, path: str, host: Callable[..., Any], executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Fast DDS fails a response to a client the service has not matched yet
-    ("client will not receive response"): the caller got no answer, ever."""
+    ("client will not receive response"): the caller got no answer, ever.
+
+    The first two sends find the client unmatched: the compiled send says so
+    (as it does when rmw times out; the next test has a client that never
+    matches), or, for a service the compiled path cannot serve, rclpy's
+    ``send_response`` raises rmw's error."""
+    from container.executor import _answers, _waitset
+
     server, caller = host(Node, f"respond_server_{style}"), host(Node, f"respond_caller_{style}")
 
     def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -940,15 +948,27 @@ def test_an_answer_the_client_cannot_receive_yet_is_sent_again(
 
     service = server.create_service(Trigger, f"respond_{style}", answer_async if style == "async" else answer)
     refusals = [2]
-    send = service.send_response
+    if path == "compiled":
+        sent = _answers._sent
 
-    def not_matched_yet(response: Any, header: Any) -> None:
-        if refusals[0] > 0:
-            refusals[0] -= 1
-            raise _compat.RCLError("Failed to send response: client will not receive response")
-        send(response, header)
+        def not_matched_yet(*args: Any) -> bool:
+            if refusals[0] > 0:
+                refusals[0] -= 1
+                return False
+            return sent(*args)
 
-    service.send_response = not_matched_yet  # type: ignore[method-assign, unused-ignore]  # rclpy 9 types it
+        monkeypatch.setattr(_answers, "_sent", not_matched_yet)
+    else:
+        monkeypatch.setattr(_waitset, "_server", lambda service: None)
+        send = service.send_response
+
+        def refuse(response: Any, header: Any) -> None:
+            if refusals[0] > 0:
+                refusals[0] -= 1
+                raise _compat.RCLError("Failed to send response: client will not receive response")
+            send(response, header)
+
+        service.send_response = refuse  # type: ignore[method-assign, unused-ignore]  # rclpy 9 types it
     client: Client[Any, Any] = caller.create_client(Trigger, f"respond_{style}")
     assert client.wait_for_service(timeout_sec=10.0)
     future = client.call_async(Trigger.Request())
@@ -956,6 +976,37 @@ def test_an_answer_the_client_cannot_receive_yet_is_sent_again(
     assert future.done() and refusals == [0]
     result = future.result()
     assert result is not None and result.message == "late but there"
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_services_and_clients_the_compiled_takes_cannot_serve_are_served_by_rclpys(
+    style: str, host: Callable[..., Any], executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """rclpy's takes and ``send_response`` where no compiled ``Server`` or ``Caller`` could be made."""
+    from container.executor import _waitset
+
+    monkeypatch.setattr(_waitset, "_server", lambda service: None)
+    monkeypatch.setattr(_waitset, "_caller", lambda client: None)
+    server, caller = host(Node, f"rclpy_takes_server_{style}"), host(Node, f"rclpy_takes_caller_{style}")
+    served: list[bool] = []
+
+    def answer(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        served.append(request.data)
+        response.success, response.message = request.data, f"call {len(served)}"
+        return response
+
+    async def answer_async(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        return answer(request, response)
+
+    server.create_service(SetBool, f"rclpy_takes_{style}", answer_async if style == "async" else answer)
+    client: Client[Any, Any] = caller.create_client(SetBool, f"rclpy_takes_{style}")
+    assert client.wait_for_service(timeout_sec=10.0)
+    futures = [client.call_async(SetBool.Request(data=index % 2 == 0)) for index in range(5)]
+    for future in futures:
+        executor.spin_until_future_complete(future, timeout_sec=10.0)
+    results = [future.result() for future in futures]
+    assert [(result.success if result else None) for result in results] == [True, False, True, False, True]
+    assert sorted(result.message for result in results if result) == [f"call {n}" for n in range(1, 6)]
 
 
 def test_an_answer_its_client_cannot_match_is_retried_off_the_loop_then_dropped(

@@ -29,11 +29,12 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Int64
+from std_srvs.srv import SetBool
 
 from container import AsyncioExecutor
 from container._compat import WaitSet
 from container.executor import HAS_PUBLISHER_GID, _fastpath
-from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, FdWatcher, Notifier, Taker
+from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Caller, FdWatcher, Notifier, Server, Taker
 from container.executor._fastpath import WaitSet as FastWaitSet
 from container.executor._waitset import EntityWaitSet
 
@@ -234,6 +235,51 @@ def test_taker_takes_what_rclpy_takes(node: Node) -> None:
     assert sequence is not None
     assert info["publication_sequence_number"] == sequence + 1
     assert info["source_timestamp"] >= first[1]["source_timestamp"] > 0
+
+
+def test_server_and_caller_take_and_answer_as_rclpy_does(node: Node) -> None:
+    """Requests and responses taken into C messages kept across takes, and
+    answers sent, each reaching the call it belongs to."""
+    service: Any = node.create_service(SetBool, "fp_serve", lambda request, response: response)
+    client: Any = node.create_client(SetBool, "fp_serve")
+    assert client.wait_for_service(timeout_sec=TIMEOUT)
+    server = Server(service=service.handle.pointer, srv_type=SetBool)
+    caller = Caller(client=client.handle.pointer, srv_type=SetBool)
+    assert server.take() is None and caller.take() is None
+    first = client.call_async(SetBool.Request(data=True))
+    second = client.call_async(SetBool.Request(data=False))
+    taken: list[tuple[Any, bytes]] = []
+
+    def take_request() -> bool:
+        request = server.take()
+        if request is not None:
+            taken.append(request)
+        return len(taken) == 2
+
+    assert _until(take_request)
+    assert [request.data for request, _ in taken] == [True, False]
+    with pytest.raises(TypeError, match="SetBool_Response"):
+        server.send("not a response", taken[0][1])
+    with pytest.raises(ValueError, match="header"):
+        server.send(SetBool.Response(), b"not a header")
+    # Answered out of order, the longer message first: the kept message resizes.
+    assert server.send(SetBool.Response(success=False, message="the second call, answered first"), taken[1][1])
+    assert server.send(SetBool.Response(success=True, message="1st"), taken[0][1])
+    answers: list[tuple[int, Any]] = []
+
+    def take_response() -> bool:
+        response = caller.take()
+        if response is not None:
+            answers.append(response)
+        return len(answers) == 2
+
+    assert _until(take_response)
+    assert caller.take() is None
+    by_call = {id(client.get_pending_request(sequence)): response for sequence, response in answers}
+    assert by_call[id(second)] == SetBool.Response(success=False, message="the second call, answered first")
+    assert by_call[id(first)] == SetBool.Response(success=True, message="1st")
+    for future in (first, second):
+        client.remove_pending_request(future)
 
 
 @dataclass

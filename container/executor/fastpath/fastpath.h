@@ -3,7 +3,8 @@
  * One module, _fastpath, built from one source per job (see module.c for
  * the whole picture): notifier.c (rmw's new-data callbacks), waitset.c (an
  * rcl wait set over fixed entities), taker.c (rcl_take into a kept
- * message), lock.c (a mutex both languages use), lanes.c (the callback
+ * message), service.c (the same for services and clients, and answers),
+ * lock.c (a mutex both languages use), lanes.c (the callback
  * groups' slot state and the objects both languages read: work, tokens,
  * runners, routes), express.c (the loop thread's async chain), watcher.c
  * (asyncio's file descriptors wake the loop's rcl wait), meter.c (what each
@@ -145,6 +146,10 @@ typedef struct {
 extern PyTypeObject TakerType;
 PyObject * taker_take(TakerObject * self, int with_info);
 PyObject * gid_dict(const rmw_gid_t * gid);
+
+/* -- service.c --------------------------------------------------------------- */
+extern PyTypeObject ServerType;
+extern PyTypeObject CallerType;
 
 /* -- lock.c ------------------------------------------------------------------ */
 typedef struct {

@@ -54,12 +54,16 @@ def respond(srv: Any, response: Any, header: Any, *, server: Server | None = Non
         _resender.add(srv, server, response, header)
 
 
-def _sent(srv: Any, server: Server | None, response: Any, header: Any) -> bool:
-    """Send once; ``False`` when the client's response reader is not matched (yet)."""
+def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go: bool = False) -> bool:
+    """Send once; ``False`` when the client's response reader is not matched (yet).
+
+    ``let_go``: the compiled send lets go of the GIL while rmw waits for
+    the client (the resender thread: every other thread runs meanwhile).
+    """
     if server is not None:
         # Entered: an answer sent after an await may outlive the wait set's hold on it.
         with srv.handle:
-            return server.send(response, header)
+            return server.send(response, header, let_go)
     try:
         srv.send_response(response, header)
     except RuntimeWarning as warning:
@@ -120,7 +124,7 @@ class _Resender:
     def _retry(deadline: float, srv: Any, server: Server | None, response: Any, header: Any) -> bool:
         """Try once more; ``True`` when done with the answer (sent, or given up)."""
         try:
-            if _sent(srv, server, response, header):
+            if _sent(srv, server, response, header, let_go=True):
                 return True
         except InvalidHandle:
             return True  # the service is gone, and its client's wait with it

@@ -103,9 +103,10 @@ class Server:
     def __init__(self, *, service: int, srv_type: type) -> None: ...
     def take(self) -> tuple[Any, bytes] | None:
         """``(request, header)``; the header is for :meth:`send` only."""
-    def send(self, response: Any, header: bytes, /) -> bool:
-        """``False`` while the client's response reader is not matched; ``TypeError``
-        for a response of another type."""
+    def send(self, response: Any, header: bytes, let_go: bool = False, /) -> bool:
+        """``False`` while the client's response reader is not matched (rmw waits up to
+        100 ms for it, without the GIL with ``let_go``); ``TypeError`` for a response
+        of another type."""
 
 class Caller:
     """One client's responses, taken into a kept C message."""

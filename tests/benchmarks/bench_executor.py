@@ -22,7 +22,10 @@ turns round after round so that drift on a shared machine hits all alike:
 
 Besides rclpy's three executors, ``floor`` is a bare loop on rclpy's wait set
 with no executor at all (see :class:`BareLoop`): what any executor built on
-rclpy's Python API can at best approach.
+rclpy's Python API can at best approach. For the load only, ``deadline``
+goes further (see :class:`DeadlineLoop`): no rcl wait at all, the least a
+Python loop over rclpy's timers and publishers spends; the load's CPU is
+printed as a ratio to the floor's, round by round.
 
 Printed as medians and as ratios to each of rclpy's three executors.
 """
@@ -50,6 +53,7 @@ KINDS = {
     "multi": "rclpy MultiThreadedExecutor",
     "events": "rclpy experimental EventsExecutor",
     "floor": "no executor: one bare rcl wait loop",
+    "deadline": "no rcl wait: epoll to each deadline",
 }
 
 #: How long one ``spin_until_future_complete`` of the EventsExecutor may
@@ -61,6 +65,8 @@ ACCOUNTING_VARIABLE = "BENCH_ACCOUNTING"
 
 #: The floor has no callback groups, no isolation: ping-pong and load only.
 FLOORLESS = {"gap", "services"}
+#: Kinds that run one measurement only.
+ONLY = {"deadline": "load"}
 
 
 class BareLoop:
@@ -109,9 +115,76 @@ class BareLoop:
                     sub.callback(taken[0])
 
 
+class DeadlineLoop:
+    """Less than any executor can do for the load: no rcl wait set at all.
+
+    One thread sleeps in ``epoll`` until the soonest timer's deadline
+    (kept in a heap, each timer's next one asked of rcl after its call),
+    calls that rcl timer and its callback, then takes what its publish
+    delivered in process (synchronously, as Fast DDS does, reported by the
+    compiled notifier) with the compiled ``Taker`` and calls the
+    subscriptions' callbacks. No callback groups, no asyncio, no guard
+    conditions, nothing from other processes: a measuring stick for
+    waiting outside ``rcl_wait``, the direction issue 31 part 3 asked to be
+    measured, not an executor.
+    """
+
+    def __init__(self) -> None:
+        self._nodes: list[Any] = []
+        self._stop = False
+
+    def add_node(self, node: Any) -> None:
+        self._nodes.append(node)
+
+    def shutdown(self, timeout_sec: float | None = None) -> None:
+        self._stop = True
+
+    def spin(self) -> None:
+        import heapq
+        import select
+
+        from rclpy.guard_condition import GuardCondition
+
+        from container.executor._fastpath import SUBSCRIPTION, Notifier, Taker
+
+        guard = GuardCondition(None, None)  # the notifier's, never waited on here
+        notifier = Notifier(guard=guard.handle.pointer)
+        takes = {}
+        for sub in (sub for node in self._nodes for sub in node.subscriptions):
+            pointer = sub.handle.pointer
+            notifier.watch(pointer, SUBSCRIPTION)
+            takes[pointer] = (Taker(subscription=pointer, message_type=sub.msg_type), sub.callback)
+        timers = [timer for node in self._nodes for timer in node.timers]
+        now = time.monotonic_ns
+        heap = [(now() + timer.handle.time_until_next_call(), index) for index, timer in enumerate(timers)]
+        heapq.heapify(heap)
+        poll = select.epoll().poll
+        while not self._stop:
+            due, index = heap[0]
+            left = due - now()
+            if left > 0:
+                poll(min(left, 100_000_000) / 1e9)
+                continue
+            timer = timers[index]
+            timer.handle.call_timer()
+            timer.callback()
+            for pointer, count in notifier.ready():
+                taker, callback = takes[pointer]
+                for _ in range(count):
+                    message = taker.take()
+                    if message is None:
+                        break
+                    callback(message)
+            heapq.heapreplace(heap, (now() + timer.handle.time_until_next_call(), index))
+        notifier.close()
+        guard.destroy()
+
+
 def _executor(kind: str) -> Any:
     if kind == "floor":
         return BareLoop()
+    if kind == "deadline":
+        return DeadlineLoop()
     if kind.startswith("asyncio"):
         from container import AsyncioExecutor
 
@@ -486,9 +559,7 @@ def main() -> None:
             labels = list(pythons) if round_index % 2 == 0 else list(pythons)[::-1]
             for label in labels:
                 for kind in _running_order(kinds, round_index):
-                    if (
-                        measure in FLOORLESS and kind == "floor"
-                    ):
+                    if (measure in FLOORLESS and kind == "floor") or ONLY.get(kind, measure) != measure:
                         continue
                     seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)
                     value, note = _run_child(measure, kind, seconds, pythons[label])
@@ -529,6 +600,16 @@ def _report(results: Results, kinds: list[str]) -> None:
                 mine = _median(calls[kind])
                 listed = " ".join(f"{_x(_ratio(mine, peer)):>9}" for peer in peers)
                 print(f"{KINDS[kind]:38} {mine:13.0f} {listed}")
+    loads = {kind: results.get(("load", kind), []) for kind in kinds}
+    floors = loads.get("floor", [])
+    if floors:
+        print("\nload CPU, round by round, over the floor's (same round):")
+        for kind in kinds:
+            ratios = [_ratio(mine, floor) for mine, floor in zip(loads[kind], floors, strict=False)]
+            if kind == "floor" or not ratios:
+                continue
+            listed = " ".join(_x(r) for r in ratios)
+            print(f"{KINDS[kind]:38} {listed}   (median {_x(_median(ratios))}, min {_x(min(ratios))})")
     for title, values in (("round trips", rt), ("service calls", calls)):
         if not any(values.values()):
             continue

@@ -951,11 +951,11 @@ def test_an_answer_the_client_cannot_receive_yet_is_sent_again(
     if path == "compiled":
         sent = _answers._sent
 
-        def not_matched_yet(*args: Any) -> bool:
+        def not_matched_yet(*args: Any, **kwargs: Any) -> bool:
             if refusals[0] > 0:
                 refusals[0] -= 1
                 return False
-            return sent(*args)
+            return sent(*args, **kwargs)
 
         monkeypatch.setattr(_answers, "_sent", not_matched_yet)
     else:
@@ -1007,6 +1007,75 @@ def test_services_and_clients_the_compiled_takes_cannot_serve_are_served_by_rclp
     results = [future.result() for future in futures]
     assert [(result.success if result else None) for result in results] == [True, False, True, False, True]
     assert sorted(result.message for result in results if result) == [f"call {n}" for n in range(1, 6)]
+
+
+def test_retrying_an_answer_its_client_cannot_match_holds_up_no_other_thread(
+    executor: AsyncioExecutor,
+    make_node: Callable[[str], Node],
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each retry waits 100 ms in rmw for the client's response reader: without
+    the GIL, so a peer asking for answers it can never match (a transient-local
+    client) stalls no other thread of the container meanwhile."""
+    from container.executor import _answers
+
+    monkeypatch.setattr(_answers, "RETRY_S", 1.0)
+    retries: list[tuple[float, float]] = []
+    sent = _answers._sent
+
+    def timed(*args: Any, **kwargs: Any) -> bool:
+        started = time.perf_counter()
+        try:
+            return sent(*args, **kwargs)
+        finally:
+            if threading.current_thread().name == "respond-again":  # the resender's
+                retries.append((started, time.perf_counter()))
+
+    monkeypatch.setattr(_answers, "_sent", timed)
+    server, callers = make_node("stall_server"), make_node("stall_callers")
+    served = threading.Event()
+    def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        served.set()
+        return response
+
+    server.create_service(Trigger, "stall", answer)
+    unmatched: Client[Any, Any] = callers.create_client(
+        Trigger, "stall", qos_profile=QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    )
+    good: Client[Any, Any] = callers.create_client(Trigger, "stall")  # the one wait_for_service can see
+    executor.add_node(server)
+    executor.add_node(callers)
+    ticks: list[float] = []
+    stop = threading.Event()
+
+    def tick() -> None:
+        while not stop.is_set():
+            ticks.append(time.perf_counter())
+            stop.wait(0.002)
+
+    ticker = threading.Thread(target=tick, daemon=True)
+    thread = spin_in_thread(executor)
+    try:
+        assert good.wait_for_service(timeout_sec=10.0)
+        with caplog.at_level(logging.WARNING, logger=_answers.__name__):
+            ticker.start()
+            unmatched.call_async(Trigger.Request())
+            assert served.wait(10.0)
+            deadline = time.monotonic() + 10.0
+            while "did not match" not in caplog.text and time.monotonic() < deadline:
+                served.wait(0.05)  # a poll of the log, not a pause the test relies on
+        assert "did not match" in caplog.text, caplog.text
+    finally:
+        stop.set()
+        ticker.join(5.0)
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    blocked = [(start, end) for start, end in retries if end - start >= 0.09]
+    assert len(blocked) >= 3, retries  # rmw did wait for the client, each time
+    inside = [t for t in ticks if blocked[0][0] <= t <= blocked[-1][1]]
+    gaps = [later - earlier for earlier, later in itertools.pairwise(inside)]
+    assert gaps and max(gaps) < 0.06, f"largest gap {max(gaps, default=0) * 1000:.0f} ms during {len(blocked)} retries"
 
 
 def test_an_answer_its_client_cannot_match_is_retried_off_the_loop_then_dropped(

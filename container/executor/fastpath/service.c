@@ -121,8 +121,11 @@ static PyObject * Server_take(ServerObject * self, PyObject * Py_UNUSED(ignored)
   return Py_BuildValue("(NN)", request, header);
 }
 
-/* send(response, header) -> bool: False when the client's response reader is
- * not matched (yet): rmw timed out waiting for it. A response of another
+/* send(response, header, let_go=False) -> bool: False when the client's
+ * response reader is not matched (yet): rmw timed out waiting for it, up to
+ * 100 ms. With let_go, the GIL is let go meanwhile (a thread that retries
+ * such answers; the dispatching threads keep it, as rclpy does: a send that
+ * lets go may wait for the GIL behind a busy thread). A response of another
  * type is a TypeError, as in rclpy. */
 static PyObject * Server_send(ServerObject * self, PyObject * const * args, Py_ssize_t nargs)
 {
@@ -131,9 +134,12 @@ static PyObject * Server_send(ServerObject * self, PyObject * const * args, Py_s
   Py_ssize_t size;
   void * message;
   rcl_ret_t ret;
-  int is_response;
-  if (nargs != 2 || !PyBytes_Check(args[1])) {
-    PyErr_SetString(PyExc_TypeError, "send(response, header), the header from take()");
+  int is_response, let_go = 0;
+  if (nargs < 2 || nargs > 3 || !PyBytes_Check(args[1])) {
+    PyErr_SetString(PyExc_TypeError, "send(response, header, let_go=False), the header from take()");
+    return NULL;
+  }
+  if (nargs == 3 && (let_go = PyObject_IsTrue(args[2])) < 0) {
     return NULL;
   }
   if (self->request == NULL) {
@@ -166,7 +172,13 @@ static PyObject * Server_send(ServerObject * self, PyObject * const * args, Py_s
     }
     return NULL;
   }
-  ret = rcl_send_response(self->service, &header, message);
+  if (let_go) {
+    Py_BEGIN_ALLOW_THREADS
+    ret = rcl_send_response(self->service, &header, message);
+    Py_END_ALLOW_THREADS
+  } else {
+    ret = rcl_send_response(self->service, &header, message);
+  }
   self->destroy_response(message);
   if (ret == RCL_RET_OK) {
     Py_RETURN_TRUE;
@@ -183,7 +195,7 @@ static PyObject * Server_send(ServerObject * self, PyObject * const * args, Py_s
 static PyMethodDef Server_methods[] = {
   {"take", (PyCFunction)Server_take, METH_NOARGS, "take() -> (request, header) | None"},
   {"send", (PyCFunction)(void (*)(void))Server_send, METH_FASTCALL,
-   "send(response, header) -> bool: False while the client's response reader is not matched"},
+   "send(response, header, let_go=False) -> bool: False while the client's response reader is not matched"},
   {NULL, NULL, 0, NULL},
 };
 

@@ -925,19 +925,15 @@ class _DispatcherHooks:
         self.nodes = executor.get_nodes
         self.own_guards = executor._own_guards
         self.post = post
-        # What the own loop's inbox holds, run by a burst too (see EntityWaitSet.burst).
-        own = post == executor._inbox.post
-        self.posted: Sized = executor._inbox if own else ()
-        self.run_posted = executor._inbox.run if own else _nothing
+        # What the own loop's inbox holds, run by a burst too (see EntityWaitSet.burst);
+        # another loop's posts go through that loop, and nothing is left here to run.
+        self.posted: Sized = executor._inbox if post == executor._inbox.post else ()
+        self.run_posted = executor._inbox.run
         self.report_error = executor._report_error
         self.callback_completed = executor._callback_completed
         self.response_arrived = executor._notify_progress
         self.progress = executor._progress_future
         self.wake = executor._guard_trigger
-
-
-def _nothing() -> None:
-    pass
 
 
 def _resolve(future: asyncio.Future[None]) -> None:

@@ -154,10 +154,6 @@ _POLL_MAX_NS = 1_000_000
 _WATCHED = {"subscription": SUBSCRIPTION, "service": SERVICE, "client": CLIENT}
 
 
-def _nothing() -> None:
-    pass
-
-
 
 class EntityWaitSet:
     """One rcl wait set over some kinds of entity, used by one thread at a time."""
@@ -387,8 +383,8 @@ class EntityWaitSet:
         run_eager: Callable[[], None],
         *,
         express: bool,
-        posted: Sized = (),
-        run_posted: Callable[[], None] = _nothing,
+        posted: Sized,
+        run_posted: Callable[[], None],
     ) -> None:
         """Take what the notifier reports and run it, without waiting, for as
         long as asyncio has nothing to run and no wait is due (timers and

@@ -69,13 +69,8 @@ FLOORLESS = {"gap", "services"}
 ONLY = {"deadline": "load"}
 
 
-class BareLoop:
-    """The least any executor on rclpy's wait set can do: what sets the ceiling.
-
-    One thread, one wait set built once (re-adding the handles before each
-    wait, as rcl requires), take and call; no callback groups, no isolation,
-    no error handling. Not an executor to use: a measuring stick.
-    """
+class _Stick:
+    """What the measuring sticks below share with an executor: nodes added, a spin, a stop."""
 
     def __init__(self) -> None:
         self._nodes: list[Any] = []
@@ -86,6 +81,15 @@ class BareLoop:
 
     def shutdown(self, timeout_sec: float | None = None) -> None:
         self._stop = True
+
+
+class BareLoop(_Stick):
+    """The least any executor on rclpy's wait set can do: what sets the ceiling.
+
+    One thread, one wait set built once (re-adding the handles before each
+    wait, as rcl requires), take and call; no callback groups, no isolation,
+    no error handling. Not an executor to use: a measuring stick.
+    """
 
     def spin(self) -> None:
         from rclpy.utilities import get_default_context
@@ -115,7 +119,7 @@ class BareLoop:
                     sub.callback(taken[0])
 
 
-class DeadlineLoop:
+class DeadlineLoop(_Stick):
     """Less than any executor can do for the load: no rcl wait set at all.
 
     One thread sleeps in ``epoll`` until the soonest timer's deadline
@@ -128,16 +132,6 @@ class DeadlineLoop:
     waiting outside ``rcl_wait``, the direction issue 31 part 3 asked to be
     measured, not an executor.
     """
-
-    def __init__(self) -> None:
-        self._nodes: list[Any] = []
-        self._stop = False
-
-    def add_node(self, node: Any) -> None:
-        self._nodes.append(node)
-
-    def shutdown(self, timeout_sec: float | None = None) -> None:
-        self._stop = True
 
     def spin(self) -> None:
         import heapq

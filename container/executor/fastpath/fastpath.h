@@ -146,6 +146,8 @@ typedef struct {
 extern PyTypeObject TakerType;
 PyObject * taker_take(TakerObject * self, int with_info);
 PyObject * gid_dict(const rmw_gid_t * gid);
+/* The pointer in a message type's rosidl capsule ``name`` (NULL with an exception set). */
+void * capsule_of(PyObject * type, const char * name);
 
 /* -- service.c --------------------------------------------------------------- */
 extern PyTypeObject ServerType;

@@ -7,18 +7,6 @@ typedef bool (*convert_from_py_t)(PyObject *, void *);
 /* rmw's words when a client's response reader is not matched (yet). */
 #define NOT_MATCHED "will not receive response"
 
-static void * capsule_pointer(PyObject * type, const char * name)
-{
-  void * pointer;
-  PyObject * capsule = PyObject_GetAttrString(type, name);
-  if (capsule == NULL) {
-    return NULL;
-  }
-  pointer = PyCapsule_GetPointer(capsule, NULL);
-  Py_DECREF(capsule);
-  return pointer;
-}
-
 /* The capsules of srv_type's ``part`` (Request or Response) that are asked for. */
 static int message_functions(
   PyObject * srv_type, const char * part, PyObject ** type, create_message_t * create,
@@ -29,10 +17,10 @@ static int message_functions(
   if (message_type == NULL) {
     return -1;
   }
-  ok = (create == NULL || (*create = (create_message_t)capsule_pointer(message_type, "_CREATE_ROS_MESSAGE")) != NULL)
-    && (destroy == NULL || (*destroy = (destroy_message_t)capsule_pointer(message_type, "_DESTROY_ROS_MESSAGE")) != NULL)
-    && (to_py == NULL || (*to_py = (convert_to_py_t)capsule_pointer(message_type, "_CONVERT_TO_PY")) != NULL)
-    && (from_py == NULL || (*from_py = (convert_from_py_t)capsule_pointer(message_type, "_CONVERT_FROM_PY")) != NULL);
+  ok = (create == NULL || (*create = (create_message_t)capsule_of(message_type, "_CREATE_ROS_MESSAGE")) != NULL)
+    && (destroy == NULL || (*destroy = (destroy_message_t)capsule_of(message_type, "_DESTROY_ROS_MESSAGE")) != NULL)
+    && (to_py == NULL || (*to_py = (convert_to_py_t)capsule_of(message_type, "_CONVERT_TO_PY")) != NULL)
+    && (from_py == NULL || (*from_py = (convert_from_py_t)capsule_of(message_type, "_CONVERT_FROM_PY")) != NULL);
   if (ok && type != NULL) {
     *type = message_type;
     return 0;

@@ -9,7 +9,7 @@ PyObject * gid_dict(const rmw_gid_t * gid)
     (const char *)gid->data, (Py_ssize_t)RMW_GID_STORAGE_SIZE);
 }
 
-static void * capsule_of(PyObject * type, const char * name)
+void * capsule_of(PyObject * type, const char * name)
 {
   void * pointer;
   PyObject * capsule = PyObject_GetAttrString(type, name);

@@ -29,8 +29,8 @@ from typing import Any
 
 from rclpy.node import Node
 
+from ._engine import Meter, stuck_after
 from ._entries import describe
-from ._fastpath import Meter, stuck_after
 
 __all__ = ["Accounting", "CallbackLoad", "ContainerLoad", "GroupLoad", "NodeLoad"]
 

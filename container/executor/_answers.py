@@ -29,7 +29,7 @@ from typing import Any
 from rclpy.exceptions import InvalidHandle
 
 from .._compat import RCLError
-from ._fastpath import Server
+from ._engine import Server
 
 __all__ = ["respond"]
 
@@ -61,7 +61,8 @@ def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go
     the client (the resender thread: every other thread runs meanwhile).
     """
     if server is not None:
-        # Entered: an answer sent after an await may outlive the wait set's hold on it.
+        # Entered: a service destroyed meanwhile raises InvalidHandle here (the
+        # server's own hold only defers its destruction).
         with srv.handle:
             return server.send(response, header, let_go)
     try:

@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 from rclpy.task import Future as RclFuture
 
 from .._compat import running_loop, sleeps_zero
-from ._fastpath import Work
+from ._engine import Work
 from ._spare import run_on_spare_thread
 
 __all__ = [

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 from rclpy.node import Node
 
+from ._engine import Token, Work
 from ._entries import describe
-from ._fastpath import Token, Work
 
 __all__ = ["Culprit", "TaskOrigins", "is_platform_node", "working_for"]
 

@@ -41,8 +41,7 @@ from .._compat import (
     subscription_wants_info,
 )
 from ._accounting import Accounting
-from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
-from ._fastpath import (
+from ._engine import (
     Express,
     Handoff,
     Meter,
@@ -50,6 +49,7 @@ from ._fastpath import (
     Token,
     Work,
 )
+from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
 from ._gate import Gate
 from ._hooks import ExecutorHooks
 from ._lanes import Lane, Retired
@@ -636,6 +636,12 @@ class Dispatcher:
             joined = joined and not self._cold_thread.is_alive()
         self._cold.close(timeout=timeout)
         self._cold_wake.destroy()
+        # Nothing takes any more: the handles the entries' compiled takes hold go.
+        with self._tokens_lock:
+            entries = [entry for _, _, entry in self._entries.values()]
+            self._entries.clear()
+        for entry in entries:
+            entry.close()
         return joined
 
     def deliver(

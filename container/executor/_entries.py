@@ -14,7 +14,7 @@ from typing import Any
 
 from rclpy.node import Node
 
-from ._fastpath import (
+from ._engine import (
     Caller,
     Meter,
     Server,
@@ -57,6 +57,17 @@ class Entry:
     wants_info: bool = False
     #: What its callbacks cost is told (``None``: accounting is off).
     meter: Meter | None = None
+
+    def close(self) -> None:
+        """Let go of the handles its compiled takes hold (the executor is closing).
+
+        Not the server's: an answer still to come (a plain callback that ran
+        past the shutdown) holds it and sends through it; it lets its handle
+        go when the last answer has.
+        """
+        for taking in (self.taker, self.caller):
+            if taking is not None:
+                taking.close()
 
 
 

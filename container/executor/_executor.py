@@ -52,8 +52,8 @@ from ._accounting import Accounting
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._culprit import Culprit, TaskOrigins
 from ._dispatch import Dispatcher
+from ._engine import Work
 from ._entries import WOKEN, describe, format_error
-from ._fastpath import Work
 from ._inbox import Inbox, Post
 from ._lanes import Lane
 from ._selector import RclSelector

@@ -1,8 +1,26 @@
-"""Type stub of the ``_fastpath`` extension (``fastpath/*.c``)."""
+"""The executor's engine: what the compiled ``_fastpath`` (``fastpath/*.c``) and
+the pure-Python ``_pyengine`` both provide (``_engine`` chooses one).
+
+Every object that reads an rcl or rmw pointer is given the rclpy handle that
+owns it (``entity.handle``, never its address): it holds a strong reference
+to the handle and keeps it entered (``__enter__``) until ``close()`` (or
+until it is collected), so the rcl object outlives every use. Readiness is
+reported by handle address (``handle.pointer``): a key to look entries up
+by, never dereferenced by the caller.
+"""
 
 import contextvars
 from collections.abc import Callable, Iterable, Mapping, Sequence, Sized
-from typing import Any
+from typing import Any, Protocol
+
+class Handle(Protocol):
+    """An rclpy handle (``Subscription``, ``Timer``, ``GuardCondition``, ``Context``, ...
+    of ``rclpy._rclpy_pybind11``): the owner of one rcl object."""
+
+    @property
+    def pointer(self) -> int: ...
+    def __enter__(self) -> Any: ...
+    def __exit__(self, *exc_info: object) -> Any: ...
 
 SUBSCRIPTION: int
 CLIENT: int
@@ -12,25 +30,33 @@ EVENT: int
 DRAIN: int
 
 class Notifier:
-    def __init__(self, *, guard: int) -> None: ...
-    def watch(self, pointer: int, kind: int, plain: bool = False, /) -> bool: ...
-    def unwatch(self, pointer: int, /) -> bool: ...
+    """rmw's new-data callbacks of the watched entities, turned into a ready list and
+    one trigger of ``guard`` while the waiter sleeps (armed)."""
+
+    def __init__(self, *, guard: Handle) -> None: ...
+    def watch(self, handle: Handle, kind: int, plain: bool = False, /) -> bool:
+        """Report new data of ``handle``'s entity (kept entered until :meth:`unwatch`);
+        ``False``: watched already. ``NotImplementedError`` where rmw (or the engine)
+        offers no such callback: the entity is then waited on."""
+    def unwatch(self, handle: Handle, /) -> bool:
+        """Stop; no callback for it runs once this returns (then the handle is let go)."""
     def arm(self) -> bool: ...
     def disarm(self) -> None: ...
     def pending(self) -> bool: ...
     def ready(self) -> list[tuple[int, int]]: ...
     def carry(self) -> list[tuple[int, int]]: ...
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Never trigger the guard again; unwatch everything and let every handle go."""
     @property
     def triggers(self) -> int: ...
     @property
     def watched(self) -> int: ...
 
 class FdWatcher:
-    """A compiled thread that triggers the rcl guard condition at ``guard``
-    once, each time it is armed, when ``epoll`` becomes readable."""
+    """A thread that triggers the rcl guard condition ``guard`` (held until
+    :meth:`close`) once, each time it is armed, when ``epoll`` becomes readable."""
 
-    def __init__(self, *, epoll: int, guard: int) -> None: ...
+    def __init__(self, *, epoll: int, guard: Handle) -> None: ...
     def arm(self) -> None: ...
     def take(self) -> bool: ...
     def pending(self) -> bool: ...
@@ -41,8 +67,16 @@ class FdWatcher:
     def wakes(self) -> int: ...
 
 class Handoff:
-    """The busy loop thread lets go of the GIL until the workers it woke have started."""
+    """The busy loop thread lets go of the GIL until the workers it woke have started.
 
+    ``spin``: whether a thread may stay awake (spinning, without the GIL) for
+    another's hand-over; ``False`` where the process has one CPU, on which a
+    spinning thread only delays the thread it waits for.
+    """
+
+    def __init__(self, *, spin: bool = True) -> None: ...
+    @property
+    def spin(self) -> bool: ...
     def handed(self) -> None: ...
     def started(self) -> None: ...
     def finished(self) -> None: ...
@@ -55,9 +89,9 @@ class Handoff:
     @property
     def lingered(self) -> int: ...
 
-def poll(wait_set: int, timeout_ns: int, /) -> None:
-    """``rcl_wait`` on rclpy's wait set at that address (its ``pointer``),
-    keeping the GIL: for a wait whose guard condition is already triggered."""
+def poll(wait_set: Handle, timeout_ns: int, /) -> None:
+    """``rcl_wait`` on rclpy's wait set, keeping the GIL (the compiled engine): for a
+    wait whose guard condition is already triggered."""
 
 def first_step(
     loop: object,
@@ -77,8 +111,8 @@ def mark_carrier() -> None:
     other plain callbacks (``Notifier.carry``): a notifier's waiter due to
     wake within 5 ms anyway is not woken for such a publish."""
 
-def publisher_gid(publisher: int, /) -> dict[str, str | bytes]:
-    """The gid of the rcl publisher at that address, as rclpy 9's message
+def publisher_gid(publisher: Handle, /) -> dict[str, str | bytes]:
+    """The gid of ``publisher``'s rcl publisher (its handle), as rclpy 9's message
     info gives a message's ``publisher_gid``."""
 
 class Lock:
@@ -92,28 +126,39 @@ class Lock:
     def __exit__(self, *exc_info: object) -> None: ...
 
 class Taker:
-    def __init__(self, *, subscription: int, message_type: type, publisher_gid: bool = False) -> None: ...
+    """One subscription's messages (its handle held), taken into a kept C message."""
+
+    def __init__(self, *, subscription: Handle, message_type: type, publisher_gid: bool = False) -> None: ...
     def take(self) -> object | None: ...
     def take_with_info(self) -> tuple[object, dict[str, Any]] | None:
         """With the keys rclpy's ``take_message`` gives (``publisher_gid`` when made with it)."""
+    def close(self) -> None:
+        """Let the handle go; a take after this raises ``RuntimeError``."""
 
 class Server:
     """One service's requests, taken into a kept C message, and its answers."""
 
-    def __init__(self, *, service: int, srv_type: type) -> None: ...
-    def take(self) -> tuple[Any, bytes] | None:
-        """``(request, header)``; the header is for :meth:`send` only."""
-    def send(self, response: Any, header: bytes, let_go: bool = False, /) -> bool:
+    def __init__(self, *, service: Handle, srv_type: type) -> None: ...
+    def take(self) -> tuple[Any, Any] | None:
+        """``(request, header)``; the header (opaque: bytes in C, rclpy's request id in
+        Python) is for :meth:`send` only."""
+    def send(self, response: Any, header: Any, let_go: bool = False, /) -> bool:
         """``False`` while the client's response reader is not matched (rmw waits up to
         100 ms for it, without the GIL with ``let_go``); ``TypeError`` for a response
         of another type."""
+    def close(self) -> None:
+        """Let the handle go; a take or send after this raises ``RuntimeError``."""
+    @property
+    def closed(self) -> bool: ...
 
 class Caller:
     """One client's responses, taken into a kept C message."""
 
-    def __init__(self, *, client: int, srv_type: type) -> None: ...
+    def __init__(self, *, client: Handle, srv_type: type) -> None: ...
     def take(self) -> tuple[int, Any] | None:
         """``(sequence_number, response)``."""
+    def close(self) -> None:
+        """Let the handle go; a take after this raises ``RuntimeError``."""
 
 #: What :meth:`WaitSet.wait` gives: the ready handle addresses of each kind
 #: (subscriptions, guard conditions, timers, clients, services, events), or
@@ -121,20 +166,24 @@ class Caller:
 Ready = tuple[list[int], ...]
 
 class WaitSet:
+    """An rcl wait set over entities given once (their handles held until :meth:`close`)."""
+
     def __init__(
         self,
-        context: int,
+        context: Handle,
         *,
-        subscriptions: Sequence[int] = (),
-        guard_conditions: Sequence[int] = (),
-        timers: Sequence[int] = (),
-        clients: Sequence[int] = (),
-        services: Sequence[int] = (),
-        events: Sequence[int] = (),
+        subscriptions: Sequence[Handle] = (),
+        guard_conditions: Sequence[Handle] = (),
+        timers: Sequence[Handle] = (),
+        clients: Sequence[Handle] = (),
+        services: Sequence[Handle] = (),
+        events: Sequence[Handle] = (),
         notifier: Notifier | None = None,
         handoff: Handoff | None = None,
     ) -> None: ...
     def wait(self, timeout_ns: int, poll: bool = False, /) -> Ready: ...
+    def close(self) -> None:
+        """Let every handle go; a wait after this raises ``RuntimeError``."""
 
 class Token:
     """Whether work for one entity (or for a node itself) may still start.
@@ -221,23 +270,44 @@ class KeepLast:
     def __len__(self) -> int: ...
 
 class Slots:
-    """A lane's admission state; its methods are called with :attr:`lock` held."""
+    """A lane's admission state and its idle runners.
 
-    lock: Lock
+    Admission (:meth:`admit` ... :meth:`activate`) is called with :attr:`lock`
+    held; the idle runners (:meth:`park` ... :meth:`idle_runner`) are the loop
+    thread's only. The compiled chain reads and takes the same state while
+    the lock is free.
+    """
+
+    @property
+    def lock(self) -> Lock: ...
     limit: int
-    running: int
-    dropped: int
-    closed: bool
-    active: set[Work]
-    idle_runners: list[Runner]
-    waiting: int
+    @property
+    def running(self) -> int: ...
+    @property
+    def dropped(self) -> int: ...
+    @property
+    def closed(self) -> bool: ...
+    @property
+    def waiting(self) -> int: ...
+    @property
+    def idle(self) -> int:
+        """How many runners are parked."""
     def __init__(self, limit: int) -> None: ...
     def admit(self, work: Work, /) -> bool: ...
     def next(self, finished: Work, /) -> Work | None: ...
+    def activate(self, work: Work, /) -> None:
+        """Count ``work``, whose slot is taken already (a suspended first step), as started."""
     def close(self) -> None: ...
     def retire(self, node: object, /) -> list[Work]: ...
     def of(self, node: object, /) -> list[Work]: ...
     def busy(self) -> bool: ...
+    def park(self, runner: Runner, /) -> None:
+        """``runner`` idles (on its ``idle`` future); the last parked is used first."""
+    def unpark(self, runner: Runner, /) -> bool:
+        """Take ``runner`` out of the parked ones (it was woken, or its task ended)."""
+    def idle_runner(self) -> Runner | None:
+        """The last parked runner whose ``idle`` future is pending (left parked);
+        parked runners whose future is done (cancelled while idle) are dropped."""
 
 class Route:
     """What the async chain needs of one entity, resolved once per wait-set change."""
@@ -255,7 +325,10 @@ class Route:
     ) -> None: ...
 
 class Routes:
-    """A wait set's current routes, and whether they are stale or closed."""
+    """A wait set's current routes, and whether they are stale or closed.
+
+    The dicts are copied when set: what the chain reads is never changed under it.
+    """
 
     dirty: bool
     closed: bool

@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from ._fastpath import KeepLast
+from ._engine import KeepLast
 
 __all__: list[str] = []
 

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from rclpy.guard_condition import GuardCondition
     from rclpy.node import Node
 
-    from ._fastpath import Handoff, Work
+    from ._engine import Handoff, Work
     from ._lanes import Lane
 
 __all__: list[str] = []

@@ -57,7 +57,7 @@ from typing import Any
 
 from .._compat import enter_task, leave_task
 from ._bridge import drive
-from ._fastpath import Handoff, Lock, Runner, Slots, Work, first_step, mark_carrier
+from ._engine import Handoff, Lock, Runner, Slots, Work, first_step, mark_carrier
 from ._hooks import LaneHooks
 
 __all__: list[str] = []
@@ -149,10 +149,8 @@ class Lane:
         self._threads: list[threading.Thread] = []
         #: Work for the workers, and whether the loop's thread handed it (and waits for its start).
         self._inbox: queue.SimpleQueue[tuple[Work, bool] | None] = queue.SimpleQueue()
-        # Async side, touched on the loop thread only.
+        # Async side, touched on the loop thread only (the idle runners are parked in the slots).
         self._runners: dict[asyncio.Task[None], Runner] = {}
-        #: The slots' list itself: runners idle, the last to be used first.
-        self._idle_runners: list[Runner] = self._slots.idle_runners
 
     @property
     def limit(self) -> int:
@@ -350,8 +348,10 @@ class Lane:
     def _hand_to_runner(self, item: Work | _Resume) -> None:
         if self._closed:
             return
-        while self._idle_runners:
-            if self._wake(self._idle_runners.pop(), item):
+        slots = self._slots
+        while (runner := slots.idle_runner()) is not None:
+            slots.unpark(runner)
+            if self._wake(runner, item):
                 return
         context = self._context.copy()
         # The Task itself, not the loop's task factory: a runner drives its
@@ -363,8 +363,8 @@ class Lane:
 
     def _forget_runner(self, task: asyncio.Task[None]) -> None:
         runner = self._runners.pop(task, None)
-        if runner is not None and runner in self._idle_runners:
-            self._idle_runners.remove(runner)
+        if runner is not None:
+            self._slots.unpark(runner)
 
     @staticmethod
     def _wake(runner: Runner, item: Work | _Resume) -> bool:
@@ -404,14 +404,13 @@ class Lane:
     ) -> None:
         """The C path's first step of ``work`` suspended in ``runner``: that runner finishes it."""
         with self._lock:
-            self._slots.active.add(work)
+            self._slots.activate(work)
         self._finish_in(runner, _Resume(work, coro, yielded, context))
 
     def _finish_in(self, runner: Runner, resume: _Resume) -> None:
         """A first step suspended in idle ``runner``: that runner (no longer
         idle) finishes it, or a new one if it was cancelled meanwhile."""
-        if runner in self._idle_runners:
-            self._idle_runners.remove(runner)
+        self._slots.unpark(runner)
         if not self._wake(runner, resume):
             self._hand_to_runner(resume)
 
@@ -427,16 +426,15 @@ class Lane:
         follows eagerly too, until one suspends or a plain one needs a thread.
         """
         item: Work | None = work
+        slots = self._slots
         while item is not None:
             if self._closed:
                 return
-            if not self._idle_runners:
+            # Left parked: one whose step is done is idle again at once.
+            runner = slots.idle_runner()
+            if runner is None:
                 self._hand_to_runner(item)
                 return
-            runner = self._idle_runners[-1]
-            if runner.idle is None or runner.idle.done():
-                self._idle_runners.pop()  # cancelled while idle; its task ends
-                continue
             error: BaseException | None
             if _retired(item):
                 error = Retired()
@@ -513,7 +511,7 @@ class Lane:
                     return
                 idle: asyncio.Future[Work | _Resume | None] = self._loop.create_future()
                 runner.idle = idle
-                self._idle_runners.append(runner)
+                self._slots.park(runner)
                 try:
                     item = await idle
                 except asyncio.CancelledError as exc:

@@ -13,7 +13,7 @@ from typing import Any
 
 import rclpy.subscription
 
-from ._fastpath import publisher_gid as _publisher_gid
+from ._engine import publisher_gid as _publisher_gid
 
 __all__ = ["HAS_PUBLISHER_GID", "publisher_gid"]
 
@@ -27,4 +27,4 @@ def publisher_gid(publisher: Any) -> dict[str, Any] | None:
     """``publisher``'s gid as message info names it, or ``None`` where this rclpy's has none."""
     if not HAS_PUBLISHER_GID:
         return None
-    return _publisher_gid(publisher.handle.pointer)
+    return _publisher_gid(publisher.handle)

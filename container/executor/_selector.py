@@ -19,7 +19,7 @@ from typing import Any
 
 from rclpy.guard_condition import GuardCondition
 
-from ._fastpath import FdWatcher, Handoff
+from ._engine import FdWatcher, Handoff
 
 __all__: list[str] = []
 
@@ -41,9 +41,9 @@ HANDOFF_SPIN_NS = 200_000
 class RclSelector(selectors.BaseSelector):
     """Delegate file descriptors to epoll; block in rcl instead of epoll.
 
-    :param guard: the guard condition the rcl wait set holds; kept alive
-        (its handle entered) until :meth:`close`, since a compiled thread
-        triggers it.
+    :param guard: the guard condition the rcl wait set holds, which the
+        watcher's thread triggers (the watcher holds its handle until
+        :meth:`close`).
     """
 
     def __init__(self, *, guard: GuardCondition) -> None:
@@ -52,12 +52,9 @@ class RclSelector(selectors.BaseSelector):
         self._idle: Callable[[], bool] | None = None
         self._ros_turn_due: Callable[[], bool] | None = None
         self._handoff: Handoff | None = None
-        self._guard_handle = guard.handle
-        self._guard_handle.__enter__()
         try:
-            self._watcher = FdWatcher(epoll=self._inner.fileno(), guard=self._guard_handle.pointer)
+            self._watcher = FdWatcher(epoll=self._inner.fileno(), guard=guard.handle)
         except BaseException:
-            self._guard_handle.__exit__(None, None, None)
             self._inner.close()
             raise
 
@@ -150,5 +147,4 @@ class RclSelector(selectors.BaseSelector):
 
     def close(self) -> None:
         self._watcher.close()
-        self._guard_handle.__exit__(None, None, None)
         self._inner.close()

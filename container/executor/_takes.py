@@ -21,10 +21,10 @@ from .._compat import (
     fire_timer,
     waitable_futures,
 )
-from . import _fastpath
+from . import _engine
 from ._answers import respond
+from ._engine import Server
 from ._entries import Entry
-from ._fastpath import Server
 
 if TYPE_CHECKING:
     from ._dispatch import Dispatcher
@@ -83,7 +83,7 @@ def take_messages(dispatcher: Dispatcher, entry: Entry, count: int) -> None:
                 return
             submit(entry, callback, (message,))
 
-def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.DRAIN) -> None:
+def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _engine.DRAIN) -> None:
     """Take ``count`` times (what the new-response callbacks reported), or
     every response waiting (a wait found the client ready; a fresh watch).
 
@@ -98,7 +98,7 @@ def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.D
     """
     cli = entry.entity
     caller = entry.caller
-    drain = count >= _fastpath.DRAIN
+    drain = count >= _engine.DRAIN
     empty_left = _held_at_most(cli.qos_profile) if drain else 0
     for _ in itertools.repeat(None) if drain else range(count):
         if caller is not None:
@@ -126,7 +126,7 @@ def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.D
         future.set_result(response)
         dispatcher.response_arrived()
 
-def take_request(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.DRAIN) -> None:
+def take_request(dispatcher: Dispatcher, entry: Entry, count: int = _engine.DRAIN) -> None:
     """Take ``count`` requests (what the new-request callbacks reported), or
     every request waiting (a wait found the service ready; a fresh watch),
     each to be answered.
@@ -140,7 +140,7 @@ def take_request(dispatcher: Dispatcher, entry: Entry, count: int = _fastpath.DR
     server = entry.server
     serve = _serve_async if entry.is_async else _serve
     callback, request_type, response_type = srv.callback, srv.srv_type.Request, srv.srv_type.Response
-    for _ in itertools.repeat(None) if count >= _fastpath.DRAIN else range(count):
+    for _ in itertools.repeat(None) if count >= _engine.DRAIN else range(count):
         if server is not None:
             # The wait set holds the service's handle while it can be taken.
             taken = server.take()

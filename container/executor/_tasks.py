@@ -21,7 +21,7 @@ from rclpy.executors import Executor
 from rclpy.task import Future as RclFuture
 
 from .._errors import ExecutorError
-from ._fastpath import Work
+from ._engine import Work
 from ._inbox import Post
 
 if TYPE_CHECKING:

@@ -46,9 +46,8 @@ from .._compat import (
     set_event_index,
     timer_info_parameter,
 )
-from . import _fastpath
-from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
-from ._fastpath import (
+from . import _engine
+from ._engine import (
     CLIENT,
     EVENT,
     SERVICE,
@@ -62,7 +61,8 @@ from ._fastpath import (
     Server,
     Taker,
 )
-from ._fastpath import WaitSet as FastWaitSet
+from ._engine import WaitSet as FastWaitSet
+from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
 from ._message_info import HAS_PUBLISHER_GID
 from ._takes import take_messages, take_request, take_response, take_timer, take_waitable
 
@@ -130,6 +130,12 @@ class Table:
     #: deliveries look theirs up on every message: no handle address to read).
     subscriptions: dict[int, Entry] = field(default_factory=dict)
 
+    def close(self) -> None:
+        """Let go of every handle: the compiled wait set's, then those held here."""
+        if self.fast is not None:
+            self.fast.close()
+        self.held.close()
+
 
 
 def is_hot_waitable(waitable: object) -> bool:
@@ -190,14 +196,14 @@ class EntityWaitSet:
             self._notifier_guard = GuardCondition(
                 callback=None, callback_group=None, context=dispatcher.context
             )
-            self._notifier = Notifier(guard=self._notifier_guard.handle.pointer)
-            if isinstance(self._notifier, _fastpath.Notifier):  # not a stand-in (tests)
+            self._notifier = Notifier(guard=self._notifier_guard.handle)
+            if isinstance(self._notifier, _engine.Notifier):  # not a stand-in (tests)
                 self._express = dispatcher.express(self._notifier, self)
         #: When timers and guard conditions were last looked at (monotonic ns):
         #: as a wait returns, which reports what was ready then.
         self._polled = 0
-        #: Handle addresses the notifier calls back for (their handles held).
-        self._watched: set[int] = set()
+        #: The handles the notifier calls back for (it holds them), by address.
+        self._watched: dict[int, Any] = {}
         #: How many times this wait set entered ``rcl_wait`` (tests, diagnostics).
         self.waits = 0
 
@@ -246,7 +252,7 @@ class EntityWaitSet:
                             entry.caller = _caller(entity)
                         watched = _WATCHED.get(kind)
                         if watched is None or not self._watch(
-                            entity.handle.pointer, watched, plain=kind == "subscription" and not entry.is_async
+                            entity.handle, watched, plain=kind == "subscription" and not entry.is_async
                         ):
                             # Not event-driven (an rmw without new-data callbacks): waited on.
                             table.handles[kind].append(entity.handle)
@@ -256,7 +262,7 @@ class EntityWaitSet:
                                 and self._express is not None
                                 and timer_info_parameter(entity.callback) is None
                             ):
-                                table.express_timers[entity.handle.pointer] = _route(entity.handle.pointer, entry)
+                                table.express_timers[entity.handle.pointer] = _route(entity.handle, entry)
                         elif kind == "subscription" and not entity.raw:
                             taker = entry.taker
                             if taker is None:  # a new entry (entries are kept across rebuilds)
@@ -278,7 +284,7 @@ class EntityWaitSet:
                     continue
                 entry = dispatcher.entry(waitable, node, "waitable")
                 if event is not None:
-                    if notifier is not None and self._watch(event.pointer, EVENT):
+                    if notifier is not None and self._watch(event, EVENT):
                         table.by_pointer["event"][event.pointer] = entry
                     else:
                         table.events.append((event, entry))
@@ -298,16 +304,16 @@ class EntityWaitSet:
         held.enter(context.handle)
         if not table.waitables and not table.events:
             handles = table.handles
-            context_handle: Any = context.handle  # rclpy's typing omits its address
+            context_handle: Any = context.handle  # rclpy types it optional; an initialised context has one
             table.fast = FastWaitSet(
-                context_handle.pointer,
-                subscriptions=[handle.pointer for handle in handles["subscription"]],
-                guard_conditions=[handle.pointer for handle in guards],
-                timers=[handle.pointer for handle in handles["timer"]],
-                clients=[handle.pointer for handle in handles["client"]],
-                services=[handle.pointer for handle in handles["service"]],
+                context_handle,
+                subscriptions=handles["subscription"],
+                guard_conditions=guards,
+                timers=handles["timer"],
+                clients=handles["client"],
+                services=handles["service"],
                 # Told how long each wait may last: a carrier's publish need not wake it.
-                notifier=self._notifier if isinstance(self._notifier, _fastpath.Notifier) else None,
+                notifier=self._notifier if isinstance(self._notifier, _engine.Notifier) else None,
                 # Stays awake, before blocking, for the answer of plain work it handed over.
                 handoff=dispatcher.handoff,
             )
@@ -327,29 +333,29 @@ class EntityWaitSet:
         if notifier is not None:
             # Entities gone stop calling back before their handles are let go.
             live = set().union(*(table.by_pointer[kind].keys() for kind in (*_WATCHED, "event")))
-            for pointer in self._watched - live:
-                notifier.unwatch(pointer)
-            self._watched &= live
-        old.held.close()
+            for pointer in self._watched.keys() - live:
+                notifier.unwatch(self._watched.pop(pointer))
+        old.close()
 
-    def _watch(self, pointer: int, kind: int, *, plain: bool = False) -> bool:
-        """Have rmw report new data of the entity at ``pointer``; ``False`` where it cannot
+    def _watch(self, handle: Any, kind: int, *, plain: bool = False) -> bool:
+        """Have rmw report new data of ``handle``'s entity; ``False`` where it cannot
         (no notifier, or an rmw without that callback: the entity is then waited on).
 
         :param plain: its callback is plain: a worker thread may take it (:meth:`carry`).
         """
         if self._notifier is None:
             return False
-        if pointer in self._watched:
+        pointer = handle.pointer
+        if self._watched.get(pointer) is handle:
             return True  # watched since an earlier rebuild (the notifier keeps it)
         try:
-            self._notifier.watch(pointer, kind, plain)
+            self._notifier.watch(handle, kind, plain)
         except NotImplementedError:
             return False
         except RuntimeError as exc:
             _log.warning("rmw refused a new-data callback (%s); waiting on the entity instead", exc)
             return False
-        self._watched.add(pointer)
+        self._watched[pointer] = handle
         return True
 
     def wait_and_dispatch(self, timeout_ns: int) -> int:
@@ -472,7 +478,7 @@ class EntityWaitSet:
         try:
             if poll:
                 # rclpy's wait lets go of the GIL even for a poll: see WaitSet_wait in fastpath/waitset.c.
-                _fastpath.poll(wait_set.pointer, timeout_ns)
+                _engine.poll(wait_set, timeout_ns)
             else:
                 wait_set.wait(timeout_ns)
         finally:
@@ -712,11 +718,9 @@ class EntityWaitSet:
             try:
                 notifier = self._notifier
                 if notifier is not None:
-                    for pointer in self._watched:
-                        notifier.unwatch(pointer)
                     self._watched.clear()
-                    notifier.close()
-                self._table.held.close()
+                    notifier.close()  # unwatches everything
+                self._table.close()
                 self._table = Table()
                 self._routes.subscriptions = {}
                 self._routes.timers = {}
@@ -730,7 +734,7 @@ class EntityWaitSet:
 
 
 def _route(first: Any, entry: Entry) -> Route:
-    """An express route of ``entry`` (see ``Table.express``); ``first``: its taker or timer address."""
+    """An express route of ``entry`` (see ``Table.express``); ``first``: its taker or timer's handle."""
     entity = entry.entity
     lane = entry.lane
     return Route(
@@ -751,7 +755,7 @@ def _taker(subscription: Any) -> Taker | None:
     """A compiled take for ``subscription``; ``None`` (rclpy's take) for a type it cannot handle."""
     try:
         return Taker(
-            subscription=subscription.handle.pointer,
+            subscription=subscription.handle,
             message_type=subscription.msg_type,
             publisher_gid=HAS_PUBLISHER_GID,
         )
@@ -763,7 +767,7 @@ def _taker(subscription: Any) -> Taker | None:
 def _server(service: Any) -> Server | None:
     """Compiled takes and answers for ``service``; ``None`` (rclpy's) for a type it cannot handle."""
     try:
-        return Server(service=service.handle.pointer, srv_type=service.srv_type)
+        return Server(service=service.handle, srv_type=service.srv_type)
     except (AttributeError, TypeError, ValueError, MemoryError):
         return None
 
@@ -771,7 +775,7 @@ def _server(service: Any) -> Server | None:
 def _caller(client: Any) -> Caller | None:
     """Compiled takes of ``client``'s responses; ``None`` (rclpy's) for a type it cannot handle."""
     try:
-        return Caller(client=client.handle.pointer, srv_type=client.srv_type)
+        return Caller(client=client.handle, srv_type=client.srv_type)
     except (AttributeError, TypeError, ValueError, MemoryError):
         return None
 

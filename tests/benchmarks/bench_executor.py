@@ -142,12 +142,11 @@ class DeadlineLoop(_Stick):
         from container.executor._fastpath import SUBSCRIPTION, Notifier, Taker
 
         guard = GuardCondition(None, None)  # the notifier's, never waited on here
-        notifier = Notifier(guard=guard.handle.pointer)
+        notifier = Notifier(guard=guard.handle)
         takes = {}
         for sub in (sub for node in self._nodes for sub in node.subscriptions):
-            pointer = sub.handle.pointer
-            notifier.watch(pointer, SUBSCRIPTION)
-            takes[pointer] = (Taker(subscription=pointer, message_type=sub.msg_type), sub.callback)
+            notifier.watch(sub.handle, SUBSCRIPTION)
+            takes[sub.handle.pointer] = (Taker(subscription=sub.handle, message_type=sub.msg_type), sub.callback)
         timers = [timer for node in self._nodes for timer in node.timers]
         now = time.monotonic_ns
         heap = [(now() + timer.handle.time_until_next_call(), index) for index, timer in enumerate(timers)]
@@ -171,6 +170,8 @@ class DeadlineLoop(_Stick):
                     callback(message)
             heapq.heapreplace(heap, (now() + timer.handle.time_until_next_call(), index))
         notifier.close()
+        for taker, _ in takes.values():
+            taker.close()
         guard.destroy()
 
 

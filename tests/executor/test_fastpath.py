@@ -24,6 +24,7 @@ from typing import Any
 import pytest
 from rclpy.context import Context
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -93,10 +94,10 @@ def _matched(publisher: Any) -> None:
 def test_notifier_reports_a_message_published_in_process_at_once(node: Node, guard: GuardCondition) -> None:
     pub = node.create_publisher(Int64, "fp_ready", 10)
     sub = node.create_subscription(Int64, "fp_ready", lambda msg: None, 10)
-    notifier = Notifier(guard=guard.handle.pointer)
+    notifier = Notifier(guard=guard.handle)
     with sub.handle:
-        assert notifier.watch(sub.handle.pointer, SUBSCRIPTION) is True
-        assert notifier.watch(sub.handle.pointer, SUBSCRIPTION) is False  # already watched
+        assert notifier.watch(sub.handle, SUBSCRIPTION) is True
+        assert notifier.watch(sub.handle, SUBSCRIPTION) is False  # already watched
         _matched(pub)
         # A fresh watch asks for whatever is waiting, once.
         assert notifier.ready() == [(sub.handle.pointer, DRAIN)]
@@ -108,37 +109,40 @@ def test_notifier_reports_a_message_published_in_process_at_once(node: Node, gua
         pub.publish(Int64(data=2))
         assert notifier.ready() == [(sub.handle.pointer, 2)]
         assert notifier.ready() == []
-        assert notifier.unwatch(sub.handle.pointer) is True
-        assert notifier.unwatch(sub.handle.pointer) is False
+        assert notifier.unwatch(sub.handle) is True
+        assert notifier.unwatch(sub.handle) is False
         pub.publish(Int64(data=3))
         assert not notifier.pending()
         assert notifier.watched == 0
         # rmw reports only data it has not reported before (the third
         # message); watching again asks for all three waiting.
-        assert notifier.watch(sub.handle.pointer, SUBSCRIPTION)
+        assert notifier.watch(sub.handle, SUBSCRIPTION)
         assert notifier.ready() == [(sub.handle.pointer, DRAIN)]
         assert [sub.handle.take_message(Int64, False) is not None for _ in range(4)] == [True] * 3 + [False]
-        notifier.unwatch(sub.handle.pointer)
+        notifier.unwatch(sub.handle)
 
 
 def test_notifier_refuses_what_it_cannot_watch(guard: GuardCondition) -> None:
-    notifier = Notifier(guard=guard.handle.pointer)
+    notifier = Notifier(guard=guard.handle)
     with pytest.raises(ValueError, match="kind"):
-        notifier.watch(guard.handle.pointer, 42)
-    with pytest.raises(ValueError, match="address"):
-        notifier.watch(0, SUBSCRIPTION)
-    with pytest.raises(ValueError, match="guard"):
-        Notifier(guard=0)
+        notifier.watch(guard.handle, 42)
+    with pytest.raises(TypeError, match="rclpy handle"):
+        notifier.watch(0, SUBSCRIPTION)  # type: ignore[arg-type]  # an address is no handle
+    with pytest.raises(TypeError, match="rclpy handle"):
+        Notifier(guard=0)  # type: ignore[arg-type]
+    notifier.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        notifier.watch(guard.handle, SUBSCRIPTION)
 
 
 def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: Node, guard: GuardCondition) -> None:
     """A report triggers the guard only while the waiter sleeps (armed), once."""
     pub = node.create_publisher(Int64, "fp_arm", 10)
     sub = node.create_subscription(Int64, "fp_arm", lambda msg: None, 10)
-    notifier = Notifier(guard=guard.handle.pointer)
+    notifier = Notifier(guard=guard.handle)
     wait_set = WaitSet(0, 1, 0, 0, 0, 0, context.handle)
     with sub.handle:
-        notifier.watch(sub.handle.pointer, SUBSCRIPTION)
+        notifier.watch(sub.handle, SUBSCRIPTION)
         _matched(pub)
         notifier.ready()  # the fresh watch's drain request
         pub.publish(Int64(data=1))  # not armed: recorded, no trigger
@@ -159,7 +163,7 @@ def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: No
         notifier.disarm()
         assert _until(lambda: dict(notifier.ready()).get(sub.handle.pointer, 0) >= 1)
         assert notifier.triggers == 1
-        notifier.unwatch(sub.handle.pointer)
+        notifier.unwatch(sub.handle)
 
 
 def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
@@ -169,7 +173,7 @@ def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
     selector = selectors.EpollSelector()
     readable, writable = os.pipe()
     selector.register(readable, selectors.EVENT_READ)
-    watcher = FdWatcher(epoll=selector.fileno(), guard=guard.handle.pointer)
+    watcher = FdWatcher(epoll=selector.fileno(), guard=guard.handle)
     wait_set = WaitSet(0, 1, 0, 0, 0, 0, context.handle)
     try:
         os.write(writable, b"x")
@@ -200,15 +204,15 @@ def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
         os.close(writable)
     with pytest.raises(RuntimeError, match="closed"):
         watcher.arm()
-    with pytest.raises(ValueError):
-        FdWatcher(epoll=0, guard=0)
+    with pytest.raises(TypeError, match="rclpy handle"):
+        FdWatcher(epoll=0, guard=0)  # type: ignore[arg-type]
 
 
 def test_taker_takes_what_rclpy_takes(node: Node) -> None:
     pub = node.create_publisher(Image, "fp_take", 10)
     sub = node.create_subscription(Image, "fp_take", lambda msg: None, 10)
     _matched(pub)
-    taker = Taker(subscription=sub.handle.pointer, message_type=Image, publisher_gid=HAS_PUBLISHER_GID)
+    taker = Taker(subscription=sub.handle, message_type=Image, publisher_gid=HAS_PUBLISHER_GID)
     assert taker.take() is None
     images = [
         Image(height=1, width=2, encoding="rgb8", step=6, data=bytes(range(6))),
@@ -243,8 +247,8 @@ def test_server_and_caller_take_and_answer_as_rclpy_does(node: Node) -> None:
     service: Any = node.create_service(SetBool, "fp_serve", lambda request, response: response)
     client: Any = node.create_client(SetBool, "fp_serve")
     assert client.wait_for_service(timeout_sec=TIMEOUT)
-    server = Server(service=service.handle.pointer, srv_type=SetBool)
-    caller = Caller(client=client.handle.pointer, srv_type=SetBool)
+    server = Server(service=service.handle, srv_type=SetBool)
+    caller = Caller(client=client.handle, srv_type=SetBool)
     assert server.take() is None and caller.take() is None
     first = client.call_async(SetBool.Request(data=True))
     second = client.call_async(SetBool.Request(data=False))
@@ -715,41 +719,68 @@ def test_compiled_wait_set_reports_what_rclpys_reports(context: Context, node: N
     timer = node.create_timer(0.05, lambda: None)
     quiet = GuardCondition(callback=None, callback_group=None, context=context)
     try:
-        with timer.handle, guard.handle, quiet.handle:
-            fast = FastWaitSet(
-                context.handle.pointer,  # type: ignore[union-attr]
-                guard_conditions=[guard.handle.pointer, quiet.handle.pointer],
-                timers=[timer.handle.pointer],
-            )
-            # Nothing ready: the timeout is the timer's period at most.
-            started = time.monotonic()
-            assert fast.wait(1_000_000) == ()
-            guard.trigger()
-            subscriptions, guards, timers, clients, services, events = fast.wait(int(TIMEOUT * 1e9))
-            assert guards == [guard.handle.pointer]
-            assert subscriptions == timers == clients == services == events == []
-            # rcl wakes for the timer by itself, and says which one.
-            ready = fast.wait(int(TIMEOUT * 1e9))
-            assert ready and ready[2] == [timer.handle.pointer]
-            assert time.monotonic() - started < TIMEOUT / 2
+        fast = FastWaitSet(
+            context.handle,  # type: ignore[arg-type]
+            guard_conditions=[guard.handle, quiet.handle],
+            timers=[timer.handle],
+        )
+        # Nothing ready: the timeout is the timer's period at most.
+        started = time.monotonic()
+        assert fast.wait(1_000_000) == ()
+        guard.trigger()
+        subscriptions, guards, timers, clients, services, events = fast.wait(int(TIMEOUT * 1e9))
+        assert guards == [guard.handle.pointer]
+        assert subscriptions == timers == clients == services == events == []
+        # rcl wakes for the timer by itself, and says which one.
+        ready = fast.wait(int(TIMEOUT * 1e9))
+        assert ready and ready[2] == [timer.handle.pointer]
+        assert time.monotonic() - started < TIMEOUT / 2
+        fast.close()
+        with pytest.raises(RuntimeError, match="closed"):
+            fast.wait(0)
     finally:
         quiet.destroy()
-    with pytest.raises(ValueError, match="address"):
-        FastWaitSet(0)
-    with pytest.raises(ValueError, match="address"):
-        FastWaitSet(context.handle.pointer, timers=[0])  # type: ignore[union-attr]
+    with pytest.raises(TypeError, match="rclpy handle"):
+        FastWaitSet(0)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="rclpy handle"):
+        FastWaitSet(context.handle, timers=[timer.handle.pointer])  # type: ignore[arg-type]
+
+
+def test_compiled_objects_hold_what_they_point_at_until_closed(context: Context, node: Node) -> None:
+    """An entity destroyed while a compiled object uses it lives on until that
+    object lets it go: its rcl memory is never read after rclpy freed it."""
+    sub = node.create_subscription(Int64, "fp_held", lambda msg: None, 10)
+    timer = node.create_timer(10.0, lambda: None)
+    pub = node.create_publisher(Int64, "fp_held", 10)
+    _matched(pub)
+    taker = Taker(subscription=sub.handle, message_type=Int64)
+    fast = FastWaitSet(context.handle, timers=[timer.handle])  # type: ignore[arg-type]
+    node.destroy_subscription(sub)
+    node.destroy_timer(timer)
+    pub.publish(Int64(data=7))
+    assert _until(lambda: (taken := taker.take()) is not None and taken.data == 7)  # type: ignore[attr-defined]
+    assert fast.wait(0) == ()
+    for handle in (sub.handle, timer.handle):  # destruction asked for, not done
+        with pytest.raises(InvalidHandle):
+            handle.__enter__()
+    taker.close()
+    fast.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        taker.take()
+    with pytest.raises(InvalidHandle):  # destroyed now: handles of destroyed entities refuse to be held
+        Taker(subscription=sub.handle, message_type=Int64)
 
 
 class _NoSubscriptionCallbacks:
     """A notifier as an rmw without new-data callbacks for subscriptions would make it."""
 
-    def __init__(self, *, guard: int) -> None:
+    def __init__(self, *, guard: Any) -> None:
         self._inner = Notifier(guard=guard)
 
-    def watch(self, pointer: int, kind: int, plain: bool = False) -> bool:
+    def watch(self, handle: Any, kind: int, plain: bool = False) -> bool:
         if kind == SUBSCRIPTION:
             raise NotImplementedError("no new-data callbacks here")
-        return self._inner.watch(pointer, kind, plain)
+        return self._inner.watch(handle, kind, plain)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)
@@ -762,7 +793,7 @@ def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: G
     (plus the kernel's timer slack), not after its 50 ms timeout."""
     with guard.handle:
         if wait_set == "compiled":
-            fast = FastWaitSet(context.handle.pointer, guard_conditions=[guard.handle.pointer])  # type: ignore[union-attr]
+            fast = FastWaitSet(context.handle, guard_conditions=[guard.handle])  # type: ignore[arg-type]
 
             def poll() -> None:
                 fast.wait(50_000_000, True)
@@ -772,7 +803,7 @@ def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: G
             def poll() -> None:
                 rclpys.clear_entities()  # rcl_wait empties the slots of what was not ready
                 rclpys.add_guard_condition(guard.handle)
-                _fastpath.poll(rclpys.pointer, 50_000_000)
+                _fastpath.poll(rclpys, 50_000_000)
 
         started = time.monotonic()
         poll()  # nothing triggered
@@ -785,8 +816,8 @@ def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: G
         started = time.monotonic()
         assert fast.wait(50_000_000) == ()  # not a poll: the whole timeout
         assert time.monotonic() - started >= 0.045
-    with pytest.raises(ValueError, match="address 0"):
-        _fastpath.poll(0, 0)
+    with pytest.raises(TypeError, match="rclpy handle"):
+        _fastpath.poll(0, 0)  # type: ignore[arg-type]
 
 
 def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
@@ -843,8 +874,8 @@ def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
     if wait_set == "rclpy":
         watch = EntityWaitSet._watch
 
-        def no_events(self: EntityWaitSet, pointer: int, kind: int, *, plain: bool = False) -> bool:
-            return kind != EVENT and watch(self, pointer, kind, plain=plain)
+        def no_events(self: EntityWaitSet, handle: Any, kind: int, *, plain: bool = False) -> bool:
+            return kind != EVENT and watch(self, handle, kind, plain=plain)
 
         monkeypatch.setattr(EntityWaitSet, "_watch", no_events)
     a, b, c = (Node(f"fp_gil_{name}", context=context) for name in "abc")

@@ -54,7 +54,7 @@ def test_slots_admit_up_to_the_limit_then_keep_last_per_entity() -> None:
     waiting = [work(sub, depth=2) for _ in range(3)] + [work(timer, depth=1), work(timer, depth=1)]
     assert [slots.admit(w) for w in waiting] == [False] * 5
     assert slots.waiting == 3 and slots.dropped == 2  # one of the subscription's, one of the timer's
-    assert slots.active == {first, second} and slots.busy()
+    assert slots.busy()
     # A finished one hands its slot to the oldest waiting work that was kept.
     assert slots.next(first) is waiting[1]
     assert slots.next(second) is waiting[2]
@@ -115,3 +115,26 @@ def test_runner_holds_its_task_and_context() -> None:
     assert asyncio.run(main())
     with pytest.raises(TypeError):
         Runner(None, "not a context")  # type: ignore[arg-type]
+
+
+def test_slots_park_idle_runners_and_give_the_last_pending_one() -> None:
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        slots = Slots(1)
+        runners = [Runner(task, contextvars.copy_context(), loop.create_future()) for _ in range(3)]
+        assert slots.idle_runner() is None and slots.idle == 0
+        for runner in runners:
+            slots.park(runner)
+        assert slots.idle == 3 and slots.idle_runner() is runners[2] and slots.idle == 3  # left parked
+        runners[2].idle.cancel()  # cancelled while idle: dropped on the way
+        runners[1].idle = None  # woken: not idle
+        assert slots.idle_runner() is runners[0] and slots.idle == 1
+        assert slots.unpark(runners[0]) and not slots.unpark(runners[0]) and slots.idle == 0
+        with pytest.raises(TypeError):
+            slots.park(object())  # type: ignore[arg-type]
+        work_item = work(object())
+        slots.activate(work_item)
+        assert slots.busy() is False and slots.next(work_item) is None  # activated without a slot count
+
+    asyncio.run(main())

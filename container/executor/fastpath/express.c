@@ -182,17 +182,19 @@ static int first_step(
   long long * started, PyObject ** coro, PyObject ** yielded, PyObject ** context)
 {
   PyObject * result, * type, * value, * traceback;
+  PyObject * task = Py_NewRef(runner->task); /* held: the calls below run Python code */
   PySendResult status;
   *coro = *yielded = NULL;
   *started = 0;
   if ((*context = PyContext_Copy(runner->context)) == NULL) {
+    Py_DECREF(task);
     return STEP_BROKEN;
   }
   Py_XSETREF(runner->current, Py_NewRef(current));
   if (PyContext_Enter(*context) < 0) {
     goto broken;
   }
-  result = call2(enter_task, loop, runner->task);
+  result = call2(enter_task, loop, task);
   if (result == NULL) {
     PyContext_Exit(*context);
     goto broken;
@@ -211,7 +213,8 @@ static int first_step(
     }
   }
   PyErr_Fetch(&type, &value, &traceback);
-  result = call2(leave_task, loop, runner->task);
+  result = call2(leave_task, loop, task);
+  Py_DECREF(task);
   PyContext_Exit(*context);
   Py_XSETREF(runner->current, Py_NewRef(Py_None));
   if (result == NULL) { /* leaving the task failed: nothing sane is left to do */
@@ -240,6 +243,7 @@ static int first_step(
   return status;
 
 broken:
+  Py_DECREF(task);
   Py_XSETREF(runner->current, Py_NewRef(Py_None));
   Py_CLEAR(*context);
   return STEP_BROKEN;
@@ -430,18 +434,21 @@ static int take_batch(ExpressObject * self, PyObject * batch)
       continue;
     }
     Py_DECREF(key);
+    if (!PyObject_TypeCheck(route, &RouteType) || !PyObject_TypeCheck(((RouteObject *)route)->first, &TakerType)) {
+      PyErr_SetString(PyExc_TypeError, "a subscription's route is a Route whose first is a Taker");
+      status = -1;
+      goto out;
+    }
+    /* Held: a take converts the message with its type's Python code. */
+    Py_INCREF(route);
     for (j = 0; j < counts[i]; ++j) {
       PyObject * message;
-      if (!PyObject_TypeCheck(route, &RouteType) || !PyObject_TypeCheck(((RouteObject *)route)->first, &TakerType)) {
-        PyErr_SetString(PyExc_TypeError, "a subscription's route is a Route whose first is a Taker");
-        status = -1;
-        goto out;
-      }
       ((RouteObject *)route)->arrived = now;
       message = taker_take((TakerObject *)((RouteObject *)route)->first, 0);
       if (message == NULL) {
         /* Run what was taken, then report this. */
         PyErr_Fetch(&type, &value, &traceback);
+        Py_DECREF(route);
         goto out;
       }
       if (message == Py_None) {
@@ -450,11 +457,13 @@ static int take_batch(ExpressObject * self, PyObject * batch)
       }
       if (PyList_Append(batch, route) < 0 || PyList_Append(batch, message) < 0) {
         Py_DECREF(message);
+        Py_DECREF(route);
         status = -1;
         goto out;
       }
       Py_DECREF(message);
     }
+    Py_DECREF(route);
   }
   if (rest != NULL) {
     result = PyObject_CallOneArg(self->take_rest, rest);
@@ -520,9 +529,15 @@ static PyObject * Express_drain(ExpressObject * self, PyObject * arg)
       }
       n = PyList_GET_SIZE(batch);
       for (i = 0; i + 1 < n && status != -1; i += 2) {
-        if (run_one(self, (RouteObject *)PyList_GET_ITEM(batch, i), PyList_GET_ITEM(batch, i + 1)) < 0) {
+        /* The batch is this call's own list; the pair is held all the same
+         * while the callback runs (any code). */
+        PyObject * route = Py_NewRef(PyList_GET_ITEM(batch, i));
+        PyObject * message = Py_NewRef(PyList_GET_ITEM(batch, i + 1));
+        if (run_one(self, (RouteObject *)route, message) < 0) {
           status = -1;
         }
+        Py_DECREF(message);
+        Py_DECREF(route);
       }
       if (status == -1) {
         Py_XDECREF(et);
@@ -594,8 +609,9 @@ static PyObject * Express_call_timers(ExpressObject * self, PyObject * const * a
       PyErr_SetString(PyExc_TypeError, "a timer's route is a Route");
       goto fail;
     }
-    timer = (rcl_timer_t *)PyLong_AsVoidPtr(((RouteObject *)route)->first);
-    if (timer == NULL && PyErr_Occurred()) {
+    timer = (rcl_timer_t *)((RouteObject *)route)->timer.pointer;
+    if (timer == NULL) {
+      PyErr_SetString(PyExc_TypeError, "a timer's route holds its handle");
       goto fail;
     }
     /* Its due time, for its lateness: it was due `until` ago (until <= 0). */
@@ -639,7 +655,10 @@ static PyObject * Express_run_fired(ExpressObject * self, PyObject * Py_UNUSED(i
   }
   self->fired = fresh; /* callbacks may fire more (through a nested spin): kept apart */
   for (i = 0; i < n; ++i) {
-    if (run_one(self, (RouteObject *)PyList_GET_ITEM(fired, i), NULL) < 0) {
+    PyObject * route = Py_NewRef(PyList_GET_ITEM(fired, i));
+    int failed = run_one(self, (RouteObject *)route, NULL) < 0;
+    Py_DECREF(route);
+    if (failed) {
       /* The rest goes back in front of whatever was fired meanwhile. */
       PyObject * et, * ev, * tb;
       PyErr_Fetch(&et, &ev, &tb);

@@ -1,16 +1,41 @@
 /* fastpath.h: what the compiled parts of the executor's hot path share.
  *
  * One module, _fastpath, built from one source per job (see module.c for
- * the whole picture): notifier.c (rmw's new-data callbacks), waitset.c (an
- * rcl wait set over fixed entities), taker.c (rcl_take into a kept
- * message), service.c (the same for services and clients, and answers),
- * lock.c (a mutex both languages use), lanes.c (the callback
- * groups' slot state and the objects both languages read: work, tokens,
- * runners, routes), express.c (the loop thread's async chain), watcher.c
- * (asyncio's file descriptors wake the loop's rcl wait), meter.c (what each
- * entity's callbacks cost). Every
- * object one file reads of another's is a compiled type declared here:
- * no file reads a Python attribute of the executor's own classes by name.
+ * the whole picture): held.c (rclpy handles held and entered), notifier.c
+ * (rmw's new-data callbacks), waitset.c (an rcl wait set over fixed
+ * entities), taker.c (rcl_take into a kept message), service.c (the same
+ * for services and clients, and answers), lock.c (a mutex both languages
+ * use), lanes.c (the callback groups' slot state and the objects both
+ * languages read: work, tokens, runners, routes), express.c (the loop
+ * thread's async chain), watcher.c (asyncio's file descriptors wake the
+ * loop's rcl wait), handoff.c (the loop and the workers it wakes: who waits
+ * for whom, and who stays awake), meter.c (what each entity's callbacks
+ * cost). Every object one file reads of another's is a compiled type
+ * declared here: no file reads a Python attribute of the executor's own
+ * classes by name. container/executor/_pyengine.py does the same job in
+ * Python, with the same names (_fastpath.pyi describes both).
+ *
+ * Ownership, the rules every file keeps (and the field notes below say per
+ * field who owns what):
+ *
+ * - An object that reads an rcl or rmw pointer owns the rclpy handle that
+ *   owns the memory behind it: a strong reference, entered (__enter__) so
+ *   rclpy defers the rcl object's destruction, until the object's close()
+ *   or its collection (Held, held.c). The pointer is read from the handle,
+ *   never taken as an integer. Addresses leave C only as keys (which entity
+ *   is ready), never to be dereferenced.
+ * - A field holding a PyObject * holds a strong reference, unless its note
+ *   says "borrowed"; none is borrowed across a call into Python (which can
+ *   run any code, the garbage collector's included): what is read out of a
+ *   mutable container (a list, a dict, a writable member) is held first.
+ * - Nothing allocates a Python object while holding a lock that threads
+ *   without the GIL take (the Notifier's, which DDS threads take): what is
+ *   read under it is copied into C first.
+ * - State both languages change has one owner, the compiled object; Python
+ *   changes it through that object's methods (Slots' idle runners, its
+ *   active work) or its members, and reads containers C was given (asyncio's
+ *   ready queue, the dispatcher's eager queue, the completion waiters) only
+ *   by their length.
  */
 #ifndef CONTAINER_EXECUTOR_FASTPATH_H
 #define CONTAINER_EXECUTOR_FASTPATH_H
@@ -75,8 +100,29 @@ extern atomic_int carriers_exist;
 /* The event count that means "take until nothing is left". */
 #define DRAIN ((size_t)1 << 30)
 
+/* -- held.c ------------------------------------------------------------------ */
+/* An rclpy handle held: a strong reference to it, entered (rclpy defers the
+ * destruction of the rcl object while it is), and the rcl object's address,
+ * read from its ``pointer`` once. NULL handle: nothing held. */
+typedef struct {
+  PyObject * handle;
+  void * pointer;
+} Held;
+
+/* Hold and enter handle: 0, or -1 with an exception set (rclpy's
+ * InvalidHandle for one destroyed already) and nothing held. */
+int held_enter(Held * held, PyObject * handle);
+/* Exit and let go (nothing when nothing is held); an exception already set
+ * stays set, and one __exit__ raises is reported as unraisable. */
+void held_exit(Held * held);
+/* The handles in a sequence, held and entered (a new array of count, to be
+ * given to held_exit_all): 0, or -1 with an exception and nothing held. */
+int held_enter_all(PyObject * sequence, Held ** out, size_t * count);
+void held_exit_all(Held ** held, size_t * count);
+
 typedef struct Slot {
-  struct NotifierObject * owner;
+  struct NotifierObject * owner; /* borrowed: the notifier frees its slots before itself */
+  Held entity;   /* the watched entity's handle (its address is the key reported) */
   uintptr_t key;
   int kind;
   int queued;    /* under owner->lock */
@@ -91,7 +137,8 @@ typedef struct NotifierObject {
   atomic_int armed;
   atomic_int pending;
   atomic_int plain_pending;      /* queued slots that are plain */
-  rcl_guard_condition_t * guard; /* under lock */
+  rcl_guard_condition_t * guard; /* under lock; NULL once closed (guard_held still owns it) */
+  Held guard_held;               /* the guard condition's handle (Python thread only) */
   Slot * slots;                  /* touched by the owning Python thread only */
   Slot ** ready;                 /* under lock */
   size_t nready;
@@ -134,20 +181,32 @@ typedef void * (*create_message_t)(void);
 typedef void (*destroy_message_t)(void *);
 typedef PyObject * (*convert_to_py_t)(void *);
 
+/* A message type's rosidl functions, each with the capsule that carries it (held). */
 typedef struct {
-  PyObject_HEAD
-  const rcl_subscription_t * subscription;
-  void * message;
+  PyObject * type;     /* the message type */
+  PyObject * capsules; /* tuple of the capsules the pointers below came from */
+  create_message_t create;
   destroy_message_t destroy;
   convert_to_py_t to_py;
+  bool (*from_py)(PyObject *, void *);
+} MessageFunctions;
+
+/* The functions of ``type`` (a message type, or a service type's part
+ * ``part`` when not NULL); from_py only when wanted: 0, or -1 with an exception. */
+int message_functions(PyObject * type, const char * part, int want_from_py, MessageFunctions * out);
+void message_functions_clear(MessageFunctions * functions);
+
+typedef struct {
+  PyObject_HEAD
+  Held subscription;   /* rcl_subscription_t */
+  MessageFunctions functions;
+  void * message;      /* owned: made with functions.create, destroyed with functions.destroy */
   int with_gid; /* the message info carries publisher_gid, as rclpy 9's does */
 } TakerObject;
 
 extern PyTypeObject TakerType;
 PyObject * taker_take(TakerObject * self, int with_info);
 PyObject * gid_dict(const rmw_gid_t * gid);
-/* The pointer in a message type's rosidl capsule ``name`` (NULL with an exception set). */
-void * capsule_of(PyObject * type, const char * name);
 
 /* -- service.c --------------------------------------------------------------- */
 extern PyTypeObject ServerType;
@@ -227,6 +286,9 @@ typedef struct {
   char is_async;
 } WorkObject;
 
+/* A runner's fields are written by Python (the lane, through the members)
+ * and by first_step (current), both with the GIL held on the loop thread;
+ * every reader holds what it read before calling into Python. */
 typedef struct {
   PyObject_HEAD
   PyObject * task;
@@ -243,6 +305,9 @@ typedef struct {
   Py_ssize_t head;
 } KeepLastObject;
 
+/* A lane's state, owned here: Python changes it through the methods only
+ * (under lock, or, for the idle runners, on the loop thread), the chain in
+ * express.c reads and changes it directly while lock is free. */
 typedef struct {
   PyObject_HEAD
   LockObject * lock;
@@ -251,13 +316,14 @@ typedef struct {
   Py_ssize_t dropped;
   char closed;
   KeepLastObject * pending;
-  PyObject * active;       /* set of Work started and not done */
-  PyObject * idle_runners; /* list of Runner */
+  PyObject * active;       /* set of Work started and not done (private) */
+  PyObject * idle_runners; /* list of parked Runners, the last used first (private) */
 } SlotsObject;
 
 typedef struct {
   PyObject_HEAD
-  PyObject * first;  /* a Taker (subscription) or the timer's address */
+  PyObject * first;  /* a Taker (subscription) or the timer's handle */
+  Held timer;        /* a timer's route: its handle, held (NULL handle for a subscription's) */
   PyObject * entry;  /* opaque: handed back to the hooks */
   PyObject * lane;   /* opaque: handed back to the hooks */
   SlotsObject * slots;
@@ -272,8 +338,8 @@ typedef struct {
   PyObject_HEAD
   char dirty;
   char closed;
-  PyObject * subscriptions; /* dict: address -> Route */
-  PyObject * timers;        /* dict: address -> Route */
+  PyObject * subscriptions; /* dict: address -> Route, a copy of what Python set */
+  PyObject * timers;        /* dict: address -> Route, a copy of what Python set */
 } RoutesObject;
 
 extern PyTypeObject TokenType, WorkType, RunnerType, KeepLastType, SlotsType, RouteType, RoutesType;

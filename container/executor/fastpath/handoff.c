@@ -36,24 +36,31 @@ struct HandoffObject {
   atomic_ulong handed_total; /* hand-overs ever: what a lingering worker watches */
   atomic_long inflight;      /* handed and not finished: what the lingering loop watches */
   atomic_int loop_free;      /* the loop thread is in a wait without the GIL */
+  int spin;                  /* whether a thread may stay awake for another (set once: see Handoff_new) */
   int misses;                /* the loop's lingers in a row that saw no answer (loop thread only) */
   int skip;                  /* lingers the loop skips after misses (loop thread only) */
   int backoff;               /* how many the next misses make it skip (loop thread only) */
   unsigned long long lingered; /* the loop's lingers that saw the answer (tests, benchmarks) */
 };
 
+/* Handoff(*, spin=True). Without spin (one CPU for the process: spinning
+ * there only keeps the awaited thread off the CPU), give() waits for the
+ * workers' starts without staying awake for their ends, a worker never
+ * lingers and the loop never stays awake for an answer. */
 static PyObject * Handoff_new(PyTypeObject * type, PyObject * args, PyObject * kwargs)
 {
+  static char * keywords[] = {"spin", NULL};
   HandoffObject * self;
   pthread_condattr_t attr;
-  if ((args != NULL && PyTuple_GET_SIZE(args) != 0) || (kwargs != NULL && PyDict_GET_SIZE(kwargs) != 0)) {
-    PyErr_SetString(PyExc_TypeError, "Handoff() takes no arguments");
+  int spin = 1;
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "|$p:Handoff", keywords, &spin)) {
     return NULL;
   }
   self = (HandoffObject *)type->tp_alloc(type, 0);
   if (self == NULL) {
     return NULL;
   }
+  self->spin = spin;
   pthread_mutex_init(&self->mutex, NULL);
   pthread_condattr_init(&attr);
   pthread_condattr_setclock(&attr, CLOCK_MONOTONIC);
@@ -145,7 +152,7 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
   self->outstanding = 0;
   self->waiting = 0;
   pthread_mutex_unlock(&self->mutex);
-  if (waited && spin_ns > 0) {
+  if (waited && spin_ns > 0 && self->spin) {
     /* A short callback is done within microseconds: staying awake for it
      * keeps this thread's core from going idle, and on a virtual machine
      * waking an idle core costs 50-200 us, twice per hand-over (the GIL
@@ -184,6 +191,9 @@ static PyObject * Handoff_linger(HandoffObject * self, PyObject * arg)
   if (spin_ns == -1 && PyErr_Occurred()) {
     return NULL;
   }
+  if (!self->spin) {
+    Py_RETURN_FALSE;
+  }
   seen = atomic_load(&self->handed_total);
   Py_BEGIN_ALLOW_THREADS
   long long now = monotonic_ns();
@@ -217,7 +227,7 @@ static PyObject * Handoff_linger(HandoffObject * self, PyObject * arg)
 
 int handoff_may_linger(HandoffObject * self)
 {
-  if (atomic_load(&self->inflight) <= 0) {
+  if (!self->spin || atomic_load(&self->inflight) <= 0) {
     return 0;
   }
   if (self->skip > 0) {
@@ -299,6 +309,11 @@ static PyObject * Handoff_get_given(HandoffObject * self, void * Py_UNUSED(closu
   return PyLong_FromUnsignedLongLong(self->given);
 }
 
+static PyObject * Handoff_get_spin(HandoffObject * self, void * Py_UNUSED(closure))
+{
+  return PyBool_FromLong(self->spin);
+}
+
 static PyMethodDef Handoff_methods[] = {
   {"handed", (PyCFunction)Handoff_handed, METH_NOARGS,
    "handed(): the loop thread just woke a worker with plain work."},
@@ -320,6 +335,7 @@ static PyGetSetDef Handoff_getset[] = {
   {"outstanding", (getter)Handoff_get_outstanding, NULL, "Workers handed work and not started yet.", NULL},
   {"given", (getter)Handoff_get_given, NULL, "How often give() let the GIL go.", NULL},
   {"lingered", (getter)Handoff_get_lingered, NULL, "The loop's waits that stayed awake and saw the answer.", NULL},
+  {"spin", (getter)Handoff_get_spin, NULL, "Whether a thread may stay awake (spinning) for another's hand-over.", NULL},
   {NULL, NULL, NULL, NULL, NULL},
 };
 

@@ -658,6 +658,10 @@ static void Slots_dealloc(SlotsObject * self)
 
 #define AS_WORK(object) ((WorkObject *)(object))
 
+/* Py_False when runner idles on a pending future, Py_True when it does not
+ * (None, or done: cancelled while idle), NULL on error; borrowed booleans. */
+static PyObject * runner_idle_done(RunnerObject * runner);
+
 static int check_work(PyObject * work)
 {
   if (!PyObject_TypeCheck(work, &WorkType)) {
@@ -764,6 +768,89 @@ static PyObject * Slots_of(SlotsObject * self, PyObject * node)
   return out;
 }
 
+/* activate(work): work whose slot is taken (a suspended first step) counts as started. */
+static PyObject * Slots_activate(SlotsObject * self, PyObject * work)
+{
+  if (check_work(work) < 0 || PySet_Add(self->active, work) < 0) {
+    return NULL;
+  }
+  Py_RETURN_NONE;
+}
+
+static int check_runner(PyObject * runner)
+{
+  if (!PyObject_TypeCheck(runner, &RunnerType)) {
+    PyErr_SetString(PyExc_TypeError, "a lane parks Runners only");
+    return -1;
+  }
+  return 0;
+}
+
+/* park(runner): it idles; the last parked is used first. */
+static PyObject * Slots_park(SlotsObject * self, PyObject * runner)
+{
+  if (check_runner(runner) < 0 || PyList_Append(self->idle_runners, runner) < 0) {
+    return NULL;
+  }
+  Py_RETURN_NONE;
+}
+
+/* unpark(runner) -> bool: taken out of the parked ones (False: it was not parked). */
+static PyObject * Slots_unpark(SlotsObject * self, PyObject * runner)
+{
+  Py_ssize_t i;
+  for (i = PyList_GET_SIZE(self->idle_runners) - 1; i >= 0; --i) {
+    if (PyList_GET_ITEM(self->idle_runners, i) == runner) {
+      if (PyList_SetSlice(self->idle_runners, i, i + 1, NULL) < 0) {
+        return NULL;
+      }
+      Py_RETURN_TRUE;
+    }
+  }
+  Py_RETURN_FALSE;
+}
+
+/* idle_runner() -> Runner | None: the last parked runner idling on a pending
+ * future, left parked; those whose future is done on the way are dropped. */
+static PyObject * Slots_idle_runner(SlotsObject * self, PyObject * Py_UNUSED(ignored))
+{
+  Py_ssize_t n;
+  while ((n = PyList_GET_SIZE(self->idle_runners)) > 0) {
+    RunnerObject * runner = (RunnerObject *)Py_NewRef(PyList_GET_ITEM(self->idle_runners, n - 1));
+    PyObject * done = runner_idle_done(runner);
+    if (done == Py_False) {
+      return (PyObject *)runner;
+    }
+    if (done == NULL) {
+      Py_DECREF(runner);
+      return NULL;
+    }
+    /* Still the last one (the call may have run code that parked more)? */
+    n = PyList_GET_SIZE(self->idle_runners);
+    if (n > 0 && PyList_GET_ITEM(self->idle_runners, n - 1) == (PyObject *)runner &&
+        PyList_SetSlice(self->idle_runners, n - 1, n, NULL) < 0) {
+      Py_DECREF(runner);
+      return NULL;
+    }
+    if (n == 0 || PyList_GET_ITEM(self->idle_runners, n - 1) != (PyObject *)runner) {
+      /* Parked elsewhere in the list now, or gone: take it out wherever it is. */
+      PyObject * gone = Slots_unpark(self, (PyObject *)runner);
+      if (gone == NULL) {
+        Py_DECREF(runner);
+        return NULL;
+      }
+      Py_DECREF(gone);
+    }
+    Py_DECREF(runner);
+  }
+  Py_RETURN_NONE;
+}
+
+static PyObject * Slots_get_idle(SlotsObject * self, void * Py_UNUSED(closure))
+{
+  return PyLong_FromSsize_t(PyList_GET_SIZE(self->idle_runners));
+}
+
 static PyObject * Slots_busy(SlotsObject * self, PyObject * Py_UNUSED(ignored))
 {
   return PyBool_FromLong(self->running > 0 || keeplast_size(self->pending) > 0);
@@ -795,6 +882,24 @@ static int Slots_set_limit(SlotsObject * self, PyObject * value, void * Py_UNUSE
 /* An idle runner whose first step may run now (new reference), its slot
  * taken; Py_None when none may (the lane is locked, closed, full or without
  * an idle runner: the Python path finds or makes one); NULL on error. */
+static PyObject * runner_idle_done(RunnerObject * runner)
+{
+  PyObject * idle = Py_NewRef(runner->idle), * done;
+  int is_done;
+  if (idle == Py_None) {
+    Py_DECREF(idle);
+    return Py_True;
+  }
+  done = PyObject_CallMethod(idle, "done", NULL);
+  Py_DECREF(idle);
+  if (done == NULL) {
+    return NULL;
+  }
+  is_done = PyObject_IsTrue(done);
+  Py_DECREF(done);
+  return is_done < 0 ? NULL : is_done ? Py_True : Py_False;
+}
+
 PyObject * slots_admit_first_step(SlotsObject * self)
 {
   RunnerObject * runner;
@@ -807,24 +912,21 @@ PyObject * slots_admit_first_step(SlotsObject * self)
   if (n == 0) {
     Py_RETURN_NONE;
   }
-  runner = (RunnerObject *)PyList_GET_ITEM(self->idle_runners, n - 1);
-  if (!PyObject_TypeCheck((PyObject *)runner, &RunnerType)) {
-    PyErr_SetString(PyExc_TypeError, "a lane's idle runners must be Runners");
-    return NULL;
+  /* Held before anything is called: the call may change the list. */
+  runner = (RunnerObject *)Py_NewRef(PyList_GET_ITEM(self->idle_runners, n - 1));
+  if ((done = runner_idle_done(runner)) != Py_False) {
+    Py_DECREF(runner);
+    if (done == NULL) {
+      return NULL;
+    }
+    Py_RETURN_NONE; /* not idle after all: the Python path finds or makes one */
   }
-  if (runner->idle == NULL || runner->idle == Py_None) {
-    Py_RETURN_NONE;
-  }
-  done = PyObject_CallMethod(runner->idle, "done", NULL);
-  if (done == NULL) {
-    return NULL;
-  }
-  Py_DECREF(done);
-  if (done != Py_False) {
+  if (self->lock->locked || self->closed || self->running >= self->limit) {
+    Py_DECREF(runner); /* what the call ran took the lane meanwhile */
     Py_RETURN_NONE;
   }
   self->running++;
-  return Py_NewRef((PyObject *)runner);
+  return (PyObject *)runner;
 }
 
 /* The slot slots_admit_first_step took is given back: 0 done, 1 when the
@@ -853,6 +955,13 @@ static PyMethodDef Slots_methods[] = {
   {"retire", (PyCFunction)Slots_retire, METH_O, "retire(node) -> list[Work]: the node's waiting work, taken out"},
   {"of", (PyCFunction)Slots_of, METH_O, "of(node) -> list[Work]: the node's work started and not yet done"},
   {"busy", (PyCFunction)Slots_busy, METH_NOARGS, "busy() -> bool: something runs or waits"},
+  {"activate", (PyCFunction)Slots_activate, METH_O,
+   "activate(work) -> None: work whose slot is taken already (a suspended first step) counts as started"},
+  {"park", (PyCFunction)Slots_park, METH_O, "park(runner) -> None: it idles; the last parked is used first"},
+  {"unpark", (PyCFunction)Slots_unpark, METH_O, "unpark(runner) -> bool: taken out of the parked ones"},
+  {"idle_runner", (PyCFunction)Slots_idle_runner, METH_NOARGS,
+   "idle_runner() -> Runner | None: the last parked runner idling on a pending future (left parked); "
+   "those whose future is done are dropped"},
   {NULL, NULL, 0, NULL},
 };
 
@@ -862,15 +971,13 @@ static PyMemberDef Slots_members[] = {
   {"running", T_PYSSIZET, offsetof(SlotsObject, running), READONLY, "Slots taken."},
   {"dropped", T_PYSSIZET, offsetof(SlotsObject, dropped), READONLY, "Waiting work dropped for newer of its entity."},
   {"closed", T_BOOL, offsetof(SlotsObject, closed), READONLY, "Closed: nothing is admitted any more."},
-  {"active", T_OBJECT, offsetof(SlotsObject, active), READONLY, "The set of work started and not yet done."},
-  {"idle_runners", T_OBJECT, offsetof(SlotsObject, idle_runners), READONLY,
-   "The lane's idle runners (a list; the last is used first)."},
   {NULL, 0, 0, 0, NULL},
 };
 
 static PyGetSetDef Slots_getset[] = {
   {"limit", (getter)Slots_get_limit, (setter)Slots_set_limit, "How many may run at once.", NULL},
   {"waiting", (getter)Slots_get_waiting, NULL, "How much work waits for a slot.", NULL},
+  {"idle", (getter)Slots_get_idle, NULL, "How many runners are parked.", NULL},
   {NULL, NULL, NULL, NULL, NULL},
 };
 
@@ -898,6 +1005,15 @@ static int Route_init(RouteObject * self, PyObject * args, PyObject * kwargs)
   if (!PyArg_ParseTupleAndKeywords(
         args, kwargs, "$OOOO!O!OO!U:Route", keywords, &first, &entry, &lane, &SlotsType, &slots, &WorkType,
         &marker, &entity, &TokenType, &token, &callback)) {
+    return -1;
+  }
+  if (self->first != NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Route is initialised once");
+    return -1;
+  }
+  /* A subscription's first is its Taker (which holds the subscription); a
+   * timer's is its handle, held here: call_timers reads its pointer. */
+  if (!PyObject_TypeCheck(first, &TakerType) && held_enter(&self->timer, first) < 0) {
     return -1;
   }
   Py_XSETREF(self->first, Py_NewRef(first));
@@ -940,12 +1056,13 @@ static int Route_clear(RouteObject * self)
 static void Route_dealloc(RouteObject * self)
 {
   PyObject_GC_UnTrack(self);
+  held_exit(&self->timer);
   Route_clear(self);
   Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
 static PyMemberDef Route_members[] = {
-  {"first", T_OBJECT, offsetof(RouteObject, first), READONLY, "The subscription's Taker, or the timer's address."},
+  {"first", T_OBJECT, offsetof(RouteObject, first), READONLY, "The subscription's Taker, or the timer's handle (held)."},
   {"entry", T_OBJECT, offsetof(RouteObject, entry), READONLY, "The dispatcher's entry, handed back to its hooks."},
   {"lane", T_OBJECT, offsetof(RouteObject, lane), READONLY, "The lane, handed back to its hooks."},
   {"slots", T_OBJECT, offsetof(RouteObject, slots), READONLY, "The lane's Slots."},
@@ -1014,13 +1131,18 @@ static void Routes_dealloc(RoutesObject * self)
   Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
+/* A copy of value: what the chain reads is never changed under it. */
 static int set_dict(PyObject ** field, PyObject * value)
 {
+  PyObject * copy;
   if (value == NULL || !PyDict_Check(value)) {
     PyErr_SetString(PyExc_TypeError, "routes are a dict of handle address -> Route");
     return -1;
   }
-  Py_XSETREF(*field, Py_NewRef(value));
+  if ((copy = PyDict_Copy(value)) == NULL) {
+    return -1;
+  }
+  Py_XSETREF(*field, copy);
   return 0;
 }
 

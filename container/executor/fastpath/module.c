@@ -1,9 +1,10 @@
 /* _fastpath: the executor's hot path in C: readiness, takes, the async chain.
  *
  * One module from one source per job (shared declarations in fastpath.h):
- * notifier.c, waitset.c, taker.c, service.c, lock.c, lanes.c, express.c,
- * watcher.c, handoff.c, meter.c; this file
- * makes the module and holds its few free functions.
+ * held.c, notifier.c, waitset.c, taker.c, service.c, lock.c, lanes.c,
+ * express.c, watcher.c, handoff.c, meter.c; this file makes the module and
+ * holds its few free functions. Its pure-Python twin, the executable
+ * specification of what it does, is container/executor/_pyengine.py.
  *
  * Notifier: event-driven readiness for rcl subscriptions, clients and services.
  *
@@ -20,12 +21,13 @@
  * publishes to a plain callback it will carry on to itself, while the
  * waiter wakes within DEFER_MAX_NS anyway (see on_event).
  *
- * Entities are identified by their rcl handle's address, which rclpy exposes
- * as ``handle.pointer``. The caller keeps each handle alive (held) from
- * ``watch`` until ``unwatch``: after ``unwatch`` returns no callback runs
- * for it any more (rmw serialises setting and calling the callback).
+ * Entities are given as their rclpy handles, which the notifier holds and
+ * enters from ``watch`` until ``unwatch`` (held.c); they are reported by
+ * their rcl address (``handle.pointer``), a key. After ``unwatch`` returns
+ * no callback runs for the entity any more (rmw serialises setting and
+ * calling the callback), and only then is the handle let go.
  *
- * WaitSet: an rcl wait set over entities given once (by handle address),
+ * WaitSet: an rcl wait set over entities given once (their handles held),
  * filled, waited on and read in one call: rclpy's wait set takes a call per
  * entity to fill and one per kind to read, on every wait.
  *
@@ -61,24 +63,26 @@ static PyObject * mark_carrier(PyObject * Py_UNUSED(module), PyObject * Py_UNUSE
   Py_RETURN_NONE;
 }
 
-/* poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set (its
- * ``pointer``) keeping the GIL, where rclpy's own ``wait`` would let go of it
- * even for a poll: WaitSet_wait's poll, for the wait set rclpy fills. */
-/* publisher_gid(publisher): the gid of the rcl publisher at that address, as
- * rclpy 9's message info gives a message's publisher_gid. */
-static PyObject * publisher_gid(PyObject * Py_UNUSED(module), PyObject * arg)
+/* publisher_gid(publisher): the gid of the rcl publisher of that rclpy
+ * handle (held and entered for the call), as rclpy 9's message info gives
+ * a message's publisher_gid. */
+static PyObject * publisher_gid(PyObject * Py_UNUSED(module), PyObject * handle)
 {
-  unsigned long long address = PyLong_AsUnsignedLongLong(arg);
+  Held publisher;
   rmw_publisher_t * rmw_publisher;
   rmw_gid_t gid;
-  if (address == (unsigned long long)-1 && PyErr_Occurred()) {
+  rmw_ret_t ret;
+  if (held_enter(&publisher, handle) < 0) {
     return NULL;
   }
-  rmw_publisher = rcl_publisher_get_rmw_handle((const rcl_publisher_t *)(uintptr_t)address);
+  rmw_publisher = rcl_publisher_get_rmw_handle((const rcl_publisher_t *)publisher.pointer);
   if (rmw_publisher == NULL) {
+    held_exit(&publisher);
     return rcl_failed("rcl_publisher_get_rmw_handle");
   }
-  if (rmw_get_gid_for_publisher(rmw_publisher, &gid) != RMW_RET_OK) {
+  ret = rmw_get_gid_for_publisher(rmw_publisher, &gid);
+  held_exit(&publisher);
+  if (ret != RMW_RET_OK) {
     PyErr_Format(PyExc_RuntimeError, "rmw_get_gid_for_publisher failed: %s", rmw_get_error_string().str);
     rmw_reset_error();
     return NULL;
@@ -86,27 +90,25 @@ static PyObject * publisher_gid(PyObject * Py_UNUSED(module), PyObject * arg)
   return gid_dict(&gid);
 }
 
+/* poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set (its
+ * handle, held and entered for the call) keeping the GIL, where rclpy's own
+ * ``wait`` would let go of it even for a poll: WaitSet_wait's poll, for the
+ * wait set rclpy fills. */
 static PyObject * poll_wait_set(PyObject * Py_UNUSED(module), PyObject * const * args, Py_ssize_t nargs)
 {
-  rcl_wait_set_t * ws;
+  Held wait_set;
   long long timeout;
   rcl_ret_t ret;
   if (nargs != 2) {
     PyErr_SetString(PyExc_TypeError, "poll(wait_set, timeout_ns)");
     return NULL;
   }
-  ws = (rcl_wait_set_t *)PyLong_AsVoidPtr(args[0]);
-  if (ws == NULL) {
-    if (!PyErr_Occurred()) {
-      PyErr_SetString(PyExc_ValueError, "poll: no wait set at address 0");
-    }
-    return NULL;
-  }
   timeout = PyLong_AsLongLong(args[1]);
-  if (timeout == -1 && PyErr_Occurred()) {
+  if ((timeout == -1 && PyErr_Occurred()) || held_enter(&wait_set, args[0]) < 0) {
     return NULL;
   }
-  ret = rcl_wait(ws, (int64_t)poll_timeout(timeout));
+  ret = rcl_wait((rcl_wait_set_t *)wait_set.pointer, (int64_t)poll_timeout(timeout));
+  held_exit(&wait_set);
   if (ret != RCL_RET_OK && ret != RCL_RET_TIMEOUT) {
     return rcl_failed("rcl_wait");
   }
@@ -115,10 +117,10 @@ static PyObject * poll_wait_set(PyObject * Py_UNUSED(module), PyObject * const *
 
 static PyMethodDef module_methods[] = {
   {"poll", (PyCFunction)(void (*)(void))poll_wait_set, METH_FASTCALL,
-   "poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set at that address, keeping the GIL "
+   "poll(wait_set, timeout_ns) -> None: rcl_wait on rclpy's wait set (its handle), keeping the GIL "
    "(for a wait whose guard condition is already triggered)"},
   {"publisher_gid", publisher_gid, METH_O,
-   "publisher_gid(publisher) -> dict: the gid of the rcl publisher at that address, as rclpy 9's message "
+   "publisher_gid(publisher) -> dict: the gid of the rcl publisher of that rclpy handle, as rclpy 9's message "
    "info gives it ({'implementation_identifier': str, 'data': bytes})"},
   {"mark_carrier", mark_carrier, METH_NOARGS,
    "mark_carrier() -> None: this thread takes, after each plain callback, what it published to other "

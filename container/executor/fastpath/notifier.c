@@ -87,16 +87,19 @@ static rcl_ret_t set_callback(int kind, uintptr_t key, rcl_event_callback_t call
 static int Notifier_init(NotifierObject * self, PyObject * args, PyObject * kwargs)
 {
   static char * keywords[] = {"guard", NULL};
-  unsigned long long guard;
-  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "K", keywords, &guard)) {
+  PyObject * guard;
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "$O", keywords, &guard)) {
     return -1;
   }
-  if (guard == 0) {
-    PyErr_SetString(PyExc_ValueError, "guard must be an rcl guard condition's address");
+  if (self->guard_held.handle != NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Notifier is initialised once");
+    return -1;
+  }
+  if (held_enter(&self->guard_held, guard) < 0) {
     return -1;
   }
   pthread_mutex_lock(&self->lock);
-  self->guard = (rcl_guard_condition_t *)(uintptr_t)guard;
+  self->guard = (rcl_guard_condition_t *)self->guard_held.pointer;
   pthread_mutex_unlock(&self->lock);
   return 0;
 }
@@ -116,20 +119,36 @@ static PyObject * Notifier_new(PyTypeObject * type, PyObject * args, PyObject * 
   atomic_init(&self->triggers, 0);
   atomic_init(&self->wake_by, LLONG_MAX);
   self->guard = NULL;
+  self->guard_held.handle = NULL;
+  self->guard_held.pointer = NULL;
   self->slots = NULL;
   self->ready = NULL;
   self->nready = self->capacity = 0;
   return (PyObject *)self;
 }
 
+/* rmw stops calling back for slot's entity (it serialises setting and
+ * calling the callback: none runs once this returns), the slot leaves the
+ * ready list, and its handle is let go. The caller unlinked it. */
+static void forget_slot(NotifierObject * self, Slot * slot);
+
+/* Stop triggering the guard, unwatch everything, let every handle go. */
+static void notifier_close(NotifierObject * self)
+{
+  while (self->slots != NULL) {
+    Slot * slot = self->slots;
+    self->slots = slot->next;
+    forget_slot(self, slot);
+  }
+  pthread_mutex_lock(&self->lock);
+  self->guard = NULL;
+  pthread_mutex_unlock(&self->lock);
+  held_exit(&self->guard_held);
+}
+
 static void Notifier_dealloc(NotifierObject * self)
 {
-  /* Slots still watched are leaked on purpose: rmw may still call into
-   * them if their entity lives on. Their owner pointer must then stay
-   * valid too, so a notifier with watched slots is never freed. */
-  if (self->slots != NULL) {
-    return;
-  }
+  notifier_close(self);
   free(self->ready);
   pthread_mutex_destroy(&self->lock);
   Py_TYPE(self)->tp_free((PyObject *)self);
@@ -149,27 +168,37 @@ static Slot * find(NotifierObject * self, uintptr_t key, Slot *** link)
 
 static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
 {
-  unsigned long long key;
+  PyObject * handle;
   int kind;
   int plain = 0;
   Slot * slot;
   rcl_ret_t ret;
-  if (!PyArg_ParseTuple(args, "Ki|p", &key, &kind, &plain)) {
+  if (!PyArg_ParseTuple(args, "Oi|p", &handle, &kind, &plain)) {
     return NULL;
   }
-  if (key == 0 || kind < KIND_SUBSCRIPTION || kind > KIND_EVENT) {
-    PyErr_SetString(PyExc_ValueError, "watch() needs a handle address and a known kind");
+  if (kind < KIND_SUBSCRIPTION || kind > KIND_EVENT) {
+    PyErr_SetString(PyExc_ValueError, "watch() needs a known kind");
     return NULL;
   }
-  if (find(self, (uintptr_t)key, NULL) != NULL) {
-    Py_RETURN_FALSE;
+  if (self->guard_held.handle == NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Notifier not initialised, or closed");
+    return NULL;
   }
   slot = calloc(1, sizeof(Slot));
   if (slot == NULL) {
     return PyErr_NoMemory();
   }
+  if (held_enter(&slot->entity, handle) < 0) {
+    free(slot);
+    return NULL;
+  }
+  if (find(self, (uintptr_t)slot->entity.pointer, NULL) != NULL) {
+    held_exit(&slot->entity);
+    free(slot);
+    Py_RETURN_FALSE;
+  }
   slot->owner = self;
-  slot->key = (uintptr_t)key;
+  slot->key = (uintptr_t)slot->entity.pointer;
   slot->kind = kind;
   slot->plain = plain;
   slot->next = self->slots;
@@ -181,6 +210,7 @@ static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
   Py_END_ALLOW_THREADS
   if (ret != RCL_RET_OK) {
     self->slots = slot->next;
+    held_exit(&slot->entity);
     free(slot);
     rcl_reset_error();
     PyErr_Format(
@@ -199,27 +229,16 @@ static PyObject * Notifier_watch(NotifierObject * self, PyObject * args)
   Py_RETURN_TRUE;
 }
 
-static PyObject * Notifier_unwatch(NotifierObject * self, PyObject * arg)
+static void forget_slot(NotifierObject * self, Slot * slot)
 {
-  unsigned long long key = PyLong_AsUnsignedLongLong(arg);
-  Slot ** link;
-  Slot * slot;
   rcl_ret_t ret;
   size_t i;
-  if (PyErr_Occurred()) {
-    return NULL;
-  }
-  slot = find(self, (uintptr_t)key, &link);
-  if (slot == NULL) {
-    Py_RETURN_FALSE;
-  }
   Py_BEGIN_ALLOW_THREADS
   ret = set_callback(slot->kind, slot->key, NULL, NULL);
   Py_END_ALLOW_THREADS
   if (ret != RCL_RET_OK) {
     rcl_reset_error();
   }
-  *link = slot->next;
   pthread_mutex_lock(&self->lock);
   for (i = 0; i < self->nready; ++i) {
     if (self->ready[i] == slot) {
@@ -232,7 +251,22 @@ static PyObject * Notifier_unwatch(NotifierObject * self, PyObject * arg)
     }
   }
   pthread_mutex_unlock(&self->lock);
+  held_exit(&slot->entity);
   free(slot);
+}
+
+static PyObject * Notifier_unwatch(NotifierObject * self, PyObject * handle)
+{
+  Slot ** link = &self->slots;
+  Slot * slot;
+  while ((slot = *link) != NULL && slot->entity.handle != handle) {
+    link = &slot->next;
+  }
+  if (slot == NULL) {
+    Py_RETURN_FALSE;
+  }
+  *link = slot->next;
+  forget_slot(self, slot);
   Py_RETURN_TRUE;
 }
 
@@ -272,36 +306,50 @@ static void forget_reported(NotifierObject * self)
   atomic_store(&self->plain_pending, 0);
 }
 
+/* [(key, count), ...] of n reported pairs: built after the lock is let go. */
+static PyObject * pairs(const uintptr_t * keys, const size_t * counts, Py_ssize_t n)
+{
+  PyObject * list = PyList_New(n);
+  Py_ssize_t i;
+  if (list == NULL) {
+    return NULL;
+  }
+  for (i = 0; i < n; ++i) {
+    PyObject * item = Py_BuildValue("(Kn)", (unsigned long long)keys[i], (Py_ssize_t)counts[i]);
+    if (item == NULL) {
+      Py_DECREF(list);
+      return NULL;
+    }
+    PyList_SET_ITEM(list, i, item);
+  }
+  return list;
+}
+
 /* The keys of the entities that became ready since the last call, oldest
  * first; each appears once however many events it had. */
 static PyObject * Notifier_ready(NotifierObject * self, PyObject * Py_UNUSED(ignored))
 {
+  uintptr_t inline_keys[REPORTED_INLINE];
+  size_t inline_counts[REPORTED_INLINE];
+  uintptr_t * keys = inline_keys;
+  size_t * counts = inline_counts;
   PyObject * list;
-  size_t i;
+  Py_ssize_t n;
   if (!atomic_load(&self->pending)) {
     return PyList_New(0);
   }
-  pthread_mutex_lock(&self->lock);
-  atomic_store(&self->pending, 0);
-  list = PyList_New((Py_ssize_t)self->nready);
-  if (list != NULL) {
-    for (i = 0; i < self->nready; ++i) {
-      PyObject * item = Py_BuildValue(
-        "(Kn)", (unsigned long long)self->ready[i]->key, (Py_ssize_t)self->ready[i]->count);
-      if (item == NULL) {
-        Py_CLEAR(list);
-        break;
-      }
-      PyList_SET_ITEM(list, (Py_ssize_t)i, item);
-    }
-    if (list != NULL) {
-      forget_reported(self);
-    }
+  n = notifier_take_reported(self, &keys, &counts, inline_keys, inline_counts);
+  if (n < 0) {
+    return NULL;
   }
-  if (list == NULL) {
-    atomic_store(&self->pending, 1);
+  list = pairs(keys, counts, n);
+  if (keys != inline_keys) {
+    free(keys);
+    free(counts);
   }
-  pthread_mutex_unlock(&self->lock);
+  /* What was taken out cannot go back: a failure here (out of memory) is
+   * the caller's to report, and the wait set is rebuilt, which watches
+   * again and so reports everything waiting. */
   return list;
 }
 
@@ -311,15 +359,14 @@ static PyObject * Notifier_ready(NotifierObject * self, PyObject * Py_UNUSED(ign
  * itself instead of waking another thread. */
 static PyObject * Notifier_carry(NotifierObject * self, PyObject * Py_UNUSED(ignored))
 {
+  uintptr_t inline_keys[REPORTED_INLINE];
+  size_t inline_counts[REPORTED_INLINE];
+  uintptr_t * keys = inline_keys;
+  size_t * counts = inline_counts;
   PyObject * list;
-  size_t i;
-  size_t kept = 0;
+  size_t i, n = 0, kept = 0, capacity = REPORTED_INLINE;
   if (!atomic_load(&self->plain_pending)) {
     return PyList_New(0);
-  }
-  list = PyList_New(0);
-  if (list == NULL) {
-    return NULL;
   }
   pthread_mutex_lock(&self->lock);
   for (i = 0; i < self->nready; ++i) {
@@ -328,17 +375,32 @@ static PyObject * Notifier_carry(NotifierObject * self, PyObject * Py_UNUSED(ign
       self->ready[kept++] = slot;
       continue;
     }
-    PyObject * item = Py_BuildValue("(Kn)", (unsigned long long)slot->key, (Py_ssize_t)slot->count);
-    if (item == NULL || PyList_Append(list, item) < 0) {
-      Py_XDECREF(item);
-      /* Leave this and the rest queued for ready(). */
-      for (; i < self->nready; ++i) {
-        self->ready[kept++] = self->ready[i];
+    if (n == capacity) {
+      size_t grown_capacity = capacity * 2;
+      uintptr_t * grown_keys = malloc(grown_capacity * sizeof(uintptr_t));
+      size_t * grown_counts = malloc(grown_capacity * sizeof(size_t));
+      if (grown_keys == NULL || grown_counts == NULL) {
+        /* Leave this and the rest queued for ready(). */
+        free(grown_keys);
+        free(grown_counts);
+        for (; i < self->nready; ++i) {
+          self->ready[kept++] = self->ready[i];
+        }
+        break;
       }
-      Py_CLEAR(list);
-      break;
+      memcpy(grown_keys, keys, n * sizeof(uintptr_t));
+      memcpy(grown_counts, counts, n * sizeof(size_t));
+      if (keys != inline_keys) {
+        free(keys);
+        free(counts);
+      }
+      keys = grown_keys;
+      counts = grown_counts;
+      capacity = grown_capacity;
     }
-    Py_DECREF(item);
+    keys[n] = slot->key;
+    counts[n] = slot->count;
+    ++n;
     slot->queued = 0;
     slot->count = 0;
     atomic_fetch_sub(&self->plain_pending, 1);
@@ -348,15 +410,17 @@ static PyObject * Notifier_carry(NotifierObject * self, PyObject * Py_UNUSED(ign
     atomic_store(&self->pending, 0);
   }
   pthread_mutex_unlock(&self->lock);
+  list = pairs(keys, counts, (Py_ssize_t)n);
+  if (keys != inline_keys) {
+    free(keys);
+    free(counts);
+  }
   return list;
 }
 
-/* Stop triggering the guard (it is about to be destroyed). */
 static PyObject * Notifier_close(NotifierObject * self, PyObject * Py_UNUSED(ignored))
 {
-  pthread_mutex_lock(&self->lock);
-  self->guard = NULL;
-  pthread_mutex_unlock(&self->lock);
+  notifier_close(self);
   Py_RETURN_NONE;
 }
 
@@ -377,9 +441,10 @@ static PyObject * Notifier_get_watched(NotifierObject * self, void * Py_UNUSED(c
 
 static PyMethodDef Notifier_methods[] = {
   {"watch", (PyCFunction)Notifier_watch, METH_VARARGS,
-   "watch(pointer, kind, plain=False) -> bool: report new data of this rcl entity (False: already watched)."},
+   "watch(handle, kind, plain=False) -> bool: report new data of the rclpy handle's entity, held until "
+   "unwatch (False: already watched)."},
   {"unwatch", (PyCFunction)Notifier_unwatch, METH_O,
-   "unwatch(pointer) -> bool: stop; no callback for it runs once this returns."},
+   "unwatch(handle) -> bool: stop; no callback for it runs once this returns, then the handle is let go."},
   {"arm", (PyCFunction)Notifier_arm, METH_NOARGS,
    "arm() -> bool: about to wait; True if something is ready already (do not block)."},
   {"disarm", (PyCFunction)Notifier_disarm, METH_NOARGS, "disarm(): back from the wait."},
@@ -388,7 +453,8 @@ static PyMethodDef Notifier_methods[] = {
    "carry() -> [(address, count)]: what ready() would give, of the plain slots only."},
   {"ready", (PyCFunction)Notifier_ready, METH_NOARGS,
    "ready() -> list[tuple[int, int]]: (entity, events) that became ready since the last call."},
-  {"close", (PyCFunction)Notifier_close, METH_NOARGS, "close(): never trigger the guard again."},
+  {"close", (PyCFunction)Notifier_close, METH_NOARGS,
+   "close(): never trigger the guard again; unwatch everything and let every handle go."},
   {NULL, NULL, 0, NULL},
 };
 

@@ -2,83 +2,90 @@
  * responses, taken and sent in C (see module.c). */
 #include "fastpath.h"
 
-typedef bool (*convert_from_py_t)(PyObject *, void *);
-
-/* rmw's words when a client's response reader is not matched (yet). */
-#define NOT_MATCHED "will not receive response"
-
-/* The capsules of srv_type's ``part`` (Request or Response) that are asked for. */
-static int message_functions(
-  PyObject * srv_type, const char * part, PyObject ** type, create_message_t * create,
-  destroy_message_t * destroy, convert_to_py_t * to_py, convert_from_py_t * from_py)
+/* Whether rcl_send_response's failure means the client's response reader is
+ * not matched (yet): rmw waited for it, up to the writer's blocking time
+ * (Fast DDS: 100 ms), and gave up. rcl (since 2023, ros2/rcl#1048: Jazzy,
+ * Kilted) passes rmw_fastrtps's RMW_RET_TIMEOUT on as RCL_RET_TIMEOUT;
+ * tests/executor/test_fastpath.py checks it on each distribution. */
+static inline int client_not_matched(rcl_ret_t ret)
 {
-  PyObject * message_type = PyObject_GetAttrString(srv_type, part);
-  int ok;
-  if (message_type == NULL) {
-    return -1;
-  }
-  ok = (create == NULL || (*create = (create_message_t)capsule_of(message_type, "_CREATE_ROS_MESSAGE")) != NULL)
-    && (destroy == NULL || (*destroy = (destroy_message_t)capsule_of(message_type, "_DESTROY_ROS_MESSAGE")) != NULL)
-    && (to_py == NULL || (*to_py = (convert_to_py_t)capsule_of(message_type, "_CONVERT_TO_PY")) != NULL)
-    && (from_py == NULL || (*from_py = (convert_from_py_t)capsule_of(message_type, "_CONVERT_FROM_PY")) != NULL);
-  if (ok && type != NULL) {
-    *type = message_type;
-    return 0;
-  }
-  Py_DECREF(message_type);
-  return ok ? 0 : -1;
+  return ret == RCL_RET_TIMEOUT;
 }
 
 /* ------------------------------------------------------------------------ */
 /* Server: one service's requests, taken into a kept C message, and its answers. */
 typedef struct {
   PyObject_HEAD
-  const rcl_service_t * service;
-  void * request;
-  destroy_message_t destroy_request;
-  convert_to_py_t request_to_py;
-  PyObject * response_type;
-  create_message_t create_response;
-  destroy_message_t destroy_response;
-  convert_from_py_t response_from_py;
+  Held service;                 /* rcl_service_t */
+  MessageFunctions request;     /* of srv_type.Request */
+  MessageFunctions response;    /* of srv_type.Response, with from_py */
+  void * kept;                  /* owned: the kept request, made with request.create */
 } ServerObject;
 
 static int Server_init(ServerObject * self, PyObject * args, PyObject * kwargs)
 {
   static char * keywords[] = {"service", "srv_type", NULL};
-  unsigned long long service;
-  PyObject * srv_type;
-  create_message_t create_request;
-  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "$KO", keywords, &service, &srv_type)) {
+  PyObject * service, * srv_type;
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "$OO", keywords, &service, &srv_type)) {
     return -1;
   }
-  if (service == 0 || self->request != NULL) {
-    PyErr_SetString(PyExc_ValueError, "Server needs an rcl service's address, once");
+  if (self->kept != NULL || self->service.handle != NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Server is initialised once");
     return -1;
   }
-  if (message_functions(
-        srv_type, "Request", NULL, &create_request, &self->destroy_request, &self->request_to_py, NULL) < 0 ||
-      message_functions(
-        srv_type, "Response", &self->response_type, &self->create_response, &self->destroy_response, NULL,
-        &self->response_from_py) < 0)
-  {
+  if (message_functions(srv_type, "Request", 0, &self->request) < 0) {
     return -1;
   }
-  if ((self->request = create_request()) == NULL) {
+  if (message_functions(srv_type, "Response", 1, &self->response) < 0 || held_enter(&self->service, service) < 0) {
+    message_functions_clear(&self->request);
+    message_functions_clear(&self->response);
+    return -1;
+  }
+  if ((self->kept = self->request.create()) == NULL) {
+    held_exit(&self->service);
+    message_functions_clear(&self->request);
+    message_functions_clear(&self->response);
     PyErr_NoMemory();
     return -1;
   }
-  self->service = (const rcl_service_t *)(uintptr_t)service;
   return 0;
+}
+
+static void server_close(ServerObject * self)
+{
+  if (self->kept != NULL) {
+    self->request.destroy(self->kept);
+    self->kept = NULL;
+  }
+  held_exit(&self->service);
 }
 
 static void Server_dealloc(ServerObject * self)
 {
-  if (self->request != NULL) {
-    self->destroy_request(self->request);
-  }
-  Py_XDECREF(self->response_type);
+  server_close(self);
+  message_functions_clear(&self->request);
+  message_functions_clear(&self->response);
   Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyObject * Server_close(ServerObject * self, PyObject * Py_UNUSED(ignored))
+{
+  server_close(self);
+  Py_RETURN_NONE;
+}
+
+static PyObject * Server_get_closed(ServerObject * self, void * Py_UNUSED(closure))
+{
+  return PyBool_FromLong(self->kept == NULL);
+}
+
+static int server_open(ServerObject * self)
+{
+  if (self->kept == NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Server not initialised, or closed");
+    return 0;
+  }
+  return 1;
 }
 
 /* take() -> (request, header) | None; the header is opaque (bytes), for send(). */
@@ -87,18 +94,17 @@ static PyObject * Server_take(ServerObject * self, PyObject * Py_UNUSED(ignored)
   rmw_service_info_t info;
   rcl_ret_t ret;
   PyObject * request, * header;
-  if (self->request == NULL) {
-    PyErr_SetString(PyExc_RuntimeError, "Server not initialised");
+  if (!server_open(self)) {
     return NULL;
   }
-  ret = rcl_take_request_with_info(self->service, &info, self->request);
+  ret = rcl_take_request_with_info(self->service.pointer, &info, self->kept);
   if (ret == RCL_RET_SERVICE_TAKE_FAILED) {
     Py_RETURN_NONE;
   }
   if (ret != RCL_RET_OK) {
     return rcl_failed("rcl_take_request_with_info");
   }
-  if ((request = self->request_to_py(self->request)) == NULL) {
+  if ((request = self->request.to_py(self->kept)) == NULL) {
     return NULL;
   }
   header = PyBytes_FromStringAndSize((const char *)&info.request_id, sizeof(info.request_id));
@@ -130,8 +136,7 @@ static PyObject * Server_send(ServerObject * self, PyObject * const * args, Py_s
   if (nargs == 3 && (let_go = PyObject_IsTrue(args[2])) < 0) {
     return NULL;
   }
-  if (self->request == NULL) {
-    PyErr_SetString(PyExc_RuntimeError, "Server not initialised");
+  if (!server_open(self)) {
     return NULL;
   }
   if (PyBytes_AsStringAndSize(args[1], &bytes, &size) < 0) {
@@ -142,38 +147,37 @@ static PyObject * Server_send(ServerObject * self, PyObject * const * args, Py_s
     return NULL;
   }
   memcpy(&header, bytes, sizeof(header));
-  if ((is_response = PyObject_IsInstance(args[0], self->response_type)) <= 0) {
+  if ((is_response = PyObject_IsInstance(args[0], self->response.type)) <= 0) {
     if (is_response == 0) {
       PyErr_Format(
         PyExc_TypeError, "a service callback returned %.200s, not %.200s", Py_TYPE(args[0])->tp_name,
-        ((PyTypeObject *)self->response_type)->tp_name);
+        ((PyTypeObject *)self->response.type)->tp_name);
     }
     return NULL;
   }
-  if ((message = self->create_response()) == NULL) {
+  if ((message = self->response.create()) == NULL) {
     return PyErr_NoMemory();
   }
-  if (!self->response_from_py(args[0], message)) {
-    self->destroy_response(message);
+  if (!self->response.from_py(args[0], message)) {
+    self->response.destroy(message);
     if (!PyErr_Occurred()) {
       PyErr_SetString(PyExc_ValueError, "the response could not be converted");
     }
     return NULL;
   }
   if (let_go) {
+    /* The service stays entered meanwhile: nothing destroys it under the send. */
     Py_BEGIN_ALLOW_THREADS
-    ret = rcl_send_response(self->service, &header, message);
+    ret = rcl_send_response(self->service.pointer, &header, message);
     Py_END_ALLOW_THREADS
   } else {
-    ret = rcl_send_response(self->service, &header, message);
+    ret = rcl_send_response(self->service.pointer, &header, message);
   }
-  self->destroy_response(message);
+  self->response.destroy(message);
   if (ret == RCL_RET_OK) {
     Py_RETURN_TRUE;
   }
-  /* Fast DDS's rmw waits 100 ms for the client's response reader, then
-   * fails: a timeout (Jazzy), or an error saying so. */
-  if (ret == RCL_RET_TIMEOUT || strstr(rcl_get_error_string().str, NOT_MATCHED) != NULL) {
+  if (client_not_matched(ret)) {
     rcl_reset_error();
     Py_RETURN_FALSE;
   }
@@ -184,7 +188,13 @@ static PyMethodDef Server_methods[] = {
   {"take", (PyCFunction)Server_take, METH_NOARGS, "take() -> (request, header) | None"},
   {"send", (PyCFunction)(void (*)(void))Server_send, METH_FASTCALL,
    "send(response, header, let_go=False) -> bool: False while the client's response reader is not matched"},
+  {"close", (PyCFunction)Server_close, METH_NOARGS, "close() -> None: let the service's handle go"},
   {NULL, NULL, 0, NULL},
+};
+
+static PyGetSetDef Server_getset[] = {
+  {"closed", (getter)Server_get_closed, NULL, "Whether close() let the handle go (rclpy's calls serve it then).", NULL},
+  {NULL, NULL, NULL, NULL, NULL},
 };
 
 PyTypeObject ServerType = {
@@ -197,48 +207,65 @@ PyTypeObject ServerType = {
   .tp_init = (initproc)Server_init,
   .tp_dealloc = (destructor)Server_dealloc,
   .tp_methods = Server_methods,
+  .tp_getset = Server_getset,
 };
 
 /* ------------------------------------------------------------------------ */
 /* Caller: one client's responses, taken into a kept C message. */
 typedef struct {
   PyObject_HEAD
-  const rcl_client_t * client;
-  void * response;
-  destroy_message_t destroy;
-  convert_to_py_t to_py;
+  Held client;                /* rcl_client_t */
+  MessageFunctions response;  /* of srv_type.Response */
+  void * kept;                /* owned: the kept response, made with response.create */
 } CallerObject;
 
 static int Caller_init(CallerObject * self, PyObject * args, PyObject * kwargs)
 {
   static char * keywords[] = {"client", "srv_type", NULL};
-  unsigned long long client;
-  PyObject * srv_type;
-  create_message_t create;
-  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "$KO", keywords, &client, &srv_type)) {
+  PyObject * client, * srv_type;
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "$OO", keywords, &client, &srv_type)) {
     return -1;
   }
-  if (client == 0 || self->response != NULL) {
-    PyErr_SetString(PyExc_ValueError, "Caller needs an rcl client's address, once");
+  if (self->kept != NULL || self->client.handle != NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Caller is initialised once");
     return -1;
   }
-  if (message_functions(srv_type, "Response", NULL, &create, &self->destroy, &self->to_py, NULL) < 0) {
+  if (message_functions(srv_type, "Response", 0, &self->response) < 0) {
     return -1;
   }
-  if ((self->response = create()) == NULL) {
+  if (held_enter(&self->client, client) < 0) {
+    message_functions_clear(&self->response);
+    return -1;
+  }
+  if ((self->kept = self->response.create()) == NULL) {
+    held_exit(&self->client);
+    message_functions_clear(&self->response);
     PyErr_NoMemory();
     return -1;
   }
-  self->client = (const rcl_client_t *)(uintptr_t)client;
   return 0;
+}
+
+static void caller_close(CallerObject * self)
+{
+  if (self->kept != NULL) {
+    self->response.destroy(self->kept);
+    self->kept = NULL;
+  }
+  held_exit(&self->client);
 }
 
 static void Caller_dealloc(CallerObject * self)
 {
-  if (self->response != NULL) {
-    self->destroy(self->response);
-  }
+  caller_close(self);
+  message_functions_clear(&self->response);
   Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyObject * Caller_close(CallerObject * self, PyObject * Py_UNUSED(ignored))
+{
+  caller_close(self);
+  Py_RETURN_NONE;
 }
 
 /* take() -> (sequence_number, response) | None */
@@ -247,18 +274,18 @@ static PyObject * Caller_take(CallerObject * self, PyObject * Py_UNUSED(ignored)
   rmw_service_info_t info;
   rcl_ret_t ret;
   PyObject * response;
-  if (self->response == NULL) {
-    PyErr_SetString(PyExc_RuntimeError, "Caller not initialised");
+  if (self->kept == NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Caller not initialised, or closed");
     return NULL;
   }
-  ret = rcl_take_response_with_info(self->client, &info, self->response);
+  ret = rcl_take_response_with_info(self->client.pointer, &info, self->kept);
   if (ret == RCL_RET_CLIENT_TAKE_FAILED) {
     Py_RETURN_NONE;
   }
   if (ret != RCL_RET_OK) {
     return rcl_failed("rcl_take_response_with_info");
   }
-  if ((response = self->to_py(self->response)) == NULL) {
+  if ((response = self->response.to_py(self->kept)) == NULL) {
     return NULL;
   }
   return Py_BuildValue("(LN)", (long long)info.request_id.sequence_number, response);
@@ -266,6 +293,7 @@ static PyObject * Caller_take(CallerObject * self, PyObject * Py_UNUSED(ignored)
 
 static PyMethodDef Caller_methods[] = {
   {"take", (PyCFunction)Caller_take, METH_NOARGS, "take() -> (sequence_number, response) | None"},
+  {"close", (PyCFunction)Caller_close, METH_NOARGS, "close() -> None: let the client's handle go"},
   {NULL, NULL, 0, NULL},
 };
 

@@ -9,60 +9,57 @@ PyObject * gid_dict(const rmw_gid_t * gid)
     (const char *)gid->data, (Py_ssize_t)RMW_GID_STORAGE_SIZE);
 }
 
-void * capsule_of(PyObject * type, const char * name)
-{
-  void * pointer;
-  PyObject * capsule = PyObject_GetAttrString(type, name);
-  if (capsule == NULL) {
-    return NULL;
-  }
-  pointer = PyCapsule_GetPointer(capsule, NULL);
-  Py_DECREF(capsule);
-  return pointer;
-}
-
 static int Taker_init(TakerObject * self, PyObject * args, PyObject * kwargs)
 {
   static char * keywords[] = {"subscription", "message_type", "publisher_gid", NULL};
-  unsigned long long subscription;
-  PyObject * type;
-  create_message_t create;
+  PyObject * subscription, * type;
   int with_gid = 0;
-  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "KO|$p", keywords, &subscription, &type, &with_gid)) {
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OO|$p", keywords, &subscription, &type, &with_gid)) {
+    return -1;
+  }
+  if (self->message != NULL || self->subscription.handle != NULL) {
+    PyErr_SetString(PyExc_RuntimeError, "Taker is initialised once");
     return -1;
   }
   self->with_gid = with_gid;
-  if (subscription == 0 || self->message != NULL) {
-    PyErr_SetString(PyExc_ValueError, "Taker needs an rcl subscription's address, once");
+  if (message_functions(type, NULL, 0, &self->functions) < 0) {
     return -1;
   }
-  create = (create_message_t)capsule_of(type, "_CREATE_ROS_MESSAGE");
-  if (create == NULL) {
+  if (held_enter(&self->subscription, subscription) < 0) {
+    message_functions_clear(&self->functions);
     return -1;
   }
-  self->destroy = (destroy_message_t)capsule_of(type, "_DESTROY_ROS_MESSAGE");
-  if (self->destroy == NULL) {
-    return -1;
-  }
-  self->to_py = (convert_to_py_t)capsule_of(type, "_CONVERT_TO_PY");
-  if (self->to_py == NULL) {
-    return -1;
-  }
-  self->message = create();
+  self->message = self->functions.create();
   if (self->message == NULL) {
+    held_exit(&self->subscription);
+    message_functions_clear(&self->functions);
     PyErr_NoMemory();
     return -1;
   }
-  self->subscription = (const rcl_subscription_t *)(uintptr_t)subscription;
   return 0;
+}
+
+/* The kept message goes, and the handle with it. */
+static void taker_close(TakerObject * self)
+{
+  if (self->message != NULL) {
+    self->functions.destroy(self->message);
+    self->message = NULL;
+  }
+  held_exit(&self->subscription);
 }
 
 static void Taker_dealloc(TakerObject * self)
 {
-  if (self->message != NULL) {
-    self->destroy(self->message);
-  }
+  taker_close(self);
+  message_functions_clear(&self->functions);
   Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyObject * Taker_close(TakerObject * self, PyObject * Py_UNUSED(ignored))
+{
+  taker_close(self);
+  Py_RETURN_NONE;
 }
 
 static PyObject * sequence_or_none(uint64_t value)
@@ -82,17 +79,17 @@ PyObject * taker_take(TakerObject * self, int with_info)
   PyObject * message;
   PyObject * dict;
   if (self->message == NULL) {
-    PyErr_SetString(PyExc_RuntimeError, "Taker not initialised");
+    PyErr_SetString(PyExc_RuntimeError, "Taker not initialised, or closed");
     return NULL;
   }
-  ret = rcl_take(self->subscription, self->message, &info, NULL);
+  ret = rcl_take(self->subscription.pointer, self->message, &info, NULL);
   if (ret == RCL_RET_SUBSCRIPTION_TAKE_FAILED) {
     Py_RETURN_NONE;
   }
   if (ret != RCL_RET_OK) {
     return rcl_failed("rcl_take");
   }
-  message = self->to_py(self->message);
+  message = self->functions.to_py(self->message);
   if (message == NULL || !with_info) {
     return message;
   }
@@ -130,6 +127,7 @@ static PyMethodDef Taker_methods[] = {
   {"take", (PyCFunction)Taker_take, METH_NOARGS, "take() -> message | None"},
   {"take_with_info", (PyCFunction)Taker_take_with_info, METH_NOARGS,
    "take_with_info() -> (message, info) | None, info as rclpy's take_message gives it"},
+  {"close", (PyCFunction)Taker_close, METH_NOARGS, "close() -> None: let the subscription's handle go"},
   {NULL, NULL, 0, NULL},
 };
 

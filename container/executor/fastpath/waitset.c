@@ -8,62 +8,32 @@ typedef struct {
   PyObject_HEAD
   rcl_wait_set_t wait_set;
   int initialised;
-  void ** entities[WS_KINDS];
+  int waiting;                 /* a thread is in rcl_wait without the GIL: close() must not free under it */
+  Held context;                /* rcl_context_t the wait set was made in */
+  Held * entities[WS_KINDS];   /* each kind's handles, held (what the wait set points at) */
   size_t counts[WS_KINDS];
   NotifierObject * notifier; /* told when each wait ends at the latest, or NULL */
   HandoffObject * handoff;   /* the loop's hand-overs to workers (with a notifier only), or NULL */
 } WaitSetObject;
-
-static int addresses(PyObject * sequence, void *** out, size_t * count)
-{
-  PyObject * fast = PySequence_Fast(sequence, "entities must be a sequence of handle addresses");
-  Py_ssize_t i, n;
-  if (fast == NULL) {
-    return -1;
-  }
-  n = PySequence_Fast_GET_SIZE(fast);
-  *out = calloc(n > 0 ? (size_t)n : 1, sizeof(void *));
-  if (*out == NULL) {
-    Py_DECREF(fast);
-    PyErr_NoMemory();
-    return -1;
-  }
-  for (i = 0; i < n; ++i) {
-    unsigned long long address = PyLong_AsUnsignedLongLong(PySequence_Fast_GET_ITEM(fast, i));
-    if (PyErr_Occurred()) {
-      Py_DECREF(fast);
-      return -1;
-    }
-    if (address == 0) {
-      Py_DECREF(fast);
-      PyErr_SetString(PyExc_ValueError, "a handle address is 0");
-      return -1;
-    }
-    (*out)[i] = (void *)(uintptr_t)address;
-  }
-  *count = (size_t)n;
-  Py_DECREF(fast);
-  return 0;
-}
 
 static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs)
 {
   static char * keywords[] = {
     "context", "subscriptions", "guard_conditions", "timers", "clients", "services", "events", "notifier",
     "handoff", NULL};
-  unsigned long long context;
+  PyObject * context;
   PyObject * notifier = Py_None;
   PyObject * handoff = Py_None;
   PyObject * given[WS_KINDS] = {NULL, NULL, NULL, NULL, NULL, NULL};
   PyObject * empty;
   rcl_ret_t ret;
   int kind;
-  if (self->initialised) {
+  if (self->initialised || self->context.handle != NULL) {
     PyErr_SetString(PyExc_RuntimeError, "WaitSet is initialised once");
     return -1;
   }
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwargs, "K|$OOOOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
+      args, kwargs, "O|$OOOOOOOO", keywords, &context, &given[WS_SUBSCRIPTIONS], &given[WS_GUARDS],
       &given[WS_TIMERS], &given[WS_CLIENTS], &given[WS_SERVICES], &given[WS_EVENTS], &notifier, &handoff))
   {
     return -1;
@@ -76,16 +46,17 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
     PyErr_SetString(PyExc_TypeError, "handoff must be a Handoff or None");
     return -1;
   }
-  if (context == 0) {
-    PyErr_SetString(PyExc_ValueError, "context must be an rcl context's address");
-    return -1;
-  }
   empty = PyTuple_New(0);
-  if (empty == NULL) {
+  if (empty == NULL || held_enter(&self->context, context) < 0) {
+    Py_XDECREF(empty);
     return -1;
   }
   for (kind = 0; kind < WS_KINDS; ++kind) {
-    if (addresses(given[kind] != NULL ? given[kind] : empty, &self->entities[kind], &self->counts[kind]) < 0) {
+    if (held_enter_all(given[kind] != NULL ? given[kind] : empty, &self->entities[kind], &self->counts[kind]) < 0) {
+      while (--kind >= 0) {
+        held_exit_all(&self->entities[kind], &self->counts[kind]);
+      }
+      held_exit(&self->context);
       Py_DECREF(empty);
       return -1;
     }
@@ -95,35 +66,57 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
   ret = rcl_wait_set_init(
     &self->wait_set, self->counts[WS_SUBSCRIPTIONS], self->counts[WS_GUARDS], self->counts[WS_TIMERS],
     self->counts[WS_CLIENTS], self->counts[WS_SERVICES], self->counts[WS_EVENTS],
-    (rcl_context_t *)(uintptr_t)context, rcl_get_default_allocator());
+    (rcl_context_t *)self->context.pointer, rcl_get_default_allocator());
   if (ret != RCL_RET_OK) {
     rcl_failed("rcl_wait_set_init");
+    for (kind = WS_KINDS - 1; kind >= 0; --kind) {
+      held_exit_all(&self->entities[kind], &self->counts[kind]);
+    }
+    held_exit(&self->context);
     return -1;
   }
   if (notifier != Py_None) {
-    Py_INCREF(notifier);
-    self->notifier = (NotifierObject *)notifier;
+    self->notifier = (NotifierObject *)Py_NewRef(notifier);
     if (handoff != Py_None) {
-      Py_INCREF(handoff);
-      self->handoff = (HandoffObject *)handoff;
+      self->handoff = (HandoffObject *)Py_NewRef(handoff);
     }
   }
   self->initialised = 1;
   return 0;
 }
 
-static void WaitSet_dealloc(WaitSetObject * self)
+/* The rcl wait set goes (it points at the entities), then the handles, the context last. */
+static void waitset_close(WaitSetObject * self)
 {
   int kind;
-  if (self->initialised && rcl_wait_set_fini(&self->wait_set) != RCL_RET_OK) {
-    rcl_reset_error();
+  if (self->initialised) {
+    self->initialised = 0;
+    if (rcl_wait_set_fini(&self->wait_set) != RCL_RET_OK) {
+      rcl_reset_error();
+    }
   }
-  for (kind = 0; kind < WS_KINDS; ++kind) {
-    free(self->entities[kind]);
+  for (kind = WS_KINDS - 1; kind >= 0; --kind) {
+    held_exit_all(&self->entities[kind], &self->counts[kind]);
   }
+  held_exit(&self->context);
+}
+
+static void WaitSet_dealloc(WaitSetObject * self)
+{
+  waitset_close(self);
   Py_XDECREF(self->notifier);
   Py_XDECREF(self->handoff);
   Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyObject * WaitSet_close(WaitSetObject * self, PyObject * Py_UNUSED(ignored))
+{
+  if (self->waiting) {
+    PyErr_SetString(PyExc_RuntimeError, "WaitSet.close() while a thread waits in it: wake it first");
+    return NULL;
+  }
+  waitset_close(self);
+  Py_RETURN_NONE;
 }
 
 static rcl_ret_t fill(WaitSetObject * self)
@@ -132,22 +125,22 @@ static rcl_ret_t fill(WaitSetObject * self)
   rcl_ret_t ret = rcl_wait_set_clear(ws);
   size_t i;
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_SUBSCRIPTIONS]; ++i) {
-    ret = rcl_wait_set_add_subscription(ws, self->entities[WS_SUBSCRIPTIONS][i], NULL);
+    ret = rcl_wait_set_add_subscription(ws, self->entities[WS_SUBSCRIPTIONS][i].pointer, NULL);
   }
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_GUARDS]; ++i) {
-    ret = rcl_wait_set_add_guard_condition(ws, self->entities[WS_GUARDS][i], NULL);
+    ret = rcl_wait_set_add_guard_condition(ws, self->entities[WS_GUARDS][i].pointer, NULL);
   }
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_TIMERS]; ++i) {
-    ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][i], NULL);
+    ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][i].pointer, NULL);
   }
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_CLIENTS]; ++i) {
-    ret = rcl_wait_set_add_client(ws, self->entities[WS_CLIENTS][i], NULL);
+    ret = rcl_wait_set_add_client(ws, self->entities[WS_CLIENTS][i].pointer, NULL);
   }
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_SERVICES]; ++i) {
-    ret = rcl_wait_set_add_service(ws, self->entities[WS_SERVICES][i], NULL);
+    ret = rcl_wait_set_add_service(ws, self->entities[WS_SERVICES][i].pointer, NULL);
   }
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_EVENTS]; ++i) {
-    ret = rcl_wait_set_add_event(ws, self->entities[WS_EVENTS][i], NULL);
+    ret = rcl_wait_set_add_event(ws, self->entities[WS_EVENTS][i].pointer, NULL);
   }
   return ret;
 }
@@ -183,7 +176,7 @@ static long long wake_deadline(WaitSetObject * self, long long timeout)
   long long soonest = timeout >= 0 ? timeout : LLONG_MAX;
   size_t i;
   for (i = 0; i < self->counts[WS_TIMERS]; ++i) {
-    const rcl_timer_t * timer = self->entities[WS_TIMERS][i];
+    const rcl_timer_t * timer = self->entities[WS_TIMERS][i].pointer;
     rcl_clock_t * clock = NULL;
     int64_t until = 0;
     rcl_ret_t ret = rcl_timer_clock((rcl_timer_t *)timer, &clock);
@@ -248,7 +241,7 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
     return NULL;
   }
   if (!self->initialised) {
-    PyErr_SetString(PyExc_RuntimeError, "WaitSet not initialised");
+    PyErr_SetString(PyExc_RuntimeError, "WaitSet not initialised, or closed");
     return NULL;
   }
   ret = fill(self);
@@ -258,6 +251,7 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
     /* Only a carrier's publish reads it (on_event). */
     NotifierObject * told = atomic_load(&carriers_exist) ? self->notifier : NULL;
     HandoffObject * handoff = self->handoff;
+    self->waiting = 1;
     Py_BEGIN_ALLOW_THREADS
     /* Plain work was handed to workers and runs: its answer (a response, a
      * message) usually comes within microseconds, and waking this thread's
@@ -292,6 +286,7 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
       handoff_loop_free(handoff, 0);
     }
     Py_END_ALLOW_THREADS
+    self->waiting = 0;
   }
   if (ret == RCL_RET_TIMEOUT) {
     /* Nothing ready: rcl cleared every slot. */
@@ -314,6 +309,7 @@ static PyMethodDef WaitSet_methods[] = {
   {"wait", (PyCFunction)(void (*)(void))WaitSet_wait, METH_FASTCALL,
    "wait(timeout_ns, poll=False) -> () on timeout, else the ready addresses: (subscriptions, guard_conditions, "
    "timers, clients, services, events)"},
+  {"close", (PyCFunction)WaitSet_close, METH_NOARGS, "close() -> None: let every handle go"},
   {NULL, NULL, 0, NULL},
 };
 

@@ -3,7 +3,7 @@
  * The loop's thread sleeps in rcl_wait (see _selector.py), which knows no
  * file descriptors; a thread of this object's own polls the selector's epoll
  * descriptor while the loop sleeps and triggers an rcl guard condition the
- * wait set holds. In Python that thread needed the GIL and a
+ * wait set holds (its handle held here until the thread is joined). In Python that thread needed the GIL and a
  * threading.Event to be re-armed: a byte on a pseudo-terminal reached its
  * reader in 356 us (median, 10 writes a second) against 168 us in a plain
  * asyncio loop. This thread never touches Python.
@@ -24,7 +24,7 @@ typedef struct {
   PyObject_HEAD
   int epfd;   /* the selector's epoll descriptor (not ours to close) */
   int ctl;    /* eventfd: arm() and close() wake the thread */
-  rcl_guard_condition_t * guard;
+  Held guard; /* the guard condition's handle: its rcl object outlives the thread */
   atomic_int armed;
   atomic_int ready;
   atomic_int stopping;
@@ -59,7 +59,7 @@ static void * watch(void * arg)
       /* Disarmed before the loop can see ready: its next sleep re-arms. */
       atomic_store(&self->ready, 1);
       atomic_fetch_add(&self->wakes, 1);
-      if (rcl_trigger_guard_condition(self->guard) != RCL_RET_OK) {
+      if (rcl_trigger_guard_condition((rcl_guard_condition_t *)self->guard.pointer) != RCL_RET_OK) {
         rcl_reset_error();
       }
     }
@@ -70,26 +70,25 @@ static int FdWatcher_init(FdWatcherObject * self, PyObject * args, PyObject * kw
 {
   static char * keywords[] = {"epoll", "guard", NULL};
   int epfd;
-  unsigned long long guard;
+  PyObject * guard;
   int err;
-  if (self->running) {
+  if (self->running || self->guard.handle != NULL) {
     PyErr_SetString(PyExc_RuntimeError, "FdWatcher already started");
     return -1;
   }
-  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "$iK", keywords, &epfd, &guard)) {
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "$iO", keywords, &epfd, &guard)) {
     return -1;
   }
-  if (guard == 0) {
-    PyErr_SetString(PyExc_ValueError, "guard must be an rcl guard condition's address");
+  if (held_enter(&self->guard, guard) < 0) {
     return -1;
   }
   self->ctl = eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
   if (self->ctl < 0) {
     PyErr_SetFromErrno(PyExc_OSError);
+    held_exit(&self->guard);
     return -1;
   }
   self->epfd = epfd;
-  self->guard = (rcl_guard_condition_t *)(uintptr_t)guard;
   atomic_store(&self->armed, 0);
   atomic_store(&self->ready, 0);
   atomic_store(&self->stopping, 0);
@@ -98,6 +97,7 @@ static int FdWatcher_init(FdWatcherObject * self, PyObject * args, PyObject * kw
   if (err != 0) {
     close(self->ctl);
     self->ctl = -1;
+    held_exit(&self->guard);
     errno = err;
     PyErr_SetFromErrno(PyExc_OSError);
     return -1;
@@ -113,19 +113,20 @@ static void poke(FdWatcherObject * self)
   (void)put; /* a full counter already wakes the thread */
 }
 
+/* The thread is joined before the guard is let go: it never triggers a destroyed one. */
 static void stop(FdWatcherObject * self)
 {
-  if (!self->running) {
-    return;
+  if (self->running) {
+    self->running = 0;
+    atomic_store(&self->stopping, 1);
+    poke(self);
+    Py_BEGIN_ALLOW_THREADS
+    pthread_join(self->thread, NULL);
+    Py_END_ALLOW_THREADS
+    close(self->ctl);
+    self->ctl = -1;
   }
-  self->running = 0;
-  atomic_store(&self->stopping, 1);
-  poke(self);
-  Py_BEGIN_ALLOW_THREADS
-  pthread_join(self->thread, NULL);
-  Py_END_ALLOW_THREADS
-  close(self->ctl);
-  self->ctl = -1;
+  held_exit(&self->guard);
 }
 
 static PyObject * FdWatcher_arm(FdWatcherObject * self, PyObject * Py_UNUSED(ignored))

@@ -8,6 +8,7 @@ import threading
 import pytest
 
 from container.executor import Escaped, _spare, in_thread
+from tests.waiting import wait_until_async
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -27,14 +28,19 @@ async def test_a_call_after_another_returned_runs_on_the_same_thread_under_its_o
 
 
 async def test_a_call_that_blocks_keeps_its_thread_and_holds_up_no_other_call() -> None:
-    release = threading.Event()
+    release, blocking = threading.Event(), threading.Event()
 
     def blocked() -> threading.Thread:
+        blocking.set()
         release.wait(10.0)
         return threading.current_thread()
 
     stuck = asyncio.ensure_future(in_thread(blocked, name="transition:/stuck"))
     try:
+        # Blocking before the other call is made: made first (wait_for runs
+        # it in this task at once), the other call's thread could be free
+        # again by the time the blocking call takes one, and be taken.
+        await wait_until_async(blocking.is_set, "the blocking call", timeout=5.0)
         other, _ = await asyncio.wait_for(in_thread(_named, name="transition:/other"), 5.0)
         assert not stuck.done()
         release.set()

@@ -261,7 +261,9 @@ class Lane:
         if self._carries:
             mark_carrier()  # its publishes to plain callbacks need not wake the loop
         inbox = self._inbox
-        lingering = self._handoff
+        # Never on one CPU (Handoff's spin: see Dispatcher), where lingering
+        # keeps the loop thread it waits for off the CPU.
+        lingering = self._handoff if self._handoff is not None and self._handoff.spin else None
         quick = False  # the last wait for work was short: linger before the next
         while True:
             if quick and lingering is not None and inbox.empty():

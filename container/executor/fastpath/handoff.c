@@ -17,6 +17,19 @@
  * the GIL and briefly, for those workers to finish (see give()): on a
  * virtual machine, letting its core go idle costs more than a short
  * callback.
+ *
+ * Every spin here (give's, a worker's linger, the loop's linger) is for
+ * a thread running on another CPU at the same time. With one CPU for the
+ * process the awaited thread needs this thread's CPU to make progress,
+ * so spinning only delays it: the executor then makes its Handoff with
+ * spin=False (_dispatch.py, from _cores.usable_cpus(), counted once when
+ * the executor is made), and none of them spins. The wait for the
+ * workers' starts stays: it sleeps on a condition variable, which is what
+ * hands the one CPU and the GIL to the worker.
+ *
+ * The spin and linger bounds below were measured on the project's 2-core
+ * shared KVM virtual machine only, with the benchmarks named at each; none
+ * has been measured with one CPU or with more than two.
  */
 #include "fastpath.h"
 
@@ -157,7 +170,8 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
      * keeps this thread's core from going idle, and on a virtual machine
      * waking an idle core costs 50-200 us, twice per hand-over (the GIL
      * comes back through a condition variable too). One that runs longer
-     * is left to the GIL as before. */
+     * is left to the GIL as before. Never on one CPU (spin=False): the
+     * worker could only finish once this thread gave the CPU back. */
     long long until = monotonic_ns() + spin_ns;
     while (atomic_load(&self->running) > before && monotonic_ns() < until) {
       sched_yield();

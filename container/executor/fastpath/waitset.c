@@ -258,7 +258,9 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
      * idle core for it costs more. So the thread stays awake for it first,
      * no later than the wait would end (its timeout, its soonest timer): no
      * timer fires later for it. An answer that comes disarmed the notifier
-     * and triggered its guard: rcl_wait then returns at once. */
+     * and triggered its guard: rcl_wait then returns at once. Never with
+     * one CPU (the Handoff's spin is off: see handoff.c), where the worker
+     * could only answer once this thread stopped spinning. */
     int linger = handoff != NULL && timeout != 0 && handoff_may_linger(handoff);
     long long by = told != NULL || linger ? wake_deadline(self, timeout) : LLONG_MAX;
     if (told != NULL) {

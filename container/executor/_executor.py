@@ -54,7 +54,7 @@ from ._culprit import Culprit, TaskOrigins
 from ._dispatch import Dispatcher
 from ._engine import Work
 from ._entries import WOKEN, describe, format_error
-from ._inbox import Inbox, Post
+from ._inbox import Inbox, Post, call_soon
 from ._lanes import Lane
 from ._selector import RclSelector
 from ._tasks import TaskFuture, TaskLaneHooks, plain_work, settle, settle_from
@@ -437,9 +437,9 @@ class AsyncioExecutor(Executor):
             # Suspended after its first step, it counts as run (spin_once), as in rclpy.
             task = loop.create_task(self.adapt(contained(coro), on_suspend=self._callback_completed))
             task.add_done_callback(finished)
-            result.stop_with(functools.partial(self._inbox.call_soon, loop, task.cancel))
+            result.stop_with(functools.partial(call_soon, loop, task.cancel))
 
-        return functools.partial(self._inbox.call_soon, loop, start)
+        return functools.partial(call_soon, loop, start)
 
     def _task_done(self, work: Work, error: BaseException | None) -> None:
         self._callback_completed()
@@ -602,7 +602,8 @@ class AsyncioExecutor(Executor):
                 started = True
                 watchdog = self._start_watchdog()
                 try:
-                    self._loop.run_until_complete(main)
+                    with self._inbox.serving():
+                        self._loop.run_until_complete(main)
                 finally:
                     if watchdog is not None:
                         watchdog.pause()
@@ -847,7 +848,7 @@ class AsyncioExecutor(Executor):
             if not stopped.done():
                 stopped.set_result(None)
 
-        self._inbox.call_soon(stopped.get_loop(), settle)
+        call_soon(stopped.get_loop(), settle)
         self._guard_trigger()
 
     def _guard_trigger(self) -> None:
@@ -867,12 +868,12 @@ class AsyncioExecutor(Executor):
     def _notify_progress(self) -> None:
         progress = self._progress
         if progress is not None and not progress.done():
-            self._inbox.call_soon(progress.get_loop(), _resolve, progress)
+            call_soon(progress.get_loop(), _resolve, progress)
 
     def _callback_completed(self) -> None:
         if self._completion_waiters:
             for waiter in list(self._completion_waiters):
-                self._inbox.call_soon(waiter.get_loop(), _resolve, waiter)
+                call_soon(waiter.get_loop(), _resolve, waiter)
 
     def _report_error(self, node: Node, entity: object, error: BaseException) -> None:
         if isinstance(error, asyncio.CancelledError):

@@ -52,7 +52,7 @@ from ._accounting import Accounting
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._culprit import Culprit, TaskOrigins
 from ._dispatch import Dispatcher
-from ._engine import Work
+from ._engine import Work, announce
 from ._entries import WOKEN, describe, format_error
 from ._inbox import Inbox, Post, call_soon
 from ._lanes import Lane
@@ -145,6 +145,8 @@ class AsyncioExecutor(Executor):
         num_threads: int | None = None,
         accounting: bool = True,
     ) -> None:
+        # An engine other than the one asked for (the compiled one did not build): said once.
+        announce()
         super().__init__(context=context)
         # Refused after rclpy's part is built: its __del__ needs it, and
         # releases it again (a refusal before left an AttributeError there).

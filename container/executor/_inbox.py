@@ -48,8 +48,8 @@ def call_soon(loop: asyncio.AbstractEventLoop, callback: Callable[..., object], 
     From ``loop``'s own thread: in its next iteration. From another thread:
     after the next wait of the executor spinning ``loop`` as its own (one
     guard-condition trigger), else through asyncio's ``call_soon_threadsafe``.
-    ``callback`` must not raise: on an executor's own loop nothing would
-    report the error but the spin, which it would end.
+    Either way an error ``callback`` raises goes to the loop's exception
+    handler, as asyncio's.
     """
     if loop.is_closed():
         return
@@ -58,9 +58,20 @@ def call_soon(loop: asyncio.AbstractEventLoop, callback: Callable[..., object], 
         return
     inbox = _serving.get(loop)
     if inbox is not None:
-        inbox.post(callback, *args)
+        inbox.post(_run_reported, loop, callback, args)
     else:
         loop.call_soon_threadsafe(callback, *args)
+
+
+def _run_reported(loop: asyncio.AbstractEventLoop, callback: Callable[..., object], args: tuple[Any, ...]) -> None:
+    """``callback(*args)`` as asyncio runs a handle: an error goes to the loop's exception handler
+    (the inbox runs inside the loop's wait, which an error would end)."""
+    try:
+        callback(*args)
+    except (SystemExit, KeyboardInterrupt):
+        raise
+    except BaseException as exc:  # reported as asyncio reports a handle's
+        loop.call_exception_handler({"message": f"Exception in callback {callback!r}", "exception": exc})
 
 
 def run_coroutine(coro: Coroutine[Any, Any, T], loop: asyncio.AbstractEventLoop) -> concurrent.futures.Future[T]:
@@ -79,10 +90,12 @@ def run_coroutine(coro: Coroutine[Any, Any, T], loop: asyncio.AbstractEventLoop)
     def start() -> None:
         try:
             task = loop.create_task(coro)
-        except BaseException as exc:  # handed to the waiting thread, which reports it
+        except (SystemExit, KeyboardInterrupt):
+            raise
+        except BaseException as exc:  # the waiting thread's, and reported as asyncio does
             if outcome.set_running_or_notify_cancel():
                 outcome.set_exception(exc)
-            return
+            raise
         task.add_done_callback(functools.partial(_copy_outcome, outcome))
 
         def cancel_task(_: concurrent.futures.Future[T]) -> None:

@@ -98,6 +98,22 @@ def test_a_post_from_another_thread_to_an_executors_own_loop_is_one_wake_up(
     wait_until(lambda: watcher.wakes > wakes, "the fd watcher woke the loop for the self-pipe")
 
 
+def test_an_error_a_post_raises_goes_to_the_loops_exception_handler_and_the_spin_goes_on(
+    executor: AsyncioExecutor, spinning: dict[str, _Counted]
+) -> None:
+    """As asyncio reports a handle's error, though the inbox runs inside the loop's wait."""
+    reported: concurrent.futures.Future[BaseException] = concurrent.futures.Future()
+    executor.loop.set_exception_handler(lambda _, context: reported.set_result(context["exception"]))
+
+    def fails() -> None:
+        raise ValueError("posted and failed")
+
+    call_soon(executor.loop, fails)
+    assert str(reported.result(TIMEOUT)) == "posted and failed"
+    assert _posted_from_here(lambda run: call_soon(executor.loop, run)) == "spinning"
+    assert spinning["self-pipe"].calls == 0
+
+
 def test_bridge_outcomes_reach_an_executors_own_loop_through_its_inbox(
     executor: AsyncioExecutor, spinning: dict[str, _Counted]
 ) -> None:

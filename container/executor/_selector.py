@@ -4,7 +4,9 @@ DDS offers no file descriptor to hand to asyncio, and a thread hand-over
 per message costs several times a whole round trip here. So the event loop's
 thread itself blocks in ``rcl_wait`` and takes ROS work without any hop;
 asyncio's own file descriptors (serial ports, sockets, the loop's self-pipe
-that ``call_soon_threadsafe`` and signals write to) are watched by a small
+that signals and asyncio's ``call_soon_threadsafe`` write to; the
+container's own posts from other threads go through ``_inbox`` instead,
+one guard-condition trigger) are watched by a small
 compiled thread (``_fastpath.FdWatcher``) that only triggers an rcl guard
 condition when one becomes readable. That thread stays parked while nothing
 but ROS traffic flows.

@@ -52,7 +52,7 @@ from ._accounting import Accounting
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._culprit import Culprit, TaskOrigins
 from ._dispatch import Dispatcher
-from ._engine import Work
+from ._engine import Work, announce
 from ._entries import WOKEN, describe, format_error
 from ._inbox import Inbox, Post
 from ._lanes import Lane
@@ -154,6 +154,8 @@ class AsyncioExecutor(Executor):
                 raise ExecutorError(f"{keyword} must be at least 1, not {value}")
         if num_threads is not None:
             reentrant_limit = num_threads
+        # The engine is not the one asked for (the compiled one did not load): said once.
+        announce()
         self._reentrant_limit = reentrant_limit
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout

@@ -44,6 +44,14 @@ __all__ = [
     "undo_first_step",
 ]
 
+
+def _integer(value: object) -> int:
+    """``value`` as the compiled engine takes a count (``PyLong_AsSsize_t``): an ``int``, nothing else."""
+    if not isinstance(value, int):
+        raise TypeError("an integer is required")
+    return value
+
+
 # -- Token ---------------------------------------------------------------------------------
 
 
@@ -280,7 +288,7 @@ class KeepLast:
     def push(self, item: object, entity: object, depth: int, /) -> bool:
         """Append ``item`` of ``entity``, keeping at most ``depth`` of the entity's:
         ``True`` if an older one of it was dropped for this one."""
-        depth = operator.index(depth)
+        depth = _integer(depth)
         dropped = False
         if self._count_add(entity, 0) >= depth:
             entities = self._entities
@@ -417,7 +425,7 @@ class Slots:
 
     @limit.setter
     def limit(self, limit: int) -> None:
-        limit = operator.index(limit)
+        limit = _integer(limit)
         if limit < 1:
             raise ValueError("a lane's limit is at least 1")
         self._limit = limit

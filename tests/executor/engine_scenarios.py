@@ -22,6 +22,7 @@ from typing import Any
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.client import Client
 from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import Int64
@@ -185,7 +186,7 @@ def _service_chain(log: Log, *, style: str) -> None:
         return answer(request, response)
 
     server.create_service(Trigger, f"engines_{style}", answer_async if style == "async" else answer)
-    client = caller.create_client(Trigger, f"engines_{style}")
+    client: Client[Any, Any] = caller.create_client(Trigger, f"engines_{style}")
     executor = AsyncioExecutor()
     executor.add_node(server)
     executor.add_node(caller)

@@ -16,6 +16,12 @@ reads and changes the same state through this module's functions
 :func:`undo_first_step`) while the lock is free. The fields the compiled
 engine keeps to itself are this module's own too: other modules of the
 engine go through the functions below, as ``fastpath.h`` declares them for C.
+
+Difference: the compiled chain changes a lane's state without taking its
+lock, because it holds the GIL and runs no Python code in between: no
+thread can come in. Python code can be interrupted between any two
+bytecodes, so here the chain takes the lock, without waiting (a lock held
+by another thread is what the compiled one reads as "the lane is locked").
 """
 
 from __future__ import annotations
@@ -538,31 +544,40 @@ def admit_first_step(slots: Slots) -> Runner | None:
     """An idle runner whose first step may run now, its slot taken; ``None`` when none
     may (the lane is locked, closed, full or without an idle runner: the Python
     path finds or makes one)."""
-    if slots._lock.locked() or slots._closed or slots._running >= slots._limit:
+    lock = slots._lock
+    if not lock.acquire(blocking=False):
         return None
-    if not slots._idle_runners:
-        return None
-    runner = slots._idle_runners[-1]
-    if _idle_done(runner):
-        return None  # not idle after all: the Python path finds or makes one
-    if slots._lock.locked() or slots._closed or slots._running >= slots._limit:
-        return None  # what the call ran took the lane meanwhile
-    slots._running += 1
-    return runner
+    try:
+        if slots._closed or slots._running >= slots._limit or not slots._idle_runners:
+            return None
+        runner = slots._idle_runners[-1]
+        if _idle_done(runner):
+            return None  # not idle after all: the Python path finds or makes one
+        slots._running += 1
+        return runner
+    finally:
+        lock.release()
 
 
 def release_first_step(slots: Slots) -> bool:
     """The slot :func:`admit_first_step` took is given back: ``False`` done,
     ``True`` when the lane must do it (its lock is held, or work waits for the slot)."""
-    if slots._lock.locked() or len(slots._pending) > 0:
+    lock = slots._lock
+    if not lock.acquire(blocking=False):
         return True
-    slots._running -= 1
-    return False
+    try:
+        if len(slots._pending) > 0:
+            return True
+        slots._running -= 1
+        return False
+    finally:
+        lock.release()
 
 
 def undo_first_step(slots: Slots) -> None:
     """The first step could not even start: its slot is given back as it was taken."""
-    slots._running -= 1
+    with slots._lock:
+        slots._running -= 1
 
 
 # -- Route ---------------------------------------------------------------------------------

@@ -24,8 +24,11 @@ callback blocked on its worker, an async one holding the loop). Counted
 once per step, by :meth:`Meter.take` while it lasts or at its end.
 
 The same rules as the compiled meter, read with ``time.monotonic_ns()`` and
-``time.thread_time_ns()`` (the same clocks): only what reading a clock costs
-differs.
+``time.thread_time_ns()`` (the same clocks). Difference: the compiled meter
+needs no lock, each of its changes being one stretch of C under the GIL;
+here a change is several bytecodes another thread may come between (two
+workers ending steps of one entity, the accounting's window closing), so
+each meter has a lock of its own, taken for every change and window.
 """
 
 from __future__ import annotations
@@ -115,10 +118,11 @@ class Meter:
 
     __slots__ = (
         "_busy_ns", "_cpu_ns", "_dropped", "_dur", "_dur_max", "_dur_n", "_finished", "_in_step",
-        "_late", "_late_max", "_late_n", "_runs", "_step_since", "_stuck", "_stuck_counted",
+        "_late", "_late_max", "_late_n", "_lock", "_runs", "_step_since", "_stuck", "_stuck_counted",
     )  # fmt: skip
 
     def __init__(self) -> None:
+        self._lock = threading.Lock()
         self._runs = self._finished = self._dropped = self._stuck = 0
         self._late_n = self._dur_n = 0
         self._busy_ns = self._cpu_ns = self._late_max = self._dur_max = 0
@@ -134,6 +138,10 @@ class Meter:
     def take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
         """``(runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50,
         duration_p99, duration_max, dropped, stuck, running_ns)``: this window's (ns), then a new one."""
+        with self._lock:
+            return self._take()
+
+    def _take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
         now = _monotonic_ns()
         running = now - self._step_since if self._in_step > 0 else 0
         if running >= _Limits.stuck_after_ns and not self._stuck_counted:
@@ -207,32 +215,37 @@ def _step_out(meter: Meter, step_start: int) -> int:
 def begin(meter: Meter, arrived: int) -> int:
     """A callback's first step starts (``arrived``: when its work arrived, 0 unknown): its start (ns)."""
     now = _monotonic_ns()
-    meter._runs += 1
-    if arrived > 0:
-        _record_late(meter, now - arrived)
-    _step_in(meter, now)
+    with meter._lock:
+        meter._runs += 1
+        if arrived > 0:
+            _record_late(meter, now - arrived)
+        _step_in(meter, now)
     return now
 
 
 def resume(meter: Meter) -> int:
     """A later step of a suspended callback starts: its start (ns)."""
     now = _monotonic_ns()
-    _step_in(meter, now)
+    with meter._lock:
+        _step_in(meter, now)
     return now
 
 
 def pause(meter: Meter, step_start: int) -> None:
     """The step that started at ``step_start`` suspended."""
-    _step_out(meter, step_start)
+    with meter._lock:
+        _step_out(meter, step_start)
 
 
 def end(meter: Meter, step_start: int, started: int) -> None:
     """The step that started at ``step_start`` ended the callback, whose first step started at ``started``."""
-    now = _step_out(meter, step_start)
-    meter._finished += 1
-    _record_duration(meter, now - started)
+    with meter._lock:
+        now = _step_out(meter, step_start)
+        meter._finished += 1
+        _record_duration(meter, now - started)
 
 
 def count_dropped(meter: Meter) -> None:
     """A waiting invocation of the meter's entity was dropped for a newer one (keep-last)."""
-    meter._dropped += 1
+    with meter._lock:
+        meter._dropped += 1

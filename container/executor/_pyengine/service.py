@@ -13,7 +13,8 @@ The header is opaque to the caller: bytes of ``rmw_request_id_t`` in C,
 rclpy's request id object here; :meth:`Server.send` takes only what
 :meth:`Server.take` gave.
 
-Differences: rmw's wait for an unmatched client (Fast DDS: up to 100 ms)
+Differences: a take makes a new C message each time (rclpy's), where the
+compiled ones keep one across takes; rmw's wait for an unmatched client (Fast DDS: up to 100 ms)
 holds the GIL whatever ``let_go`` asks (rclpy's call keeps it), and rclpy
 tells an unmatched client by a ``RuntimeWarning`` or an ``RCLError``
 (``container._compat.client_not_matched``), where C reads rcl's return code.

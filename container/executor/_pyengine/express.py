@@ -17,8 +17,9 @@ Python path the executor uses anyway: a lane that is busy, locked by
 another thread or without an idle runner (``slow``), a callback that
 suspends or fails (``suspended``, ``failed``), a lane with pending work
 after the step (``release_pending``), and entities that are not express
-routes (``take_rest``). A lane's state is read and written only while its
-lock is free (``lanes.admit_first_step``).
+routes (``take_rest``). A lane's state is read and written only under its
+lock, taken without waiting (``lanes.admit_first_step``: held by another
+thread, the lane counts as locked, as the compiled chain reads it).
 
 :func:`first_step` is the step both paths run: ``call(*args)`` up to its
 first suspension, inside the runner's task (asyncio's current task while

@@ -439,7 +439,18 @@ class AsyncioExecutor(Executor):
             # Suspended after its first step, it counts as run (spin_once), as in rclpy.
             task = loop.create_task(self.adapt(contained(coro), on_suspend=self._callback_completed))
             task.add_done_callback(finished)
-            result.stop_with(functools.partial(self._inbox.call_soon, loop, task.cancel))
+
+            def cancel() -> None:
+                # At once where nobody else runs the loop: posted, the cancel
+                # would queue behind a wake-up of the task already queued (an
+                # await that completed), and the task would run a step past
+                # the await it was cancelled at, which rclpy's never does.
+                if not loop.is_running() or running_loop() is loop:
+                    task.cancel()
+                else:
+                    self._inbox.call_soon(loop, task.cancel)
+
+            result.stop_with(cancel)
 
         return functools.partial(self._inbox.call_soon, loop, start)
 

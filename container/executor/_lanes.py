@@ -67,6 +67,17 @@ WORKER_IDLE_S = 3.0
 #: How long a worker whose work comes quickly stays awake for more (see
 #: ``Handoff.linger``): it lingers only while its last wait for work was
 #: shorter than this.
+#:
+#: Measured against, on the project's 2-core shared KVM VM: with the loop's
+#: linger (``fastpath/handoff.c``, ``LOOP_LINGER_NS``, commit bc7e731), plain
+#: service calls 7,430-7,614/s before and 19,770-20,200/s after, the code
+#: before side by side (``bench_executor.py --only services``), the
+#: ten-node load's CPU with plain callbacks 1.01x, ping-pong 0.98x; in
+#: ``bench_busy.py`` the plain intra-process subscriber then got 3,171
+#: frames a second at 177% CPU, where the run before lingering got 2,490 at
+#: one core. 250 us itself was not measured against other values. Never
+#: used on one CPU: the worker does not linger (``Handoff.spin`` is false),
+#: since the loop it waits for needs that CPU to hand work over.
 WORKER_LINGER_NS = 250_000
 
 
@@ -261,7 +272,9 @@ class Lane:
         if self._carries:
             mark_carrier()  # its publishes to plain callbacks need not wake the loop
         inbox = self._inbox
-        lingering = self._handoff
+        # Never on one CPU (Handoff's spin: see Dispatcher), where lingering
+        # keeps the loop thread it waits for off the CPU.
+        lingering = self._handoff if self._handoff is not None and self._handoff.spin else None
         quick = False  # the last wait for work was short: linger before the next
         while True:
             if quick and lingering is not None and inbox.empty():

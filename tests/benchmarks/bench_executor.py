@@ -50,7 +50,12 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
+
+from tests.benchmarks import cpus
 
 KINDS = {
     "asyncio-async": "AsyncioExecutor, async def callbacks",
@@ -593,9 +598,12 @@ def main() -> None:
         "virtualenvs of one Python compare two versions of the code (a git worktree's .venv)",
     )
     parser.add_argument("--child", nargs=3, metavar=("MEASURE", "KIND", "SECONDS"))
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
     if args.child:
         _child(args.child[0], args.child[1], float(args.child[2]))
+    print(cpus.header(), flush=True)
     kinds = _with_engines([kind for kind in KINDS if kind in args.kinds], args.engines)
     pythons: dict[str, str] = {}
     for python in args.pythons:

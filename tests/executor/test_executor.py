@@ -526,6 +526,37 @@ def test_a_task_cancelled_before_its_first_step_leaves_no_coroutine_unawaited(
     assert [str(w.message) for w in caught if "never awaited" in str(w.message)] == []
 
 
+def test_a_task_cancelled_while_its_wake_up_is_queued_runs_no_step_past_its_await(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node]
+) -> None:
+    """rclpy's ``task.cancel()`` takes effect at once. Between spins, with the
+    task's wake-up already queued on the idle loop (its parked await looked
+    again), a cancel posted behind it let one more step run: about one try in
+    ten under load in the conformance test of the same name."""
+    executor.add_node(make_node("cancel_queued"))
+    gate: RclFuture[Any] = RclFuture()
+    steps: list[str] = []
+
+    async def waits() -> None:
+        steps.append("before")
+        await gate
+        steps.append("after")
+
+    task = executor.create_task(waits)
+    for _ in range(3):
+        executor.spin_once(timeout_sec=0.05)
+    assert steps == ["before"]
+    # The parked await looks again: its task's wake-up is queued on the loop, which nobody runs now.
+    progress = executor._progress_future()
+    progress.set_result(None)
+    task.cancel()
+    gate.set_result(None)
+    for _ in range(3):
+        executor.spin_once(timeout_sec=0.05)
+    assert steps == ["before"], "the task went on past the await it was cancelled at"
+    assert task.cancelled()
+
+
 @pytest.mark.parametrize("where", ["task", "timer"])
 def test_asyncio_sleep_zero_yields_to_the_loop_and_comes_straight_back(
     executor: AsyncioExecutor, make_node: Callable[[str], Node], where: str

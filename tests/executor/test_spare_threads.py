@@ -27,14 +27,17 @@ async def test_a_call_after_another_returned_runs_on_the_same_thread_under_its_o
 
 
 async def test_a_call_that_blocks_keeps_its_thread_and_holds_up_no_other_call() -> None:
-    release = threading.Event()
+    release, started = threading.Event(), threading.Event()
 
     def blocked() -> threading.Thread:
+        started.set()
         release.wait(10.0)
         return threading.current_thread()
 
     stuck = asyncio.ensure_future(in_thread(blocked, name="transition:/stuck"))
     try:
+        # Blocked first: started after the other call, it could take that call's thread once free.
+        assert await asyncio.to_thread(started.wait, 5.0)
         other, _ = await asyncio.wait_for(in_thread(_named, name="transition:/other"), 5.0)
         assert not stuck.done()
         release.set()

@@ -34,6 +34,11 @@
  * the timer's address first) where the wait set's dispatch
  * takes them, under its locks; ``run_fired`` runs their callbacks as
  * ``drain`` runs a message's, once those locks are released.
+ *
+ * Ownership: every field is a strong reference set once. ready_queue,
+ * eager and done_waiters are Python's containers (asyncio's, the
+ * dispatcher's, the executor's), read here by their length only; fired is
+ * this object's own list.
  */
 typedef struct {
   PyObject_HEAD

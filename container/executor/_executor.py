@@ -156,6 +156,8 @@ class AsyncioExecutor(Executor):
                 raise ExecutorError(f"{keyword} must be at least 1, not {value}")
         if num_threads is not None:
             reentrant_limit = num_threads
+        # The engine is not the one asked for (the compiled one did not load): said once.
+        announce()
         self._reentrant_limit = reentrant_limit
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout

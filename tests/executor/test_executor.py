@@ -30,6 +30,7 @@ from std_msgs.msg import Int64
 from std_srvs.srv import SetBool, Trigger
 
 from container import AsyncioExecutor, ExecutorError, _compat
+from tests.engine_support import compiled_only
 
 
 @pytest.fixture
@@ -118,6 +119,7 @@ def test_blocking_plain_callback_in_one_node_does_not_delay_another(
     assert max(gaps) < 0.25, gaps
 
 
+@compiled_only("rmw new-data callbacks (a worker carries on to what its callback published)")
 def test_callback_carried_to_another_lanes_thread_that_blocks_delays_nobody(
     executor: AsyncioExecutor, make_node: Callable[[str], Node]
 ) -> None:
@@ -1040,6 +1042,7 @@ def test_services_and_clients_the_compiled_takes_cannot_serve_are_served_by_rclp
     assert sorted(result.message for result in results if result) == [f"call {n}" for n in range(1, 6)]
 
 
+@compiled_only("GIL let go while rmw waits for an unmatched client (Server.send's let_go)")
 def test_retrying_an_answer_its_client_cannot_match_holds_up_no_other_thread(
     executor: AsyncioExecutor,
     make_node: Callable[[str], Node],

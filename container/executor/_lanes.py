@@ -375,6 +375,8 @@ class Lane:
         task.add_done_callback(self._forget_runner)
 
     def _forget_runner(self, task: asyncio.Task[None]) -> None:
+        if not task.cancelled() and isinstance(task.exception(), KeyboardInterrupt):
+            pass  # raised out of the spin already (see _run): seen, not to be logged again
         runner = self._runners.pop(task, None)
         if runner is not None:
             self._slots.unpark(runner)
@@ -454,7 +456,13 @@ class Lane:
             else:
                 # The same first step as the compiled chain's (fastpath/express.c):
                 # in the runner's task, in a copy of its context.
-                outcome = first_step(self._loop, enter_task, leave_task, asyncio.CancelledError, runner, item)
+                try:
+                    outcome = first_step(self._loop, enter_task, leave_task, asyncio.CancelledError, runner, item)
+                except BaseException:
+                    # Ctrl-C in the callback (it stops the spin, as in rclpy) or this
+                    # path broken: the slot goes on, or back, so the group runs again.
+                    self._hand_on(item)
+                    raise
                 if isinstance(outcome, tuple):
                     coro, yielded, context = outcome
                     self._finish_in(runner, _Resume(item, coro, yielded, context))
@@ -466,6 +474,17 @@ class Lane:
             if item is not None and not item.is_async:
                 self._hand_to_thread(item)
                 return
+
+    def _hand_on(self, finished: Work) -> None:
+        """``finished`` ends without its outcome told: its slot goes to the next
+        waiting work, started in a runner task or on a thread (nothing runs here)."""
+        nxt = self._next_pending(finished)
+        if nxt is None:
+            return
+        if nxt.is_async:
+            self._hand_to_runner(nxt)
+        else:
+            self._hand_to_thread(nxt)
 
     async def _run(self, item: Work | _Resume | None) -> None:
         """Run async work, one callback after another, inside one task.
@@ -504,7 +523,11 @@ class Lane:
                 task = asyncio.current_task()
                 if task is not None:
                     task.uncancel()
-            except (KeyboardInterrupt, GeneratorExit):
+            except KeyboardInterrupt:
+                # Ctrl-C in the callback stops the spin, as in rclpy; the group runs on after it.
+                self._hand_on(work)
+                raise
+            except GeneratorExit:
                 raise
             except BaseException as exc:  # reported, never fatal: sys.exit() included
                 error = exc

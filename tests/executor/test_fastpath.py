@@ -35,6 +35,7 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future as RclFuture
 from sensor_msgs.msg import Image
 from std_msgs.msg import Int64
 from std_srvs.srv import SetBool
@@ -464,6 +465,52 @@ def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: C
     # 800 callbacks; the C path ran most (the rest: after a wait, or pending).
     assert expressed > rounds, expressed
     _assert_contract_kept(rounds, "hop", peak=peak[0], resumed=resumed, sides=sides, reports=reports)
+
+
+@pytest.mark.parametrize("hop", [1, 40])
+def test_ctrl_c_in_an_async_callback_stops_the_spin_and_leaves_its_group_usable(context: Context, hop: int) -> None:
+    """A ``KeyboardInterrupt`` raised in an ``async def`` callback's first step
+    ends the spin, as in rclpy; the callback's group gives its slot back on the
+    way out, on every path: the first hop runs in a new runner task, a later
+    one of the chain on the compiled engine's C path (which kept the slot
+    once: the group then ran nothing more), on the Python engine in a lane."""
+    executor = AsyncioExecutor(context=context)
+    a, b = Node("fp_ctrl_c_a", context=context), Node("fp_ctrl_c_b", context=context)
+    ping = a.create_publisher(Int64, "fp_ctrl_c_ping", 10)
+    pong = b.create_publisher(Int64, "fp_ctrl_c_pong", 10)
+    seen: list[int] = []
+    done: RclFuture[None] = RclFuture()
+
+    async def echo(msg: Int64) -> None:
+        seen.append(msg.data)
+        if msg.data == hop and seen.count(hop) == 1:
+            raise KeyboardInterrupt
+        pong.publish(msg)
+
+    async def back(msg: Int64) -> None:
+        if msg.data >= 60:
+            done.set_result(None)
+        else:
+            ping.publish(Int64(data=msg.data + 1))
+
+    b.create_subscription(Int64, "fp_ctrl_c_ping", echo, 10)  # type: ignore[arg-type]
+    a.create_subscription(Int64, "fp_ctrl_c_pong", back, 10)  # type: ignore[arg-type]
+    for made in (a, b):
+        executor.add_node(made)
+    for publisher in (ping, pong):
+        _matched(publisher)
+    try:
+        ping.publish(Int64(data=1))
+        with pytest.raises(KeyboardInterrupt):
+            executor.spin_until_future_complete(RclFuture(), timeout_sec=TIMEOUT)
+        ping.publish(Int64(data=hop))  # again, from where it stopped
+        executor.spin_until_future_complete(done, timeout_sec=TIMEOUT)
+        assert done.done(), f"the chain stopped after Ctrl-C at hop {hop}: {seen[-3:]}"
+        assert seen == [*range(1, hop + 1), *range(hop, 61)]
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        for made in (a, b):
+            made.destroy_node()
 
 
 @compiled_only("rmw new-data callbacks (a timer's publish found without another wait)")

@@ -98,6 +98,9 @@ def test_limit_is_at_least_one_and_work_checks_its_arguments(engine: ModuleType)
     assert slots.limit == 3
     with pytest.raises(ValueError):
         slots.limit = 0
+    for limit in (0, -1):
+        with pytest.raises(ValueError, match="at least 1"):
+            engine.Slots(limit)
     with pytest.raises(TypeError):
         slots.admit("not work")
     with pytest.raises(TypeError):

@@ -329,6 +329,7 @@ class Express:
                 return False, None
             by_address = routes.subscriptions
             rest: list[tuple[int, int]] = []
+            failure: BaseException | None = None
             for key, count in self._notifier.ready():
                 route = by_address.get(key)
                 if route is None:
@@ -341,8 +342,10 @@ class Express:
                     try:
                         message = route.first.take()
                     except Exception as error:
-                        # Run what was taken, then report this (what had no route is left, as in C).
-                        return True, error
+                        # The rest of what was reported is taken all the same (its counts
+                        # were taken from the notifier): run it, then report the first error.
+                        failure = failure or error
+                        break
                     if message is None:
                         break
                     batch.append((route, message))
@@ -350,7 +353,7 @@ class Express:
                 self._take_rest(rest)
         finally:
             self._take_lock.release()
-        return True, None
+        return True, failure
 
     def drain(self, deadline_ns: int, /) -> bool:
         """Take and run what the notifier reports until nothing is, the deadline (the next

@@ -401,14 +401,15 @@ class Slots:
     thread's only. The async chain reads and takes the same state while the
     lock is free (:func:`admit_first_step`).
 
-    As the compiled ``Slots(limit)``, the constructor takes any limit; the
-    :attr:`limit` setter refuses one under 1.
+    A limit under 1 is refused, by the constructor and by the :attr:`limit` setter.
     """
 
     __slots__ = ("_active", "_closed", "_dropped", "_idle_runners", "_limit", "_lock", "_pending", "_running")
 
     def __init__(self, limit: int) -> None:
         self._limit = operator.index(limit)
+        if self._limit < 1:
+            raise ValueError("a lane's limit is at least 1")
         self._lock = Lock()
         self._running = 0
         self._dropped = 0

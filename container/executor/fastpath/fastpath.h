@@ -12,8 +12,8 @@
  * for whom, and who stays awake), meter.c (what each entity's callbacks
  * cost). Every object one file reads of another's is a compiled type
  * declared here: no file reads a Python attribute of the executor's own
- * classes by name. container/executor/_pyengine.py does the same job in
- * Python, with the same names (_fastpath.pyi describes both).
+ * classes by name. container/executor/_pyengine/ does the same job in Python,
+ * module for module, with the same names (_fastpath.pyi describes both).
  *
  * Ownership, the rules every file keeps (and the field notes below say per
  * field who owns what):

@@ -134,6 +134,9 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
   if (!PyArg_ParseTuple(args, "L|L:give", &timeout_ns, &spin_ns)) {
     return NULL;
   }
+  if (timeout_ns < 0) {
+    timeout_ns = 0; /* a deadline in the past: a negative tv_nsec would make the wait fail at once, forever */
+  }
   /* Workers running before this give's own start: not waited for (one
    * blocking for seconds in another group would cost every give the spin). */
   before = atomic_load(&self->running);

@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import inspect
+import re
 import sys
+import warnings
 from collections.abc import Callable, Sized
 from types import FrameType
 from typing import TYPE_CHECKING, Any, Protocol, TypeAlias
@@ -41,12 +43,14 @@ __all__ = [
     "DoneCallbackRunner",
     "InvalidROSArgsError",
     "RCLError",
+    "RequestId",
     "SubParsers",
     "UnknownROSArgsError",
     "WaitSet",
     "adopt_future",
     "callback_attribute",
     "change_state_service",
+    "client_not_matched",
     "enter_task",
     "event_handle",
     "executor_guards",
@@ -58,6 +62,7 @@ __all__ = [
     "managed_entities",
     "mark_event_ready",
     "query_services",
+    "raise_client_not_matched",
     "running_loop",
     "runs_plain_callback",
     "set_event_index",
@@ -188,6 +193,35 @@ InvalidROSArgsError: type[Exception] = rclpy_implementation.RCLInvalidROSArgsErr
 UnknownROSArgsError: type[Exception] = rclpy_implementation.UnknownROSArgsError
 #: What rclpy raises when an rcl call fails (``send_response`` among them).
 RCLError: type[Exception] = rclpy_implementation.RCLError
+#: A service request's id (``rmw_request_id_t``), which a service's answer is sent to.
+RequestId: type = rclpy_implementation.rmw_request_id_t
+
+#: rclpy's words when rmw timed out waiting for a client's response reader.
+_CLIENT_NOT_MATCHED = "failed to send response (timeout)"
+
+
+def client_not_matched(error: BaseException) -> bool:
+    """Whether ``error``, from rclpy's ``send_response``, says the client's response
+    reader is not matched (yet): the answer can be sent again later.
+
+    rclpy says it two ways. Where rcl passes rmw's timeout on (Jazzy, Kilted:
+    ros2/rcl#1048), rclpy warns ``RuntimeWarning("failed to send response
+    (timeout)...")`` from C++, which only an error filter makes catchable
+    (:func:`raise_client_not_matched`); pybind11 then returns normally, and
+    CPython raises ``SystemError`` with that warning as its cause. Otherwise
+    rcl's error is an ``RCLError`` naming "will not receive response".
+    """
+    if isinstance(error, SystemError):
+        error = error.__cause__ if isinstance(error.__cause__, RuntimeWarning) else error
+    if isinstance(error, RuntimeWarning):
+        return _CLIENT_NOT_MATCHED in str(error)
+    return isinstance(error, RCLError) and "will not receive response" in str(error)
+
+
+def raise_client_not_matched() -> None:
+    """Make rclpy's unmatched-client warning an error, so that :func:`client_not_matched`
+    sees it (for the whole process; calling again changes nothing)."""
+    warnings.filterwarnings("error", message=re.escape(_CLIENT_NOT_MATCHED), category=RuntimeWarning)
 
 # -- executors, entities, futures -------------------------------------------------
 

@@ -152,12 +152,14 @@ class ContainerHost:
 
         :raises TimeoutError: none arrived within ``timeout`` seconds.
         """
+        from .executor import call_soon
+
         loop = asyncio.get_running_loop()
         received: asyncio.Future[T] = loop.create_future()
 
         def take(message: T) -> None:
             if where is None or where(message):
-                loop.call_soon_threadsafe(_settle, received, message)
+                call_soon(loop, _settle, received, message)
 
         subscription = self.client.create_subscription(msg_type, topic, take, qos)
         try:
@@ -184,9 +186,11 @@ class ContainerHost:
 
         :raises TimeoutError: it was not done within ``timeout`` seconds.
         """
+        from .executor import call_soon
+
         loop = asyncio.get_running_loop()
         done: asyncio.Future[Any] = loop.create_future()
-        future.add_done_callback(lambda finished: loop.call_soon_threadsafe(_settle, done, finished.result()))
+        future.add_done_callback(lambda finished: call_soon(loop, _settle, done, finished.result()))
         return await _within(done, timeout, f"no {what}")
 
     async def wait_until(self, condition: Callable[[], bool], *, timeout: float = 5.0, what: str = "condition") -> None:

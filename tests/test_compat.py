@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import importlib
+import warnings
 from collections.abc import Callable, Iterator
 from types import SimpleNamespace
 from typing import Any
@@ -141,3 +142,42 @@ def test_timers_on_jazzy_are_called_plainly(monkeypatch: pytest.MonkeyPatch) -> 
     timer = SimpleNamespace(handle=handle, callback=lambda: None, clock=None)
     assert _compat.fire_timer(timer) == {}  # type: ignore[arg-type]
     assert handle.calls == ["plain"]
+
+
+def _caused_by(cause: BaseException) -> SystemError:
+    """What CPython raises when pybind11 returns normally with ``cause`` set (a warning made an error)."""
+    error = SystemError("<built-in method service_send_response> returned a result with an exception set")
+    error.__cause__ = cause
+    return error
+
+
+@pytest.mark.parametrize(
+    ("error", "unmatched"),
+    [
+        (RuntimeWarning("failed to send response (timeout): client will not receive response"), True),
+        (_caused_by(RuntimeWarning("failed to send response (timeout): rmw gave up")), True),
+        (_compat.RCLError("Failed to send response: client will not receive response"), True),
+        (RuntimeWarning("some other warning"), False),
+        (_caused_by(ValueError("failed to send response (timeout)")), False),
+        (SystemError("returned a result with an exception set"), False),
+        (_compat.RCLError("failed to send response"), False),
+        (TypeError("a service callback returned str, not Trigger_Response"), False),
+    ],
+    ids=[
+        "warning", "warning-as-cause", "rcl-error", "other-warning", "other-cause", "no-cause", "other-rcl-error",
+        "wrong-type",
+    ],
+)
+def test_an_unmatched_client_is_recognised_in_each_form_rclpy_reports_it(error: BaseException, unmatched: bool) -> None:
+    assert _compat.client_not_matched(error) is unmatched
+
+
+def test_rclpys_unmatched_client_warning_becomes_an_error_and_no_other() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _compat.raise_client_not_matched()
+        _compat.raise_client_not_matched()  # once is enough; again changes nothing
+        with pytest.raises(RuntimeWarning) as raised:
+            warnings.warn("failed to send response (timeout): rmw gave up", RuntimeWarning, stacklevel=1)
+        assert _compat.client_not_matched(raised.value)
+        warnings.warn("another runtime warning", RuntimeWarning, stacklevel=1)  # ignored, as before

@@ -16,15 +16,18 @@ from ._culprit import working_for
 from ._entries import describe
 from ._executor import AsyncioExecutor, CallbackErrorHandler, ExecutorState
 from ._frames import format_plugin_frames
+from ._inbox import call_soon, run_coroutine
 from ._message_info import HAS_PUBLISHER_GID, publisher_gid
 from ._spare import end_spare_threads
 
 # The executor's API, then what the rest of the container shares with it:
 # running plugin code (``Escaped``, ``contained``, ``in_thread``, and
 # ``end_spare_threads`` for the threads ``in_thread`` keeps), awaiting
-# an rclpy future (``result``), naming a callback in a log (``describe``) and
-# showing a plugin's own frames of a stack (``format_plugin_frames``) and
-# counting loop work as a node's for the watchdog (``working_for``).
+# an rclpy future (``result``), posting to a loop from another thread
+# (``call_soon``, ``run_coroutine``: the one way, see ``_inbox``), naming a
+# callback in a log (``describe``), showing a plugin's own frames of a stack
+# (``format_plugin_frames``) and counting loop work as a node's for the
+# watchdog (``working_for``).
 __all__ = [
     "HAS_PUBLISHER_GID",
     "Accounting",
@@ -36,6 +39,7 @@ __all__ = [
     "ExecutorState",
     "GroupLoad",
     "NodeLoad",
+    "call_soon",
     "contained",
     "describe",
     "end_spare_threads",
@@ -43,5 +47,6 @@ __all__ = [
     "in_thread",
     "publisher_gid",
     "result",
+    "run_coroutine",
     "working_for",
 ]

@@ -8,8 +8,9 @@ callbacks are late, live, as no other executor does.
 Each entity gets a compiled :class:`Meter` (``fastpath/meter.c``), timed where
 its callbacks' steps run, on whichever path and thread: the loop's compiled
 chain, the Python lanes, the workers' plain calls. A step costs two clock
-reads; a thread's CPU clock is read at most once a millisecond and shared
-among the steps in between (see ``meter.c`` for how). :meth:`Accounting.sample`
+reads; a thread's CPU clock is read only at the end of a step of 1 ms or
+more and at the start of a step when its last read is 10 ms old, and
+shorter steps are credited their wall time (see ``meter.c`` for how). :meth:`Accounting.sample`
 closes a window: it takes every meter's figures and adds them up per callback
 group, per node and for the container. Work the executor runs for no entity
 (a lifecycle transition is metered as its node's; its own bookkeeping, the

@@ -9,34 +9,31 @@ project's tests about once in a few thousand calls, more on a loaded
 machine). The compiled send (``_fastpath.Server``) says so by returning
 ``False``; rclpy's ``send_response``, used for a service the compiled path
 cannot serve, reports it as a ``RuntimeWarning`` from C++, which a caller
-cannot catch, so this module turns exactly that warning into an error for
-the whole process. Either way the answer is sent again, for a few seconds,
-from one thread of its own: never on the event loop, and bounded, so a peer
-whose response reader can never match (an incompatible QoS, on purpose or
-not) costs at most that one thread.
+cannot catch, so exactly that warning is made an error for the whole
+process (``_compat.raise_client_not_matched``; ``_compat.client_not_matched``
+recognises it, and the Python engine's ``Server`` with it). Either way the
+answer is sent again, for a few seconds, from one thread of its own: never
+on the event loop, and bounded, so a peer whose response reader can never
+match (an incompatible QoS, on purpose or not) costs at most that one thread.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
-import re
 import threading
 import time
-import warnings
 from typing import Any
 
 from rclpy.exceptions import InvalidHandle
 
-from .._compat import RCLError
+from .._compat import client_not_matched, raise_client_not_matched
 from ._engine import Server
 
 __all__ = ["respond"]
 
 _log = logging.getLogger(__name__)
 
-#: rclpy's words when rmw timed out waiting for the client's response reader.
-_NOT_MATCHED = "failed to send response (timeout)"
 #: How long an unmatched answer is tried again, and how often.
 RETRY_S = 3.0
 RETRY_EVERY_S = 0.05
@@ -67,21 +64,10 @@ def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go
             return server.send(response, header, let_go)
     try:
         srv.send_response(response, header)
-    except RuntimeWarning as warning:
-        if _NOT_MATCHED not in str(warning):
-            raise
-        return False
-    except SystemError as error:
-        # pybind11 returns normally after the warning became an error, which
-        # CPython reports as "returned a result with an exception set", the
-        # warning as its cause.
-        if not (isinstance(error.__cause__, RuntimeWarning) and _NOT_MATCHED in str(error.__cause__)):
-            raise
-        return False
-    except RCLError as error:
-        if "will not receive response" not in str(error):
-            raise
-        return False
+    except Exception as error:
+        if client_not_matched(error):
+            return False
+        raise
     return True
 
 
@@ -145,10 +131,6 @@ def _name(srv: Any) -> str:
     return str(getattr(srv, "srv_name", srv))
 
 
-def _catch_unmatched() -> None:
-    """Make rclpy's unmatched-client warning an error, so :func:`_sent` sees it (once per process)."""
-    warnings.filterwarnings("error", message=re.escape(_NOT_MATCHED), category=RuntimeWarning)
-
-
-_catch_unmatched()
+# rclpy reports an unmatched client as a warning, which only an error lets _sent see.
+raise_client_not_matched()
 _resender = _Resender()

@@ -31,6 +31,7 @@ from rclpy.task import Future as RclFuture
 
 from .._compat import running_loop, sleeps_zero
 from ._engine import Work
+from ._inbox import call_soon
 from ._spare import run_on_spare_thread
 
 __all__ = [
@@ -101,12 +102,7 @@ def mirror(future: RclFuture[Any], loop: asyncio.AbstractEventLoop) -> asyncio.F
             settled.set_result(future.result())
 
     def on_done(_: RclFuture[Any]) -> None:
-        if loop.is_closed():
-            return
-        if running_loop() is loop:
-            loop.call_soon(copy)
-        else:
-            loop.call_soon_threadsafe(copy)
+        call_soon(loop, copy)
 
     if future.done() and running_loop() is loop:
         # Done already: copied now. rclpy would hand on_done to the future's
@@ -251,8 +247,7 @@ async def in_thread(call: Callable[[], T], *, name: str) -> T:
             outcome.set_result(value)  # type: ignore[arg-type]  # what call returned
 
     def deliver(value: object, error: BaseException | None) -> None:
-        if not loop.is_closed():
-            loop.call_soon_threadsafe(settle, value, error)
+        call_soon(loop, settle, value, error)
 
     run_on_spare_thread(call, deliver, name=name)
     return await outcome

@@ -41,6 +41,7 @@ from .._compat import (
     subscription_wants_info,
 )
 from ._accounting import Accounting
+from ._cores import usable_cpus
 from ._engine import (
     Express,
     Handoff,
@@ -81,6 +82,8 @@ class Dispatcher:
     #: Lanes' workers carry on to the plain callbacks their publishes reach (:class:`LaneHooks`).
     carries = True
     #: The workers the loop's thread woke (:class:`LaneHooks`); its selector waits for them.
+    #: Its threads spin for each other's hand-overs only where the process may
+    #: use more than one CPU (``handoff.spin``; see ``__init__``).
     handoff: Handoff
 
     def __init__(
@@ -97,7 +100,12 @@ class Dispatcher:
         self.context = context
         #: Every entity's meter (``None``: accounting is off).
         self.accounting = accounting
-        self.handoff = Handoff()
+        # Spinning for another thread pays only while that thread has a CPU
+        # of its own; with one CPU (taskset, a cpuset, a cgroup quota of one
+        # CPU or less: see ``_cores``) it only keeps that thread off the CPU.
+        # Counted once, here, as the executor is made: a process moved to
+        # other CPUs later keeps what its executor was made with.
+        self.handoff = Handoff(spin=usable_cpus() > 1)
         #: Whether the loop's own thread waits in rcl (the executor's loop);
         #: on a loop of the user's (``spin_async``) a waiter thread does.
         self._loop_waits = loop_waits

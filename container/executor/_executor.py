@@ -52,9 +52,9 @@ from ._accounting import Accounting
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._culprit import Culprit, TaskOrigins
 from ._dispatch import Dispatcher
-from ._engine import Work
+from ._engine import Work, announce
 from ._entries import WOKEN, describe, format_error
-from ._inbox import Inbox, Post
+from ._inbox import Inbox, Post, call_soon
 from ._lanes import Lane
 from ._selector import RclSelector
 from ._tasks import TaskFuture, TaskLaneHooks, plain_work, settle, settle_from
@@ -145,6 +145,8 @@ class AsyncioExecutor(Executor):
         num_threads: int | None = None,
         accounting: bool = True,
     ) -> None:
+        # An engine other than the one asked for (the compiled one did not build): said once.
+        announce()
         super().__init__(context=context)
         # Refused after rclpy's part is built: its __del__ needs it, and
         # releases it again (a refusal before left an AttributeError there).
@@ -154,6 +156,8 @@ class AsyncioExecutor(Executor):
                 raise ExecutorError(f"{keyword} must be at least 1, not {value}")
         if num_threads is not None:
             reentrant_limit = num_threads
+        # The engine is not the one asked for (the compiled one did not load): said once.
+        announce()
         self._reentrant_limit = reentrant_limit
         self._on_callback_error = on_callback_error
         self._shutdown_timeout = shutdown_timeout
@@ -437,9 +441,20 @@ class AsyncioExecutor(Executor):
             # Suspended after its first step, it counts as run (spin_once), as in rclpy.
             task = loop.create_task(self.adapt(contained(coro), on_suspend=self._callback_completed))
             task.add_done_callback(finished)
-            result.stop_with(functools.partial(self._inbox.call_soon, loop, task.cancel))
 
-        return functools.partial(self._inbox.call_soon, loop, start)
+            def cancel() -> None:
+                # At once where nobody else runs the loop: posted, the cancel
+                # would queue behind a wake-up of the task already queued (an
+                # await that completed), and the task would run a step past
+                # the await it was cancelled at, which rclpy's never does.
+                if not loop.is_running() or running_loop() is loop:
+                    task.cancel()
+                else:
+                    call_soon(loop, task.cancel)
+
+            result.stop_with(cancel)
+
+        return functools.partial(call_soon, loop, start)
 
     def _task_done(self, work: Work, error: BaseException | None) -> None:
         self._callback_completed()
@@ -602,7 +617,8 @@ class AsyncioExecutor(Executor):
                 started = True
                 watchdog = self._start_watchdog()
                 try:
-                    self._loop.run_until_complete(main)
+                    with self._inbox.serving():
+                        self._loop.run_until_complete(main)
                 finally:
                     if watchdog is not None:
                         watchdog.pause()
@@ -847,7 +863,7 @@ class AsyncioExecutor(Executor):
             if not stopped.done():
                 stopped.set_result(None)
 
-        self._inbox.call_soon(stopped.get_loop(), settle)
+        call_soon(stopped.get_loop(), settle)
         self._guard_trigger()
 
     def _guard_trigger(self) -> None:
@@ -867,12 +883,12 @@ class AsyncioExecutor(Executor):
     def _notify_progress(self) -> None:
         progress = self._progress
         if progress is not None and not progress.done():
-            self._inbox.call_soon(progress.get_loop(), _resolve, progress)
+            call_soon(progress.get_loop(), _resolve, progress)
 
     def _callback_completed(self) -> None:
         if self._completion_waiters:
             for waiter in list(self._completion_waiters):
-                self._inbox.call_soon(waiter.get_loop(), _resolve, waiter)
+                call_soon(waiter.get_loop(), _resolve, waiter)
 
     def _report_error(self, node: Node, entity: object, error: BaseException) -> None:
         if isinstance(error, asyncio.CancelledError):

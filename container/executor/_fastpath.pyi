@@ -20,7 +20,7 @@ class Handle(Protocol):
     @property
     def pointer(self) -> int: ...
     def __enter__(self) -> Any: ...
-    def __exit__(self, *exc_info: object) -> Any: ...
+    def __exit__(self, exc_type: Any, exc_value: Any, traceback: Any, /) -> Any: ...
 
 SUBSCRIPTION: int
 CLIENT: int
@@ -193,32 +193,43 @@ class Token:
     dropped instead of run, as rclpy's executors drop it.
     """
 
-    node: object
+    @property
+    def node(self) -> object: ...
     retired: bool
     def __init__(self, node: object, retired: bool = False) -> None: ...
 
 class Work:
     """One callback invocation waiting for, or running in, a lane."""
 
-    #: The rclpy entity whose callback this is (identity only).
-    entity: object
-    #: Runs the callback with ``args``; returns a coroutine when ``is_async``.
-    call: Callable[..., Any]
-    is_async: bool
-    #: How many waiting invocations of ``entity`` to keep.
-    depth: int
-    #: Told the outcome, in the thread or task that ran ``call``.
-    done: Callable[[Work, BaseException | None], None]
-    #: Whose work this is; once retired, the work never starts.
-    token: Token | None
-    #: What ``call`` is called with (a taken message).
-    args: tuple[Any, ...]
-    #: What its callback costs is told (``None``: not metered).
-    meter: Meter | None
-    #: When it arrived (monotonic ns: taken, or a timer's due time; 0 when not metered).
-    arrived: int
-    #: When its first step started (monotonic ns; 0: not yet, or not metered).
-    started: int
+    @property
+    def entity(self) -> object:
+        """The rclpy entity whose callback this is (identity only)."""
+    @property
+    def call(self) -> Callable[..., Any]:
+        """Runs the callback with ``args``; returns a coroutine when ``is_async``."""
+    @property
+    def is_async(self) -> bool: ...
+    @property
+    def depth(self) -> int:
+        """How many waiting invocations of ``entity`` to keep."""
+    @property
+    def done(self) -> Callable[[Work, BaseException | None], None]:
+        """Told the outcome, in the thread or task that ran ``call``."""
+    @property
+    def token(self) -> Token | None:
+        """Whose work this is; once retired, the work never starts."""
+    @property
+    def args(self) -> tuple[Any, ...]:
+        """What ``call`` is called with (a taken message)."""
+    @property
+    def meter(self) -> Meter | None:
+        """What its callback costs is told (``None``: not metered)."""
+    @property
+    def arrived(self) -> int:
+        """When it arrived (monotonic ns: taken, or a timer's due time; 0 when not metered)."""
+    @property
+    def started(self) -> int:
+        """When its first step started (monotonic ns; 0: not yet, or not metered)."""
     def __init__(
         self,
         entity: object,
@@ -252,8 +263,10 @@ def stuck_after(ns: int, /) -> None:
 class Runner:
     """A runner task of a lane, the future it idles on, the context it runs in."""
 
-    task: Any
-    context: contextvars.Context
+    @property
+    def task(self) -> Any: ...
+    @property
+    def context(self) -> contextvars.Context: ...
     idle: Any
     current: Work | None
     def __init__(
@@ -312,14 +325,22 @@ class Slots:
 class Route:
     """What the async chain needs of one entity, resolved once per wait-set change."""
 
-    first: Any
-    entry: Any
-    lane: Any
-    slots: Slots
-    marker: Work
-    entity: Any
-    token: Token
-    callback: str
+    @property
+    def first(self) -> Any: ...
+    @property
+    def entry(self) -> Any: ...
+    @property
+    def lane(self) -> Any: ...
+    @property
+    def slots(self) -> Slots: ...
+    @property
+    def marker(self) -> Work: ...
+    @property
+    def entity(self) -> Any: ...
+    @property
+    def token(self) -> Token: ...
+    @property
+    def callback(self) -> str: ...
     def __init__(
         self, *, first: Any, entry: Any, lane: Any, slots: Slots, marker: Work, entity: Any, token: Token, callback: str
     ) -> None: ...

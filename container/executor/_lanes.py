@@ -67,6 +67,17 @@ WORKER_IDLE_S = 3.0
 #: How long a worker whose work comes quickly stays awake for more (see
 #: ``Handoff.linger``): it lingers only while its last wait for work was
 #: shorter than this.
+#:
+#: Measured against, on the project's 2-core shared KVM VM: with the loop's
+#: linger (``fastpath/handoff.c``, ``LOOP_LINGER_NS``, commit bc7e731), plain
+#: service calls 7,430-7,614/s before and 19,770-20,200/s after, the code
+#: before side by side (``bench_executor.py --only services``), the
+#: ten-node load's CPU with plain callbacks 1.01x, ping-pong 0.98x; in
+#: ``bench_busy.py`` the plain intra-process subscriber then got 3,171
+#: frames a second at 177% CPU, where the run before lingering got 2,490 at
+#: one core. 250 us itself was not measured against other values. Never
+#: used on one CPU: the worker does not linger (``Handoff.spin`` is false),
+#: since the loop it waits for needs that CPU to hand work over.
 WORKER_LINGER_NS = 250_000
 
 
@@ -261,7 +272,9 @@ class Lane:
         if self._carries:
             mark_carrier()  # its publishes to plain callbacks need not wake the loop
         inbox = self._inbox
-        lingering = self._handoff
+        # Never on one CPU (Handoff's spin: see Dispatcher), where lingering
+        # keeps the loop thread it waits for off the CPU.
+        lingering = self._handoff if self._handoff is not None and self._handoff.spin else None
         quick = False  # the last wait for work was short: linger before the next
         while True:
             if quick and lingering is not None and inbox.empty():
@@ -362,6 +375,8 @@ class Lane:
         task.add_done_callback(self._forget_runner)
 
     def _forget_runner(self, task: asyncio.Task[None]) -> None:
+        if not task.cancelled() and isinstance(task.exception(), KeyboardInterrupt):
+            pass  # raised out of the spin already (see _run): seen, not to be logged again
         runner = self._runners.pop(task, None)
         if runner is not None:
             self._slots.unpark(runner)
@@ -441,7 +456,13 @@ class Lane:
             else:
                 # The same first step as the compiled chain's (fastpath/express.c):
                 # in the runner's task, in a copy of its context.
-                outcome = first_step(self._loop, enter_task, leave_task, asyncio.CancelledError, runner, item)
+                try:
+                    outcome = first_step(self._loop, enter_task, leave_task, asyncio.CancelledError, runner, item)
+                except BaseException:
+                    # Ctrl-C in the callback (it stops the spin, as in rclpy) or this
+                    # path broken: the slot goes on, or back, so the group runs again.
+                    self._hand_on(item)
+                    raise
                 if isinstance(outcome, tuple):
                     coro, yielded, context = outcome
                     self._finish_in(runner, _Resume(item, coro, yielded, context))
@@ -453,6 +474,17 @@ class Lane:
             if item is not None and not item.is_async:
                 self._hand_to_thread(item)
                 return
+
+    def _hand_on(self, finished: Work) -> None:
+        """``finished`` ends without its outcome told: its slot goes to the next
+        waiting work, started in a runner task or on a thread (nothing runs here)."""
+        nxt = self._next_pending(finished)
+        if nxt is None:
+            return
+        if nxt.is_async:
+            self._hand_to_runner(nxt)
+        else:
+            self._hand_to_thread(nxt)
 
     async def _run(self, item: Work | _Resume | None) -> None:
         """Run async work, one callback after another, inside one task.
@@ -491,7 +523,11 @@ class Lane:
                 task = asyncio.current_task()
                 if task is not None:
                     task.uncancel()
-            except (KeyboardInterrupt, GeneratorExit):
+            except KeyboardInterrupt:
+                # Ctrl-C in the callback stops the spin, as in rclpy; the group runs on after it.
+                self._hand_on(work)
+                raise
+            except GeneratorExit:
                 raise
             except BaseException as exc:  # reported, never fatal: sys.exit() included
                 error = exc

@@ -4,7 +4,9 @@ DDS offers no file descriptor to hand to asyncio, and a thread hand-over
 per message costs several times a whole round trip here. So the event loop's
 thread itself blocks in ``rcl_wait`` and takes ROS work without any hop;
 asyncio's own file descriptors (serial ports, sockets, the loop's self-pipe
-that ``call_soon_threadsafe`` and signals write to) are watched by a small
+that signals and asyncio's ``call_soon_threadsafe`` write to; the
+container's own posts from other threads go through ``_inbox`` instead,
+one guard-condition trigger) are watched by a small
 compiled thread (``_fastpath.FdWatcher``) that only triggers an rcl guard
 condition when one becomes readable. That thread stays parked while nothing
 but ROS traffic flows.
@@ -31,10 +33,30 @@ WaitAndDispatch = Callable[[int], object]
 #: woke to start (see :class:`~._fastpath.Handoff`): a wake-up takes
 #: 50-200 us here; one that takes longer (a thread starting, a starved
 #: core) is left to CPython's forced switch.
+#:
+#: Measured against: ``bench_busy.py`` on the project's 2-core shared KVM
+#: VM (commit 61a2a46), where this wait, with asyncio's descriptors looked
+#: at without letting the GIL go, took an intra-process plain subscriber
+#: beside a busy ``async def`` publisher from 4 to 2,400-2,900 1080p frames
+#: a second. The 1 ms bound was not measured against others, and the
+#: 50-200 us wake-up is stated there without the measurement behind it
+#: (the LiDAR benchmark's notes in ``docs/benchmarks.md`` record 75-200 us
+#: of CPU charged to each wake-up of a sleeping thread on that VM, as
+#: ``/proc`` counts it). On one CPU the wait stays: it sleeps on a
+#: condition variable, which is what gives the woken worker the CPU and
+#: the GIL; it has not been measured there.
 HANDOFF_WAIT_NS = 1_000_000
 #: How long it then stays awake (spinning) for them to finish: a short
 #: callback's worker lets the GIL go within that, and the loop's core never
 #: went idle (waking an idle core of a virtual machine costs 50-200 us).
+#:
+#: Measured against: ``bench_busy.py`` on the 2-core shared KVM VM, quiet,
+#: one run each side by side within minutes (commit 004b54c): the plain
+#: intra-process subscriber went from 1,712 to 2,492 frames a second (5.0x
+#: to 6.4x its DDS rate), its latency from 1.99x to 1.50x the ``async def``
+#: one's. No other bound was measured. Not used on one CPU
+#: (``Handoff.spin`` is false there: the worker could only finish once the
+#: loop's thread gave the CPU back).
 HANDOFF_SPIN_NS = 200_000
 
 

@@ -150,10 +150,30 @@ def is_hot_waitable(waitable: object) -> bool:
 
 
 #: Longest time without QoS events in the wait set (ns); see :meth:`EntityWaitSet._events_due_in`.
+#: Also the timeout of a poll (a wait whose guard condition is triggered
+#: already, which returns at once: see :meth:`EntityWaitSet._before_wait`).
+#:
+#: A bound on how late a QoS event is seen (commit 833e7cb), not a tuned
+#: figure: what it saves is recorded without figures (every entity's QoS
+#: events in every wait were "most of an idle-ish executor's CPU" on the
+#: project's 2-core shared KVM VM, commit 0d6daf4: see ``_events_due_in``),
+#: and no measurement of 50 ms against other values is recorded. Since
+#: events come through rmw's event callbacks (commit 7282373) it paces only
+#: the event types rmw cannot report so. Not a spin: at most one wait in
+#: 50 ms includes them, on one CPU as on more.
 _EVENT_SKIP_MAX_NS = 50_000_000
 
 #: Longest time the hot wait set goes without an ``rcl_wait`` while messages
 #: keep arriving (ns): timers and guard conditions are looked at least this often.
+#:
+#: No measurement of the value is recorded (commits 3d3a0fe, 3694b16,
+#: 498fdb2 set and use it, none names a figure for it). Not a spin: a burst
+#: (:meth:`EntityWaitSet.burst`) runs only while messages are reported or
+#: work waits, and returns when none is, on one CPU as on more; what it
+#: bounds is how long a chain of callbacks may keep the loop's thread from
+#: looking at timers. A plain worker waiting for the GIL meanwhile gets it
+#: through CPython's forced switch, whatever the count of CPUs (see
+#: ``fastpath/waitset.c``, ``WaitSet_wait``: polls keep the GIL).
 _POLL_MAX_NS = 1_000_000
 
 #: What the notifier watches instead of waiting, by entity kind.

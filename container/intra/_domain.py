@@ -257,7 +257,7 @@ class PublisherRecord:
         self._lock = threading.Lock()
         self._sequence = 0
         #: Its gid where rclpy's message info carries one (rclpy 9).
-        self._gid = publisher_gid(publisher)
+        self._gid = publisher_gid(publisher, node=node)
         self._writes = 0
         self._targets: tuple[int, list[SubscriptionRecord], int] = (-1, [], 0)
         self._dds_for_all = False

@@ -49,7 +49,7 @@ from .. import checks
 from .._compat import change_state_service, managed_entities, query_services, state_machine
 from .._errors import TransitionError
 from .._text import clip
-from ..executor import Escaped, contained, in_thread, working_for
+from ..executor import Escaped, contained, in_thread, run_coroutine, working_for
 from ..intra import IntraProcessNode
 from ._base import LifecycleNodeBase
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, MIN_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
@@ -521,7 +521,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
                 return await self._request(wanted, timeout=None, abandoned=abandoned)
 
         abandoned = threading.Event()
-        pending = asyncio.run_coroutine_threadsafe(requested(), loop)
+        pending = run_coroutine(requested(), loop)
         try:
             response.success = pending.result(None if limit is None else limit + _ANSWER_MARGIN_S) is SUCCESS
         except concurrent.futures.TimeoutError:

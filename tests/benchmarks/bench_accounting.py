@@ -36,6 +36,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
 
+from tests.benchmarks import cpus
 from tests.benchmarks.bench_executor import ACCOUNTING_VARIABLE, _run_child, load_nodes
 
 #: measure -> (what it prints, whether more is better).
@@ -112,10 +113,13 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=3.0)
     parser.add_argument("--only", choices=sorted(MEASURES), help="run one measurement")
     parser.add_argument("--load-child", nargs=2, metavar=("KIND", "SECONDS"), help=argparse.SUPPRESS)
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
     if args.load_child:
         print(json.dumps(_load_in_one_process(args.load_child[0], float(args.load_child[1]))), flush=True)
         os._exit(0)
+    print(cpus.header(), flush=True)
     measures = [args.only] if args.only else list(MEASURES)
     results: dict[tuple[str, str, str], list[float]] = {}
     for round_index in range(args.rounds):

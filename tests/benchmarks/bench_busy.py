@@ -31,7 +31,12 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
+
+from tests.benchmarks import cpus
 
 PATHS = ("dds", "intra")
 SUBSCRIBERS = ("plain", "async")
@@ -133,11 +138,14 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=3.0)
     parser.add_argument("--trial", nargs=3, metavar=("PATH", "SUBSCRIBER", "SECONDS"), help=argparse.SUPPRESS)
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
     if args.trial:
         path, subscriber, seconds = args.trial
         print(json.dumps(trial(path, subscriber, float(seconds))), flush=True)
         return
+    print(cpus.header(), flush=True)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     cells = [(path, subscriber) for subscriber in SUBSCRIBERS for path in PATHS]
     results: dict[tuple[str, str], list[dict[str, float]]] = {cell: [] for cell in cells}

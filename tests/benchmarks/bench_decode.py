@@ -39,6 +39,10 @@ from typing import Any
 
 HERE = Path(__file__).resolve()
 PLUGIN = HERE.parents[2] / "plugins" / "ldlidar"
+sys.path.insert(0, str(HERE.parents[2]))  # the repository: tests.benchmarks
+
+from tests.benchmarks import cpus  # noqa: E402
+
 LINE_RATE = 1800  # STL-27L packets per second
 
 PEER = r"""
@@ -158,7 +162,10 @@ def main() -> None:
     )
     parser.add_argument("--busy", action="store_true", help="keep one core busy in another process while timing")
     parser.add_argument("--no-peer", action="store_true")
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
+    print(cpus.header(), flush=True)
     pythons = args.python or [sys.executable]
     plugins = [p.resolve() for p in args.plugin] if args.plugin else [PLUGIN]
 

@@ -7,6 +7,12 @@ measurement under each interpreter (each a set-up virtualenv), the
 interpreters taking turns too: Python against Python, side by side, each
 with its own rclpy peers.
 
+``--engines compiled,python`` runs the AsyncioExecutor on each of its
+engines (``CONTAINER_EXECUTOR_ENGINE``, each in its own child process, as
+every contender): the Python engine's kinds (``asyncio-async@python``,
+``asyncio-plain@python``) run right after their compiled siblings, and
+their rates are printed over the compiled engine's too.
+
 Three measurements, each executor in a fresh process, the executors taking
 turns round after round so that drift on a shared machine hits all alike:
 
@@ -44,7 +50,12 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
+
+from tests.benchmarks import cpus
 
 KINDS = {
     "asyncio-async": "AsyncioExecutor, async def callbacks",
@@ -62,6 +73,16 @@ EVENTS_SPIN_S = 3600.0
 
 #: ``off`` builds the AsyncioExecutor with ``accounting=False`` (bench_accounting.py).
 ACCOUNTING_VARIABLE = "BENCH_ACCOUNTING"
+
+#: The AsyncioExecutor's engines (see container/executor/_engine.py); a kind
+#: ``asyncio-...@python`` is the AsyncioExecutor on the Python engine.
+ENGINES = ("compiled", "python")
+ENGINE_VARIABLE = "CONTAINER_EXECUTOR_ENGINE"
+#: How the Python engine's kinds are named in the tables.
+ENGINE_KINDS = {
+    "asyncio-async@python": "Python engine, async def callbacks",
+    "asyncio-plain@python": "Python engine, plain callbacks",
+}
 
 #: The floor has no callback groups, no isolation: ping-pong and load only.
 FLOORLESS = {"gap", "services"}
@@ -173,6 +194,37 @@ class DeadlineLoop(_Stick):
         for taker, _ in takes.values():
             taker.close()
         guard.destroy()
+
+
+def _base(kind: str) -> str:
+    """The kind without its engine: ``asyncio-async`` of ``asyncio-async@python``."""
+    return kind.partition("@")[0]
+
+
+def _label(kind: str) -> str:
+    return ENGINE_KINDS.get(kind) or KINDS[kind]
+
+
+def _with_engines(kinds: list[str], engines: list[str]) -> list[str]:
+    """``kinds`` with the AsyncioExecutor's on each of ``engines``: its compiled kinds
+    where ``compiled`` is one, its Python engine's right after them where ``python`` is."""
+    out: list[str] = []
+    for kind in kinds:
+        if not kind.startswith("asyncio"):
+            out.append(kind)
+            continue
+        if "compiled" in engines:
+            out.append(kind)
+        if "python" in engines:
+            out.append(f"{kind}@python")
+    return out
+
+
+def _engine_env(kind: str) -> dict[str, str]:
+    """The engine a kind's child runs on: every AsyncioExecutor kind says which (none leaks in)."""
+    if not kind.startswith("asyncio"):
+        return {}
+    return {ENGINE_VARIABLE: kind.partition("@")[2] or "compiled"}
 
 
 def _executor(kind: str) -> Any:
@@ -461,7 +513,12 @@ MEASURES: dict[str, Callable[[str, float], float]] = {
 
 
 def _child(measure: str, kind: str, seconds: float) -> None:
-    value = MEASURES[measure](kind, seconds)
+    if kind.startswith("asyncio"):
+        from container.executor import _engine
+
+        if (kind.partition("@")[2] or "compiled") != _engine.ENGINE:
+            sys.exit(f"{kind} asked for, the executor runs on the {_engine.ENGINE} engine")
+    value = MEASURES[measure](_base(kind), seconds)
     print(json.dumps({"value": value}), flush=True)
     os._exit(0)  # rclpy's MultiThreadedExecutor may leave threads behind
 
@@ -493,7 +550,7 @@ def _running_order(kinds: list[str], round_index: int) -> list[str]:
     beside the EventsExecutor (the machine drifts within seconds, so a ratio
     is fairest between neighbours), and reversed every other round so that
     neither runs first every time."""
-    paired = ["asyncio-async", "events", "asyncio-plain"]
+    paired = ["asyncio-async", "asyncio-async@python", "events", "asyncio-plain", "asyncio-plain@python"]
     order = [kind for kind in paired if kind in kinds] + [kind for kind in kinds if kind not in paired]
     return order if round_index % 2 == 0 else order[::-1]
 
@@ -532,15 +589,22 @@ def main() -> None:
     parser.add_argument("--only", choices=sorted(MEASURES), help="run one measurement")
     parser.add_argument("--kinds", nargs="+", choices=sorted(KINDS), default=list(KINDS))
     parser.add_argument(
+        "--engines", type=_engine_list, default=["compiled"], metavar="ENGINE[,ENGINE]",
+        help="the AsyncioExecutor's engines to measure, side by side: compiled (the default), python, or both",
+    )
+    parser.add_argument(
         "--pythons", nargs="+", default=[sys.executable], metavar="PYTHON",
         help="interpreters to measure under, side by side (each a set-up virtualenv's): two "
         "virtualenvs of one Python compare two versions of the code (a git worktree's .venv)",
     )
     parser.add_argument("--child", nargs=3, metavar=("MEASURE", "KIND", "SECONDS"))
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
     if args.child:
         _child(args.child[0], args.child[1], float(args.child[2]))
-    kinds = [kind for kind in KINDS if kind in args.kinds]
+    print(cpus.header(), flush=True)
+    kinds = _with_engines([kind for kind in KINDS if kind in args.kinds], args.engines)
     pythons: dict[str, str] = {}
     for python in args.pythons:
         label = _python_label(python)
@@ -557,16 +621,41 @@ def main() -> None:
                     if (measure in FLOORLESS and kind == "floor") or ONLY.get(kind, measure) != measure:
                         continue
                     seconds = args.seconds if measure == "pingpong" else max(args.seconds, 3.0)
-                    value, note = _run_child(measure, kind, seconds, pythons[label])
+                    value, note = _run_child(measure, kind, seconds, pythons[label], env_extra=_engine_env(kind))
                     results[label].setdefault((measure, kind), []).append(value)
                     where = f"python {label} " if len(pythons) > 1 else ""
-                    print(f"round {round_index + 1} {where}{measure:8} {kind:14} {value:10.1f}  {note}", flush=True)
+                    print(f"round {round_index + 1} {where}{measure:8} {kind:20} {value:10.1f}  {note}", flush=True)
     for label in pythons:
         if len(pythons) > 1:
             print(f"\n===== Python {label} ({pythons[label]})")
         _report(results[label], kinds)
     if len(pythons) > 1:
         _compare(results, kinds)
+
+
+def _engine_list(text: str) -> list[str]:
+    engines = [engine.strip() for engine in text.split(",") if engine.strip()]
+    unknown = sorted(set(engines) - set(ENGINES))
+    if unknown or not engines:
+        raise argparse.ArgumentTypeError(f"engines are a comma-separated list of {', '.join(ENGINES)}")
+    return engines
+
+
+def _report_engines(results: Results, kinds: list[str]) -> None:
+    """Each Python engine kind's rates over its compiled sibling's, round by round (same round)."""
+    pairs = [(kind, _base(kind)) for kind in kinds if "@" in kind and _base(kind) in kinds]
+    if not pairs:
+        return
+    print("\nPython engine over the compiled engine, round by round (same round; load: CPU):")
+    for measure in MEASURES:
+        for mine, compiled in pairs:
+            ratios = [
+                _ratio(a, b)
+                for a, b in zip(results.get((measure, mine), []), results.get((measure, compiled), []), strict=False)
+            ]
+            if ratios:
+                listed = " ".join(_x(r) for r in ratios)
+                print(f"  {measure:8} {_label(mine):38} {listed}   (median {_x(_median(ratios))})")
 
 
 def _report(results: Results, kinds: list[str]) -> None:
@@ -582,7 +671,7 @@ def _report(results: Results, kinds: list[str]) -> None:
         gap = _median(results.get(("gap", kind), []))
         cpu = _median(results.get(("load", kind), []))
         print(
-            f"{KINDS[kind]:38} {mine:13.0f} {_x(_ratio(mine, single)):>9} {_x(_ratio(mine, multi)):>9}"
+            f"{_label(kind):38} {mine:13.0f} {_x(_ratio(mine, single)):>9} {_x(_ratio(mine, multi)):>9}"
             f" {_x(_ratio(mine, events)):>9}"
             f" {gap:7.0f} ms {cpu:8.1f}%"
         )
@@ -594,7 +683,8 @@ def _report(results: Results, kinds: list[str]) -> None:
             if calls[kind]:
                 mine = _median(calls[kind])
                 listed = " ".join(f"{_x(_ratio(mine, peer)):>9}" for peer in peers)
-                print(f"{KINDS[kind]:38} {mine:13.0f} {listed}")
+                print(f"{_label(kind):38} {mine:13.0f} {listed}")
+    _report_engines(results, kinds)
     loads = {kind: results.get(("load", kind), []) for kind in kinds}
     floors = loads.get("floor", [])
     if floors:
@@ -604,7 +694,7 @@ def _report(results: Results, kinds: list[str]) -> None:
             if kind == "floor" or not ratios:
                 continue
             listed = " ".join(_x(r) for r in ratios)
-            print(f"{KINDS[kind]:38} {listed}   (median {_x(_median(ratios))}, min {_x(min(ratios))})")
+            print(f"{_label(kind):38} {listed}   (median {_x(_median(ratios))}, min {_x(min(ratios))})")
     for title, values in (("round trips", rt), ("service calls", calls)):
         if not any(values.values()):
             continue
@@ -619,7 +709,7 @@ def _report(results: Results, kinds: list[str]) -> None:
                     continue
                 listed = " ".join(_x(r) for r in ratios)
                 print(
-                    f"{KINDS[kind]:38} vs {peer:6} {listed}"
+                    f"{_label(kind):38} vs {peer:6} {listed}"
                     f"   (median {_x(_median(ratios))}, min {_x(min(ratios))})"
                 )
 
@@ -638,14 +728,14 @@ def _compare(results: dict[str, Results], kinds: list[str]) -> None:
                 other = results[label].get(("pingpong", peer), [])
                 ratios = [_ratio(a, b) for a, b in zip(mine, other, strict=False)]
                 cells.append(f"{_x(_median(ratios)) if ratios else '-':>16}")
-        print(f"{KINDS[kind]:38} " + " ".join(cells))
+        print(f"{_label(kind):38} " + " ".join(cells))
     base = labels[0]
     for label in labels[1:]:
         print(f"\nrates under Python {label} over {base} (medians):")
         for (measure, kind), values in sorted(results[label].items()):
             before = results[base].get((measure, kind), [])
             if before and values:
-                print(f"  {measure:8} {KINDS[kind]:38} {_x(_ratio(_median(values), _median(before)))}")
+                print(f"  {measure:8} {_label(kind):38} {_x(_ratio(_median(values), _median(before)))}")
 
 
 if __name__ == "__main__":

@@ -40,7 +40,12 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
+
+from tests.benchmarks import cpus
 
 PATHS = ("dds", "copy", "zero-copy", "copy+outside")
 PAYLOADS = ("image", "cloud", "small")
@@ -243,7 +248,9 @@ def main() -> None:
     )
     parser.add_argument("--trial", nargs=3, metavar=("PATH", "PAYLOAD", "SECONDS"), help=argparse.SUPPRESS)
     parser.add_argument("--outside", metavar="PAYLOAD", help=argparse.SUPPRESS)
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
     if args.outside:
         outside_subscriber(args.outside)
         return
@@ -251,6 +258,7 @@ def main() -> None:
         path, payload, seconds = args.trial
         print(json.dumps(trial(path, payload, float(seconds), stream=args.stream)), flush=True)
         return
+    print(cpus.header(), flush=True)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     results: dict[tuple[str, str], list[dict[str, float]]] = {}
     for round_ in range(1, args.rounds + 1):

@@ -62,6 +62,10 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))  # tests.benchmarks
+
+from tests.benchmarks import cpus  # noqa: E402
+
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 IDLE = """
@@ -308,20 +312,22 @@ def main() -> None:
         "--polls", default="20,5", help="comm.poll_msec values to measure the LiDAR with (comma-separated)"
     )
     parser.add_argument("--emulator", nargs=2, metavar=("LINK_DIR", "RECORD"), help=argparse.SUPPRESS)
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
     if args.emulator:
         run_emulator(*args.emulator)
         return
 
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 200)))
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    sys.path.insert(0, str(REPO))
     from container._runtime import use_fast_discovery
 
     use_fast_discovery()
     print(f"command: {shlex.join([sys.executable, *sys.argv])}")
     print(f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}, {os.cpu_count()} CPUs, "
           f"load average {os.getloadavg()[0]:.2f}; {args.warmup:g} s warm-up, {args.seconds:g} s window")
+    print(cpus.header())
 
     rows: list[tuple[str, float]] = []
     latency: list[tuple[str, list[tuple[int, int, float, float]]]] = []

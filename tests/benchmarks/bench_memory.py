@@ -34,6 +34,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from container._runtime import use_fast_discovery  # noqa: E402
+from tests.benchmarks import cpus  # noqa: E402
 
 use_fast_discovery()
 
@@ -177,7 +178,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--nodes", type=int, default=10)
     parser.add_argument("--rounds", type=int, default=1, help="repeat both layouts, alternating")
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
+    print(cpus.header(), flush=True)
     names = [f"talker{i}" for i in range(args.nodes)]
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -57,6 +57,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))  # tests.benchmarks
+
+from tests.benchmarks import cpus  # noqa: E402
 
 #: The idle node type, installed as a plugin distribution of its own.
 NODES_MODULE = '''
@@ -244,7 +247,10 @@ def main() -> int:
         "--pythons", nargs="+", default=[sys.executable], metavar="PYTHON",
         help="interpreters to run under, side by side (each a set-up virtualenv's)",
     )
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
+    print(cpus.header(), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         site = write_site(root)

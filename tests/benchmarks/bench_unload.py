@@ -29,6 +29,9 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))  # tests.benchmarks
+
+from tests.benchmarks import cpus  # noqa: E402
 
 CLIENT = r"""
 import sys, time
@@ -156,7 +159,10 @@ def soak(cycles: int, *, tds: bool) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cycles", type=int, default=1000, help="load/unload cycles (multiple of 100)")
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
+    print(cpus.header(), flush=True)
     # Both at once, each on a ROS domain of its own: the same machine load
     # for both, and half the wall time.
     with concurrent.futures.ThreadPoolExecutor(2) as pool:

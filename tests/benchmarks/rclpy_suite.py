@@ -112,11 +112,18 @@ def outcomes_of(path: Path, *, substitute: bool, timeout: float) -> dict[str, st
 
 
 def main() -> None:
+    # Here, not at import: pytest imports this module as its plugin in rclpy's own test directory.
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
+    from tests.benchmarks import cpus
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tests", type=Path, required=True, help="rclpy's rclpy/test directory")
     parser.add_argument("--only", nargs="*", default=list(FILES), help="these files of it")
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds a file (or a test) may take")
+    cpus.add_option(parser)
     args = parser.parse_args()
+    cpus.pin(parser, args.cpus)
+    print(cpus.header(), flush=True)
     totals = {False: [0, 0], True: [0, 0]}
     differences: list[str] = []
     for name in args.only:

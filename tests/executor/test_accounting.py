@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Iterator
+from types import ModuleType
 from typing import Any
 
 import pytest
@@ -15,8 +16,8 @@ from rclpy.task import Future
 
 from container import AsyncioExecutor
 from container.executor import CallbackLoad, ContainerLoad, NodeLoad
-from container.executor._fastpath import Meter, Work
 from tests.component_support import burn
+from tests.engine_support import engines
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.timeout(60)
@@ -189,13 +190,14 @@ def test_without_accounting_callbacks_run_unmetered(context: Context) -> None:
         executor.shutdown(timeout_sec=5.0)
 
 
-def test_a_meter_times_plain_runs_and_each_step_of_a_coroutine() -> None:
+@pytest.mark.parametrize("engine", engines())
+def test_a_meter_times_plain_runs_and_each_step_of_a_coroutine(engine: ModuleType) -> None:
     import contextvars
     import types
 
-    meter = Meter()
+    meter = engine.Meter()
     arrived = time.monotonic_ns() - 5_000_000  # arrived 5 ms ago
-    plain = Work("entity", time.sleep, False, 1, lambda *_: None, None, (0.02,), meter=meter, arrived=arrived)
+    plain = engine.Work("entity", time.sleep, False, 1, lambda *_: None, None, (0.02,), meter=meter, arrived=arrived)
     plain.run(contextvars.copy_context())
     runs, finished, busy, cpu, late50, _, _, dur50, _, dur_max, dropped, stuck, running = meter.take()
     assert (runs, finished, dropped, stuck, running) == (1, 1, 0, 0, 0)
@@ -213,7 +215,7 @@ def test_a_meter_times_plain_runs_and_each_step_of_a_coroutine() -> None:
     async def callback() -> None:
         await two_steps()
 
-    work = Work("entity", callback, True, 1, lambda *_: None, None, meter=meter)
+    work = engine.Work("entity", callback, True, 1, lambda *_: None, None, meter=meter)
     coro = callback()
     work.step(coro.send, None)
     assert work.started > 0

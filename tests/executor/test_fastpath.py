@@ -6,6 +6,12 @@ checked against rclpy itself, then through the executor: a ping-pong between
 two nodes of one process must not need an ``rcl_wait`` per message, QoS
 events must arrive without sitting in a wait set, and entities destroyed and
 re-created while the executor spins must keep being served.
+
+The tests of the engines' objects (takers, servers, wait sets, the watcher,
+the lock, the hand-over) run against both engines where they behave the
+same; the executor's tests run on the engine the run chose, and those of a
+mechanism only the compiled engine has are skipped under the Python one
+(``tests/engine_support.py``).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Any
 
 import pytest
@@ -28,16 +35,17 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future as RclFuture
 from sensor_msgs.msg import Image
 from std_msgs.msg import Int64
 from std_srvs.srv import SetBool
 
 from container import AsyncioExecutor
 from container._compat import WaitSet
-from container.executor import HAS_PUBLISHER_GID, _fastpath
-from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Caller, FdWatcher, Notifier, Server, Taker
-from container.executor._fastpath import WaitSet as FastWaitSet
+from container.executor import HAS_PUBLISHER_GID
+from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier
 from container.executor._waitset import EntityWaitSet
+from tests.engine_support import compiled_only, engines
 
 TIMEOUT = 10.0
 
@@ -122,17 +130,18 @@ def test_notifier_reports_a_message_published_in_process_at_once(node: Node, gua
         notifier.unwatch(sub.handle)
 
 
-def test_notifier_refuses_what_it_cannot_watch(guard: GuardCondition) -> None:
-    notifier = Notifier(guard=guard.handle)
+@pytest.mark.parametrize("engine", engines())
+def test_notifier_refuses_what_it_cannot_watch(engine: ModuleType, guard: GuardCondition) -> None:
+    notifier = engine.Notifier(guard=guard.handle)
     with pytest.raises(ValueError, match="kind"):
         notifier.watch(guard.handle, 42)
     with pytest.raises(TypeError, match="rclpy handle"):
-        notifier.watch(0, SUBSCRIPTION)  # type: ignore[arg-type]  # an address is no handle
+        notifier.watch(0, engine.SUBSCRIPTION)  # an address is no handle
     with pytest.raises(TypeError, match="rclpy handle"):
-        Notifier(guard=0)  # type: ignore[arg-type]
+        engine.Notifier(guard=0)
     notifier.close()
     with pytest.raises(RuntimeError, match="closed"):
-        notifier.watch(guard.handle, SUBSCRIPTION)
+        notifier.watch(guard.handle, engine.SUBSCRIPTION)
 
 
 def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: Node, guard: GuardCondition) -> None:
@@ -166,14 +175,15 @@ def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: No
         notifier.unwatch(sub.handle)
 
 
+@pytest.mark.parametrize("engine", engines())
 def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
-    context: Context, guard: GuardCondition
+    engine: ModuleType, context: Context, guard: GuardCondition
 ) -> None:
     """asyncio's descriptors reach the loop's rcl wait through a compiled thread, without the GIL."""
     selector = selectors.EpollSelector()
     readable, writable = os.pipe()
     selector.register(readable, selectors.EVENT_READ)
-    watcher = FdWatcher(epoll=selector.fileno(), guard=guard.handle)
+    watcher = engine.FdWatcher(epoll=selector.fileno(), guard=guard.handle)
     wait_set = WaitSet(0, 1, 0, 0, 0, 0, context.handle)
     try:
         os.write(writable, b"x")
@@ -205,14 +215,15 @@ def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
     with pytest.raises(RuntimeError, match="closed"):
         watcher.arm()
     with pytest.raises(TypeError, match="rclpy handle"):
-        FdWatcher(epoll=0, guard=0)  # type: ignore[arg-type]
+        engine.FdWatcher(epoll=0, guard=0)
 
 
-def test_taker_takes_what_rclpy_takes(node: Node) -> None:
+@pytest.mark.parametrize("engine", engines())
+def test_taker_takes_what_rclpy_takes(engine: ModuleType, node: Node) -> None:
     pub = node.create_publisher(Image, "fp_take", 10)
     sub = node.create_subscription(Image, "fp_take", lambda msg: None, 10)
     _matched(pub)
-    taker = Taker(subscription=sub.handle, message_type=Image, publisher_gid=HAS_PUBLISHER_GID)
+    taker = engine.Taker(subscription=sub.handle, message_type=Image, publisher_gid=HAS_PUBLISHER_GID)
     assert taker.take() is None
     images = [
         Image(height=1, width=2, encoding="rgb8", step=6, data=bytes(range(6))),
@@ -241,18 +252,19 @@ def test_taker_takes_what_rclpy_takes(node: Node) -> None:
     assert info["source_timestamp"] >= first[1]["source_timestamp"] > 0
 
 
-def test_server_and_caller_take_and_answer_as_rclpy_does(node: Node) -> None:
+@pytest.mark.parametrize("engine", engines())
+def test_server_and_caller_take_and_answer_as_rclpy_does(engine: ModuleType, node: Node) -> None:
     """Requests and responses taken into C messages kept across takes, and
     answers sent, each reaching the call it belongs to."""
     service: Any = node.create_service(SetBool, "fp_serve", lambda request, response: response)
     client: Any = node.create_client(SetBool, "fp_serve")
     assert client.wait_for_service(timeout_sec=TIMEOUT)
-    server = Server(service=service.handle, srv_type=SetBool)
-    caller = Caller(client=client.handle, srv_type=SetBool)
+    server = engine.Server(service=service.handle, srv_type=SetBool)
+    caller = engine.Caller(client=client.handle, srv_type=SetBool)
     assert server.take() is None and caller.take() is None
     first = client.call_async(SetBool.Request(data=True))
     second = client.call_async(SetBool.Request(data=False))
-    taken: list[tuple[Any, bytes]] = []
+    taken: list[tuple[Any, Any]] = []
 
     def take_request() -> bool:
         request = server.take()
@@ -334,6 +346,7 @@ def _bounce(executor: AsyncioExecutor, host: Callable[..., Any], name: str, *, p
     return _Bounce(waits, threads)
 
 
+@compiled_only("rmw new-data callbacks (a ping-pong without waits)")
 def test_ping_pong_in_one_process_needs_no_wait_per_message(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
@@ -384,6 +397,7 @@ def _assert_contract_kept(
     ]
 
 
+@compiled_only("rmw new-data callbacks (the async chain runs on what they report)")
 def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: Context) -> None:
     """A chain of ``async def`` callbacks between two nodes of one process runs
     on the C path (``Express``): taken, admitted to its group, first step run
@@ -453,6 +467,53 @@ def test_async_chain_on_the_compiled_path_keeps_the_callback_contract(context: C
     _assert_contract_kept(rounds, "hop", peak=peak[0], resumed=resumed, sides=sides, reports=reports)
 
 
+@pytest.mark.parametrize("hop", [1, 40])
+def test_ctrl_c_in_an_async_callback_stops_the_spin_and_leaves_its_group_usable(context: Context, hop: int) -> None:
+    """A ``KeyboardInterrupt`` raised in an ``async def`` callback's first step
+    ends the spin, as in rclpy; the callback's group gives its slot back on the
+    way out, on every path: the first hop runs in a new runner task, a later
+    one of the chain on the compiled engine's C path (which kept the slot
+    once: the group then ran nothing more), on the Python engine in a lane."""
+    executor = AsyncioExecutor(context=context)
+    a, b = Node("fp_ctrl_c_a", context=context), Node("fp_ctrl_c_b", context=context)
+    ping = a.create_publisher(Int64, "fp_ctrl_c_ping", 10)
+    pong = b.create_publisher(Int64, "fp_ctrl_c_pong", 10)
+    seen: list[int] = []
+    done: RclFuture[None] = RclFuture()
+
+    async def echo(msg: Int64) -> None:
+        seen.append(msg.data)
+        if msg.data == hop and seen.count(hop) == 1:
+            raise KeyboardInterrupt
+        pong.publish(msg)
+
+    async def back(msg: Int64) -> None:
+        if msg.data >= 60:
+            done.set_result(None)
+        else:
+            ping.publish(Int64(data=msg.data + 1))
+
+    b.create_subscription(Int64, "fp_ctrl_c_ping", echo, 10)  # type: ignore[arg-type]
+    a.create_subscription(Int64, "fp_ctrl_c_pong", back, 10)  # type: ignore[arg-type]
+    for made in (a, b):
+        executor.add_node(made)
+    for publisher in (ping, pong):
+        _matched(publisher)
+    try:
+        ping.publish(Int64(data=1))
+        with pytest.raises(KeyboardInterrupt):
+            executor.spin_until_future_complete(RclFuture(), timeout_sec=TIMEOUT)
+        ping.publish(Int64(data=hop))  # again, from where it stopped
+        executor.spin_until_future_complete(done, timeout_sec=TIMEOUT)
+        assert done.done(), f"the chain stopped after Ctrl-C at hop {hop}: {seen[-3:]}"
+        assert seen == [*range(1, hop + 1), *range(hop, 61)]
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        for made in (a, b):
+            made.destroy_node()
+
+
+@compiled_only("rmw new-data callbacks (a timer's publish found without another wait)")
 def test_a_timers_publish_is_run_right_after_the_wait_that_fired_it(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
@@ -557,6 +618,7 @@ def test_async_timers_on_the_compiled_path_keep_the_callback_contract(context: C
     assert expressed > calls // 2, expressed
     _assert_contract_kept(calls, "tick", peak=peak[0], resumed=resumed, sides=sides, reports=reports)
 
+@compiled_only("rmw new-data callbacks (a worker carries on to what its callback published)")
 def test_plain_ping_pong_in_one_process_stays_on_one_thread(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
@@ -575,6 +637,7 @@ def _notifier(executor: AsyncioExecutor) -> Notifier:
     return notifier
 
 
+@compiled_only("carrier deferral")
 def test_a_plain_timers_publish_to_a_plain_callback_does_not_wake_the_loop(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
@@ -648,6 +711,7 @@ def test_a_plain_callback_running_on_after_publishing_does_not_hold_the_message(
     assert arrived[0] - sent[0] < 0.2, (arrived[0] - sent[0], finished[0] - sent[0])
 
 
+@compiled_only("rmw new-data callbacks (QoS events reported without a wait set)")
 def test_qos_events_arrive_without_a_wait_set(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
     a, b = host(Node, "fp_event_pub"), host(Node, "fp_event_sub")
     seen: dict[str, float] = {}
@@ -715,12 +779,15 @@ def test_subscriptions_destroyed_and_created_while_spinning_keep_being_served(
         assert _until(lambda: notifier.watched <= baseline), "destroyed subscriptions are still watched"
 
 
-def test_compiled_wait_set_reports_what_rclpys_reports(context: Context, node: Node, guard: GuardCondition) -> None:
+@pytest.mark.parametrize("engine", engines())
+def test_compiled_wait_set_reports_what_rclpys_reports(
+    engine: ModuleType, context: Context, node: Node, guard: GuardCondition
+) -> None:
     timer = node.create_timer(0.05, lambda: None)
     quiet = GuardCondition(callback=None, callback_group=None, context=context)
     try:
-        fast = FastWaitSet(
-            context.handle,  # type: ignore[arg-type]
+        fast = engine.WaitSet(
+            context.handle,
             guard_conditions=[guard.handle, quiet.handle],
             timers=[timer.handle],
         )
@@ -741,24 +808,27 @@ def test_compiled_wait_set_reports_what_rclpys_reports(context: Context, node: N
     finally:
         quiet.destroy()
     with pytest.raises(TypeError, match="rclpy handle"):
-        FastWaitSet(0)  # type: ignore[arg-type]
+        engine.WaitSet(0)
     with pytest.raises(TypeError, match="rclpy handle"):
-        FastWaitSet(context.handle, timers=[timer.handle.pointer])  # type: ignore[arg-type]
+        engine.WaitSet(context.handle, timers=[timer.handle.pointer])
 
 
-def test_compiled_objects_hold_what_they_point_at_until_closed(context: Context, node: Node) -> None:
-    """An entity destroyed while a compiled object uses it lives on until that
+@pytest.mark.parametrize("engine", engines())
+def test_compiled_objects_hold_what_they_point_at_until_closed(
+    engine: ModuleType, context: Context, node: Node
+) -> None:
+    """An entity destroyed while an engine's object uses it lives on until that
     object lets it go: its rcl memory is never read after rclpy freed it."""
     sub = node.create_subscription(Int64, "fp_held", lambda msg: None, 10)
     timer = node.create_timer(10.0, lambda: None)
     pub = node.create_publisher(Int64, "fp_held", 10)
     _matched(pub)
-    taker = Taker(subscription=sub.handle, message_type=Int64)
-    fast = FastWaitSet(context.handle, timers=[timer.handle])  # type: ignore[arg-type]
+    taker = engine.Taker(subscription=sub.handle, message_type=Int64)
+    fast = engine.WaitSet(context.handle, timers=[timer.handle])
     node.destroy_subscription(sub)
     node.destroy_timer(timer)
     pub.publish(Int64(data=7))
-    assert _until(lambda: (taken := taker.take()) is not None and taken.data == 7)  # type: ignore[attr-defined]
+    assert _until(lambda: (taken := taker.take()) is not None and taken.data == 7)
     assert fast.wait(0) == ()
     for handle in (sub.handle, timer.handle):  # destruction asked for, not done
         with pytest.raises(InvalidHandle):
@@ -768,7 +838,7 @@ def test_compiled_objects_hold_what_they_point_at_until_closed(context: Context,
     with pytest.raises(RuntimeError, match="closed"):
         taker.take()
     with pytest.raises(InvalidHandle):  # destroyed now: handles of destroyed entities refuse to be held
-        Taker(subscription=sub.handle, message_type=Int64)
+        engine.Taker(subscription=sub.handle, message_type=Int64)
 
 
 class _NoSubscriptionCallbacks:
@@ -786,14 +856,19 @@ class _NoSubscriptionCallbacks:
         return getattr(self._inner, name)
 
 
+@pytest.mark.parametrize("engine", engines())
 @pytest.mark.parametrize("wait_set", ["compiled", "rclpy"])
-def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: GuardCondition, wait_set: str) -> None:
+def test_a_poll_holds_the_gil_one_millisecond_at_most(
+    engine: ModuleType, context: Context, guard: GuardCondition, wait_set: str
+) -> None:
     """A poll keeps the GIL because its guard condition is already triggered;
     should that guard be missing, it still gives the GIL back within 1 ms
-    (plus the kernel's timer slack), not after its 50 ms timeout."""
+    (plus the kernel's timer slack), not after its 50 ms timeout. (The
+    Python engine's polls let go of the GIL, rclpy's wait always does, but
+    are bounded alike.)"""
     with guard.handle:
         if wait_set == "compiled":
-            fast = FastWaitSet(context.handle, guard_conditions=[guard.handle])  # type: ignore[arg-type]
+            fast = engine.WaitSet(context.handle, guard_conditions=[guard.handle])
 
             def poll() -> None:
                 fast.wait(50_000_000, True)
@@ -803,7 +878,7 @@ def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: G
             def poll() -> None:
                 rclpys.clear_entities()  # rcl_wait empties the slots of what was not ready
                 rclpys.add_guard_condition(guard.handle)
-                _fastpath.poll(rclpys, 50_000_000)
+                engine.poll(rclpys, 50_000_000)
 
         started = time.monotonic()
         poll()  # nothing triggered
@@ -817,7 +892,7 @@ def test_a_poll_holds_the_gil_one_millisecond_at_most(context: Context, guard: G
         assert fast.wait(50_000_000) == ()  # not a poll: the whole timeout
         assert time.monotonic() - started >= 0.045
     with pytest.raises(TypeError, match="rclpy handle"):
-        _fastpath.poll(0, 0)  # type: ignore[arg-type]
+        engine.poll(0, 0)
 
 
 def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
@@ -854,7 +929,9 @@ def test_subscriptions_are_waited_on_where_rmw_offers_no_callback(
         listener.destroy_node()
 
 
-@pytest.mark.parametrize("wait_set", ["compiled", "rclpy"])
+@pytest.mark.parametrize(
+    "wait_set", [pytest.param("compiled", marks=compiled_only("GIL-keeping polls (on its own wait set)")), "rclpy"]
+)
 def test_a_busy_async_chain_does_not_starve_a_plain_timer_of_the_gil(
     context: Context, executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch, wait_set: str
 ) -> None:
@@ -954,7 +1031,10 @@ def _delay_ms(msg: Image) -> float:
     return (time.perf_counter_ns() - stamp) / 1e6
 
 
-@pytest.mark.parametrize("intra", [True, False], ids=["intra-process", "dds"])
+@pytest.mark.parametrize(
+    "intra",
+    [pytest.param(True, id="intra-process"), pytest.param(False, id="dds", marks=compiled_only("GIL-keeping polls"))],
+)
 def test_a_plain_subscriber_keeps_pace_beside_a_busy_async_publisher(
     context: Context, executor: AsyncioExecutor, intra: bool
 ) -> None:
@@ -1038,13 +1118,14 @@ def test_a_plain_subscriber_that_blocks_beside_a_busy_publisher_delays_no_other_
     assert max(gaps) < 0.2, f"largest gap {max(gaps):.3f} s"  # 50 ms and a little; blocked: 300 ms
 
 
-def test_a_handoff_waits_for_the_workers_it_woke_and_no_others() -> None:
+@pytest.mark.parametrize("engine", engines(python_lacks="Handoff spinning (awake until the workers finish)"))
+def test_a_handoff_waits_for_the_workers_it_woke_and_no_others(engine: ModuleType) -> None:
     """``give`` waits (GIL let go) until the workers handed work since the
     last give started, then stays awake until they finished, bounded; a
     worker still running from before (a callback blocking in another group)
     is not waited for. Each worker starts 50 ms late, as a woken thread
     would be: after the give began."""
-    handoff = _fastpath.Handoff()
+    handoff = engine.Handoff()
     assert handoff.give(1_000_000_000, 1_000_000_000) is False  # nothing handed: at once
 
     def worker(runs_s: float, *, until: threading.Event | None = None) -> threading.Thread:
@@ -1084,10 +1165,11 @@ def test_a_handoff_waits_for_the_workers_it_woke_and_no_others() -> None:
     assert handoff.outstanding == 0 and handoff.given == 3
 
 
-def test_a_lingering_worker_stays_awake_until_work_is_handed_over_or_its_time_is_up() -> None:
+@pytest.mark.parametrize("engine", engines(python_lacks="Handoff lingering"))
+def test_a_lingering_worker_stays_awake_until_work_is_handed_over_or_its_time_is_up(engine: ModuleType) -> None:
     """``linger`` returns True once the loop hands work over (and, holding
     the GIL, 50 us later at most); False when the time ran out first."""
-    handoff = _fastpath.Handoff()
+    handoff = engine.Handoff()
     started = time.monotonic()
     assert handoff.linger(20_000_000) is False  # 20 ms, nothing handed
     assert 0.019 < time.monotonic() - started < 1.0
@@ -1104,6 +1186,7 @@ def test_a_lingering_worker_stays_awake_until_work_is_handed_over_or_its_time_is
     assert time.monotonic() - handed_at < 1.0  # not the 5 s bound
 
 
+@compiled_only("Handoff lingering (the loop stays awake for a worker's answer)")
 def test_plain_service_calls_find_the_loop_and_the_worker_awake(
     executor: AsyncioExecutor, host: Callable[..., Any]
 ) -> None:
@@ -1111,6 +1194,8 @@ def test_plain_service_calls_find_the_loop_and_the_worker_awake(
     awake for the answer of the worker it handed each request to, instead of
     blocking in rcl and having its idle core woken (on this VM that wake-up
     cost more than the call). Counted by the hand-over's ``lingered``."""
+    if not executor._dispatcher.handoff.spin:
+        pytest.skip("one CPU: the loop never lingers (tests/executor/test_one_cpu.py)")
     from std_srvs.srv import Trigger
 
     server, caller = host(Node, "linger_server"), host(Node, "linger_caller")
@@ -1135,9 +1220,10 @@ def test_plain_service_calls_find_the_loop_and_the_worker_awake(
     assert lingered > 0, lingered
 
 
-def test_the_compiled_lock_behaves_as_threading_lock() -> None:
+@pytest.mark.parametrize("engine", engines())
+def test_the_compiled_lock_behaves_as_threading_lock(engine: ModuleType) -> None:
     """The take lock and the lanes' locks: what Python code does with them, from two threads."""
-    lock = _fastpath.Lock()
+    lock = engine.Lock()
     assert not lock.locked()
     with lock:
         assert lock.locked()

@@ -141,7 +141,7 @@ def test_intra_process_info_has_rclpy_s_keys_and_the_publisher_s_gid(
     spinning(asyncio_executor)
     try:
         _publish_until(lambda: publisher.publish(String(data="x")), [reference, intra])
-        gid = publisher_gid(publisher)
+        gid = publisher_gid(publisher, node=source)
     finally:
         for each in (theirs, sink, source):
             each.destroy_node()

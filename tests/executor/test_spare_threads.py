@@ -8,7 +8,6 @@ import threading
 import pytest
 
 from container.executor import Escaped, _spare, in_thread
-from tests.waiting import wait_until_async
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -28,19 +27,17 @@ async def test_a_call_after_another_returned_runs_on_the_same_thread_under_its_o
 
 
 async def test_a_call_that_blocks_keeps_its_thread_and_holds_up_no_other_call() -> None:
-    release, blocking = threading.Event(), threading.Event()
+    release, started = threading.Event(), threading.Event()
 
     def blocked() -> threading.Thread:
-        blocking.set()
+        started.set()
         release.wait(10.0)
         return threading.current_thread()
 
     stuck = asyncio.ensure_future(in_thread(blocked, name="transition:/stuck"))
     try:
-        # Blocking before the other call is made: made first (wait_for runs
-        # it in this task at once), the other call's thread could be free
-        # again by the time the blocking call takes one, and be taken.
-        await wait_until_async(blocking.is_set, "the blocking call", timeout=5.0)
+        # Blocked first: started after the other call, it could take that call's thread once free.
+        assert await asyncio.to_thread(started.wait, 5.0)
         other, _ = await asyncio.wait_for(in_thread(_named, name="transition:/other"), 5.0)
         assert not stuck.done()
         release.set()

@@ -34,6 +34,11 @@
  * the timer's address first) where the wait set's dispatch
  * takes them, under its locks; ``run_fired`` runs their callbacks as
  * ``drain`` runs a message's, once those locks are released.
+ *
+ * Ownership: every field is a strong reference set once. ready_queue,
+ * eager and done_waiters are Python's containers (asyncio's, the
+ * dispatcher's, the executor's), read here by their length only; fired is
+ * this object's own list.
  */
 typedef struct {
   PyObject_HEAD
@@ -160,6 +165,18 @@ static int release(ExpressObject * self, RouteObject * route)
   result = call2(self->release_pending, route->lane, route->marker);
   Py_XDECREF(result);
   return result == NULL ? -1 : 0;
+}
+
+/* release(), keeping the exception that is set: the slot goes back whatever
+ * failed after the step (a failure of that release is reported as unraisable). */
+static void release_keeping_error(ExpressObject * self, RouteObject * route)
+{
+  PyObject * type, * value, * traceback;
+  PyErr_Fetch(&type, &value, &traceback);
+  if (release(self, route) < 0) {
+    PyErr_WriteUnraisable(route->entity);
+  }
+  PyErr_Restore(type, value, traceback);
 }
 
 /* The first step of a callback, the one both paths run: ``call(*args)`` up
@@ -308,6 +325,8 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
     return -1;
   }
   self->expressed++;
+  /* Until a hook (suspended, failed) takes the work, the slot is this
+   * path's: every way out gives it back. */
   if (status == PYGEN_RETURN) {
     Py_DECREF(runner);
     waiting = PyObject_Length(self->done_waiters);
@@ -315,6 +334,7 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
       result = waiting > 0 ? PyObject_CallNoArgs(self->on_done) : NULL;
       Py_XDECREF(result);
       if (result == NULL) {
+        release_keeping_error(self, route);
         return -1;
       }
     }
@@ -323,7 +343,14 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
   if (status == PYGEN_NEXT) {
     PyObject * start = PyLong_FromLongLong(started);
     PyObject * args[7] = {entry, given, (PyObject *)runner, coro, yielded, context, start};
-    result = start != NULL ? PyObject_Vectorcall(self->suspended, args, 7, NULL) : NULL;
+    if (start == NULL) {
+      release_keeping_error(self, route);
+      result = NULL;
+    } else {
+      /* The Python lane's from here: it counts the work as started, and
+       * the runner that finishes it gives the slot back. */
+      result = PyObject_Vectorcall(self->suspended, args, 7, NULL);
+    }
     Py_XDECREF(start);
     Py_DECREF(coro);
     Py_DECREF(yielded);
@@ -334,6 +361,7 @@ static int run_one(ExpressObject * self, RouteObject * route, PyObject * message
   }
   Py_DECREF(runner);
   if ((result = step_error(self->cancelled_error)) == NULL) {
+    release_keeping_error(self, route); /* KeyboardInterrupt: it stops the executor, the group stays usable */
     return -1;
   }
   {
@@ -385,7 +413,8 @@ PyMethodDef express_functions[] = {
 };
 
 /* Take what the notifier reported (into ``batch``: route, message, ...) under
- * the take lock; 1 taken, 0 nothing to do (stop), -1 error. Entities that are
+ * the take lock; 1 taken, 0 nothing to do (stop), -1 error, -2 a take failed
+ * (its exception set; everything else reported was taken). Entities that are
  * not routes go through the wait set's Python ``_take_ready``. */
 static int take_batch(ExpressObject * self, PyObject * batch)
 {
@@ -446,10 +475,14 @@ static int take_batch(ExpressObject * self, PyObject * batch)
       ((RouteObject *)route)->arrived = now;
       message = taker_take((TakerObject *)((RouteObject *)route)->first, 0);
       if (message == NULL) {
-        /* Run what was taken, then report this. */
-        PyErr_Fetch(&type, &value, &traceback);
-        Py_DECREF(route);
-        goto out;
+        /* The rest of what was reported is taken all the same (its counts
+         * were taken from the notifier): run it, then report the first error. */
+        if (type == NULL && value == NULL) {
+          PyErr_Fetch(&type, &value, &traceback);
+        } else {
+          PyErr_Clear();
+        }
+        break;
       }
       if (message == Py_None) {
         Py_DECREF(message);

@@ -17,6 +17,19 @@
  * the GIL and briefly, for those workers to finish (see give()): on a
  * virtual machine, letting its core go idle costs more than a short
  * callback.
+ *
+ * Every spin here (give's, a worker's linger, the loop's linger) is for
+ * a thread running on another CPU at the same time. With one CPU for the
+ * process the awaited thread needs this thread's CPU to make progress,
+ * so spinning only delays it: the executor then makes its Handoff with
+ * spin=False (_dispatch.py, from _cores.usable_cpus(), counted once when
+ * the executor is made), and none of them spins. The wait for the
+ * workers' starts stays: it sleeps on a condition variable, which is what
+ * hands the one CPU and the GIL to the worker.
+ *
+ * The spin and linger bounds below were measured on the project's 2-core
+ * shared KVM virtual machine only, with the benchmarks named at each; none
+ * has been measured with one CPU or with more than two.
  */
 #include "fastpath.h"
 
@@ -121,6 +134,9 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
   if (!PyArg_ParseTuple(args, "L|L:give", &timeout_ns, &spin_ns)) {
     return NULL;
   }
+  if (timeout_ns < 0) {
+    timeout_ns = 0; /* a deadline in the past: a negative tv_nsec would make the wait fail at once, forever */
+  }
   /* Workers running before this give's own start: not waited for (one
    * blocking for seconds in another group would cost every give the spin). */
   before = atomic_load(&self->running);
@@ -157,7 +173,8 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
      * keeps this thread's core from going idle, and on a virtual machine
      * waking an idle core costs 50-200 us, twice per hand-over (the GIL
      * comes back through a condition variable too). One that runs longer
-     * is left to the GIL as before. */
+     * is left to the GIL as before. Never on one CPU (spin=False): the
+     * worker could only finish once this thread gave the CPU back. */
     long long until = monotonic_ns() + spin_ns;
     while (atomic_load(&self->running) > before && monotonic_ns() < until) {
       sched_yield();
@@ -181,7 +198,15 @@ static PyObject * Handoff_give(HandoffObject * self, PyObject * args)
  * has been coming quickly stays awake, without the GIL, for up to spin_ns:
  * until the loop hands work over again and has let go of the GIL (or 50 us
  * after the hand-over, should it hold on to the GIL). The caller decides
- * whether lingering pays (how long it waited last time). */
+ * whether lingering pays (how long it waited last time).
+ *
+ * LINGER_GIL_GRACE_NS (50 us), here and in handoff_loop_linger: came with
+ * the lingers (commit bc7e731) and was measured only as part of them, on
+ * the 2-core shared KVM VM: plain service calls 7,430-7,614/s before,
+ * 19,770-20,200/s after (bench_executor.py --only services --kinds
+ * asyncio-plain single --rounds 4 --seconds 3, the code before side by
+ * side; see LOOP_LINGER_NS); no other value of it was measured. On one
+ * CPU it is never reached: nothing lingers (spin=False). */
 #define LINGER_GIL_GRACE_NS 50000LL
 static PyObject * Handoff_linger(HandoffObject * self, PyObject * arg)
 {
@@ -219,7 +244,22 @@ static PyObject * Handoff_linger(HandoffObject * self, PyObject * arg)
  * whose callbacks answer nothing; a callback blocking for long), the next
  * waits block at once: LOOP_SKIP of them, twice as many after each such
  * round up to LOOP_SKIP_MAX, back to LOOP_SKIP once a linger sees an answer.
- * A callback blocked for good costs two lingers per LOOP_SKIP_MAX waits. */
+ * A callback blocked for good costs two lingers per LOOP_SKIP_MAX waits.
+ *
+ * Measured against (commit bc7e731, on the 2-core shared KVM VM, the
+ * code before side by side through bench_executor.py --pythons): the four
+ * together with the worker's linger (_lanes.py WORKER_LINGER_NS) took
+ * plain service calls from 7,430-7,614/s to 19,770-20,200/s (--only
+ * services --kinds asyncio-plain single --rounds 4 --seconds 3); the same
+ * comparison of the ten-node load (--only load: the backoff is for plain
+ * timers, whose callbacks answer nothing) gave 1.01x the CPU with plain
+ * callbacks, ping-pong 0.98x, the gap unchanged. Why staying awake pays
+ * there: with two idle-priority busy loops keeping both cores awake, the
+ * same plain service calls ran 11,300-12,800/s instead of 7,500
+ * (docs/design.md, Services). The values themselves (250 us; 2 misses;
+ * 32, doubling to 4,096 skips) were not measured against others: no such
+ * measurement is recorded. On one CPU the loop never lingers
+ * (handoff_may_linger: spin=False), so none of them applies. */
 #define LOOP_LINGER_NS 250000LL
 #define LOOP_MISSES_MAX 2
 #define LOOP_SKIP 32

@@ -615,6 +615,10 @@ static PyObject * Slots_new(PyTypeObject * type, PyObject * args, PyObject * kwa
   if (!PyArg_ParseTupleAndKeywords(args, kwargs, "n:Slots", keywords, &limit)) {
     return NULL;
   }
+  if (limit < 1) {
+    PyErr_SetString(PyExc_ValueError, "a lane's limit is at least 1");
+    return NULL;
+  }
   self = (SlotsObject *)type->tp_alloc(type, 0);
   if (self == NULL) {
     return NULL;

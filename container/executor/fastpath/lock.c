@@ -46,6 +46,7 @@ static PyObject * Lock_acquire(LockObject * self, PyObject * args, PyObject * kw
   int blocking = 1;
   double timeout = -1.0;
   PY_TIMEOUT_T microseconds;
+  long long deadline;
   PyLockStatus status;
   if ((args != NULL || kwargs != NULL) &&
       !PyArg_ParseTupleAndKeywords(args, kwargs, "|pd:acquire", keywords, &blocking, &timeout)) {
@@ -65,10 +66,32 @@ static PyObject * Lock_acquire(LockObject * self, PyObject * args, PyObject * kw
   if (!blocking) {
     Py_RETURN_FALSE;
   }
+  if (timeout > (double)PY_TIMEOUT_MAX / 1e6) {
+    PyErr_SetString(PyExc_OverflowError, "timeout value is too large");
+    return NULL;
+  }
   microseconds = timeout < 0 ? -1 : (PY_TIMEOUT_T)(timeout * 1e6);
-  Py_BEGIN_ALLOW_THREADS
-  status = PyThread_acquire_lock_timed(self->lock, microseconds, 0);
-  Py_END_ALLOW_THREADS
+  /* As threading.Lock's: a signal interrupts the wait, its handler runs
+   * (Ctrl-C raises there), and the wait goes on for what is left. */
+  deadline = microseconds > 0 ? monotonic_ns() + microseconds * 1000LL : 0;
+  for (;;) {
+    Py_BEGIN_ALLOW_THREADS
+    status = PyThread_acquire_lock_timed(self->lock, microseconds, 1);
+    Py_END_ALLOW_THREADS
+    if (status != PY_LOCK_INTR) {
+      break;
+    }
+    if (Py_MakePendingCalls() < 0) {
+      return NULL;
+    }
+    if (microseconds > 0) {
+      microseconds = (deadline - monotonic_ns()) / 1000LL;
+      if (microseconds <= 0) {
+        status = PY_LOCK_FAILURE;
+        break;
+      }
+    }
+  }
   if (status != PY_LOCK_ACQUIRED) {
     Py_RETURN_FALSE;
   }

@@ -4,7 +4,7 @@
  * held.c, notifier.c, waitset.c, taker.c, service.c, lock.c, lanes.c,
  * express.c, watcher.c, handoff.c, meter.c; this file makes the module and
  * holds its few free functions. Its pure-Python twin, the executable
- * specification of what it does, is container/executor/_pyengine.py.
+ * specification of what it does, is container/executor/_pyengine/.
  *
  * Notifier: event-driven readiness for rcl subscriptions, clients and services.
  *

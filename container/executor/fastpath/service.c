@@ -166,10 +166,17 @@ static PyObject * Server_send(ServerObject * self, PyObject * const * args, Py_s
     return NULL;
   }
   if (let_go) {
-    /* The service stays entered meanwhile: nothing destroys it under the send. */
+    /* Entered once more for the send: a close() meanwhile (another thread
+     * holds the GIL then) cannot let the service be destroyed under it. */
+    Held sending;
+    if (held_enter(&sending, self->service.handle) < 0) {
+      self->response.destroy(message);
+      return NULL;
+    }
     Py_BEGIN_ALLOW_THREADS
-    ret = rcl_send_response(self->service.pointer, &header, message);
+    ret = rcl_send_response(sending.pointer, &header, message);
     Py_END_ALLOW_THREADS
+    held_exit(&sending);
   } else {
     ret = rcl_send_response(self->service.pointer, &header, message);
   }

@@ -44,7 +44,7 @@ static void * watch(void * arg)
       if (errno == EINTR) {
         continue;
       }
-      /* Only a closed descriptor gets here; the selector is going away. */
+      /* poll itself failed (out of memory): the selector is unusable; stop. */
       return NULL;
     }
     if (fds[0].revents) {

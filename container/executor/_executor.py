@@ -409,6 +409,7 @@ class AsyncioExecutor(Executor):
                     return
                 settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
+                self._notify_progress()  # a coroutine awaiting the task's future looks again now
 
             begin = functools.partial(self._inbox.post_to, self.loop, run)
         if self._dispatcher.gate.admit(result, 1 << 16, begin):
@@ -432,6 +433,9 @@ class AsyncioExecutor(Executor):
         def finished(task: asyncio.Task[Any]) -> None:
             settle(result, task)
             self._callback_completed()
+            # A coroutine awaiting the task's future (parked on the progress
+            # future) looks again now, not at the next 10 ms poll.
+            self._notify_progress()
 
         def start() -> None:
             if result.cancelled():

@@ -365,6 +365,32 @@ def test_each_callback_starts_in_a_copy_of_the_spinning_context(
             assert value == "spinner", seen
 
 
+@pytest.mark.parametrize("kind", ["coroutine", "plain"])
+def test_a_coroutine_awaiting_a_task_of_the_executor_goes_on_as_it_finishes(
+    executor: AsyncioExecutor, make_node: Callable[[str], Node], kind: str
+) -> None:
+    """An rclpy future is awaited by parking on the executor's progress; a
+    task's finishing is progress (it took the 10 ms poll each before)."""
+    executor.add_node(make_node("awaits_tasks"))
+
+    async def work() -> int:
+        return 1
+
+    def plain_work() -> int:
+        return 1
+
+    async def main() -> float:
+        started = time.monotonic()
+        for _ in range(100):
+            assert await executor.create_task(work if kind == "coroutine" else plain_work) == 1
+        return time.monotonic() - started
+
+    outcome = executor.create_task(main)
+    executor.spin_until_future_complete(outcome, timeout_sec=30.0)
+    assert outcome.done()
+    assert outcome.result() < 0.5, f"100 awaits took {outcome.result():.2f} s: each waited for the poll"
+
+
 def test_async_callback_awaits_a_service_call_without_busy_waiting(
     executor: AsyncioExecutor, make_node: Callable[[str], Node]
 ) -> None:

@@ -1240,3 +1240,15 @@ def test_the_compiled_lock_behaves_as_threading_lock(engine: ModuleType) -> None
         lock.release()
     with pytest.raises(ValueError):
         lock.acquire(blocking=False, timeout=1.0)
+    with lock:
+        # Refused as threading.Lock refuses them (no endless wait on a NaN, no overflow).
+        with pytest.raises(ValueError):
+            lock.acquire(timeout=float("nan"))
+        with pytest.raises(OverflowError):
+            lock.acquire(timeout=1e300)
+        # The longest timeout accepted waits its while, no overflow on the way (UBSan watches this).
+        waiter = threading.Thread(target=lambda: got.append(lock.acquire(timeout=threading.TIMEOUT_MAX - 1)))
+        waiter.start()
+    waiter.join(5.0)
+    assert got == [True, True]
+    lock.release()

@@ -56,7 +56,7 @@ static PyObject * Lock_acquire(LockObject * self, PyObject * args, PyObject * kw
     PyErr_SetString(PyExc_ValueError, "can't specify a timeout for a non-blocking call");
     return NULL;
   }
-  if (timeout < 0 && timeout != -1.0) {
+  if (!(timeout >= 0) && timeout != -1.0) { /* NaN too */
     PyErr_SetString(PyExc_ValueError, "timeout value must be a non-negative number");
     return NULL;
   }
@@ -73,7 +73,11 @@ static PyObject * Lock_acquire(LockObject * self, PyObject * args, PyObject * kw
   microseconds = timeout < 0 ? -1 : (PY_TIMEOUT_T)(timeout * 1e6);
   /* As threading.Lock's: a signal interrupts the wait, its handler runs
    * (Ctrl-C raises there), and the wait goes on for what is left. */
-  deadline = microseconds > 0 ? monotonic_ns() + microseconds * 1000LL : 0;
+  deadline = 0;
+  if (microseconds > 0) {
+    long long now = monotonic_ns();
+    deadline = microseconds > (LLONG_MAX - now) / 1000LL ? LLONG_MAX : now + microseconds * 1000LL;
+  }
   for (;;) {
     Py_BEGIN_ALLOW_THREADS
     status = PyThread_acquire_lock_timed(self->lock, microseconds, 1);

@@ -514,10 +514,14 @@ MEASURES: dict[str, Callable[[str, float], float]] = {
 
 def _child(measure: str, kind: str, seconds: float) -> None:
     if kind.startswith("asyncio"):
-        from container.executor import _engine
-
-        if (kind.partition("@")[2] or "compiled") != _engine.ENGINE:
-            sys.exit(f"{kind} asked for, the executor runs on the {_engine.ENGINE} engine")
+        try:
+            from container.executor import _engine
+        except ImportError:  # code from before the engines (--pythons): compiled only
+            engine = "compiled"
+        else:
+            engine = _engine.ENGINE
+        if (kind.partition("@")[2] or "compiled") != engine:
+            sys.exit(f"{kind} asked for, the executor runs on the {engine} engine")
     value = MEASURES[measure](_base(kind), seconds)
     print(json.dumps({"value": value}), flush=True)
     os._exit(0)  # rclpy's MultiThreadedExecutor may leave threads behind

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from typing import Any
 
 import rclpy
+from rclpy.client import Client
 from rclpy.node import Node
 from rclpy.utilities import try_shutdown
 from std_msgs.msg import Int64
@@ -83,7 +84,7 @@ def plain_service_calls(executor: AsyncioExecutor, nodes: list[Node]) -> int:
     caller = Node("one_cpu_caller", context=executor.context)
     nodes += [server, caller]
     server.create_service(Trigger, "one_cpu/plain", lambda request, response: response)
-    client = caller.create_client(Trigger, "one_cpu/plain")
+    client: Client[Any, Any] = caller.create_client(Trigger, "one_cpu/plain")
     count = [0]
     done = threading.Event()
 
@@ -114,7 +115,7 @@ def async_service_calls(executor: AsyncioExecutor, nodes: list[Node]) -> int:
         return response
 
     server.create_service(Trigger, "one_cpu/async", answer)
-    client = caller.create_client(Trigger, "one_cpu/async")
+    client: Client[Any, Any] = caller.create_client(Trigger, "one_cpu/async")
     count = [0]
 
     async def chain() -> None:

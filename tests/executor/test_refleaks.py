@@ -52,8 +52,9 @@ from std_msgs.msg import Int64
 from std_srvs.srv import SetBool
 
 from container import AsyncioExecutor, enable_intra_process, hand_over
-from container.executor._fastpath import Route
+from container.executor._engine import Route
 from container.intra import IntraProcessNode
+from tests.engine_support import ENGINE
 from tests.waiting import wait_until
 
 #: Runs of a path before the first census. After 300, the first census
@@ -254,10 +255,14 @@ def _entity_refs(name: str, entity: Any) -> dict[str, object]:
 
 
 def _compiled_refs(executor: AsyncioExecutor, name: str, entity: Any, node: Node, kind: str) -> dict[str, object]:
-    """The compiled object that takes for ``entity`` (it must have one)."""
+    """The compiled object that takes for ``entity`` (it must have one); none on the
+    Python engine, whose entities are waited on and taken by rclpy (docs/executor/engines.md)."""
     entry = executor._dispatcher.entry(entity, node, kind)
     part = {"subscription": "taker", "service": "server", "client": "caller"}[kind]
     compiled = getattr(entry, part)
+    if ENGINE == "python" and kind == "subscription":
+        assert compiled is None, f"{name} has a taker on the Python engine"
+        return {}
     assert compiled is not None, f"{name} has no compiled {part}"
     return {f"{name}.{part}": compiled}
 
@@ -366,11 +371,15 @@ def test_a_message_taken_leaves_nothing_behind(
     """``async``: taken and run by the compiled chain (Express, Taker); ``plain``:
     taken in C (Taker), run on a worker thread, which carries on with what
     it published; ``suspending``: its first step on the chain, the rest
-    stepped by its lane's runner task."""
+    stepped by its lane's runner task. On the Python engine, every message is
+    waited on and taken by rclpy, and the chain runs none of them."""
     run, watched, _ = _ping_pong(executor, host, f"leak_{callback}", callback=callback)
     expressed = _expressed(executor)
     _check(f"message ({callback})", run, watched)
     ran = _expressed(executor) - expressed
+    if ENGINE == "python":
+        assert ran == 0, ran
+        return
     # Two callbacks a round trip: the chain ran at least half of those it could.
     assert ran >= {"async": ITERATIONS, "suspending": ITERATIONS // 2, "plain": 0}[callback], ran
 

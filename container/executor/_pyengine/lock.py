@@ -6,9 +6,10 @@ without a Python call; here every caller is Python, and a lock is what
 ``release()``, ``locked()``, ``with``. The chain's non-blocking take
 (``lock_try``) is ``acquire(blocking=False)``.
 
-Difference: a blocked ``acquire`` here can be interrupted by a signal
-handler's exception in the main thread (``threading.Lock``'s); the compiled
-one waits on.
+Both refuse what ``threading.Lock`` refuses (a timeout with a non-blocking
+call, a negative one, one too large to wait), and a NaN timeout too, which
+``threading.Lock`` would wait on for ever; in both, a signal handler's
+exception in the main thread interrupts a blocked ``acquire``.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ class Lock:
 
     def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
         """Take it (``threading.Lock.acquire``'s arguments and answers)."""
+        if timeout != timeout:  # NaN
+            raise ValueError("timeout value must be a non-negative number")
         return self._lock.acquire(blocking, timeout)
 
     def release(self) -> None:

@@ -26,6 +26,7 @@ from ._errors import (
     ExecutorError,
     LoadError,
     PluginError,
+    SecurityError,
     TransitionError,
 )
 from ._hookspecs import RegisterNodeType, hookimpl, hookspec
@@ -59,6 +60,7 @@ __all__ = [
     "PluginError",
     "PluginRegistry",
     "RegisterNodeType",
+    "SecurityError",
     "Throttle",
     "TransitionError",
     "contain_fault",

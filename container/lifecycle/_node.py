@@ -48,7 +48,7 @@ from rclpy.timer import Timer
 from .. import checks
 from .._compat import change_state_service, managed_entities, query_services, state_machine
 from .._errors import TransitionError
-from .._text import clip
+from .._text import MESSAGE_LIMIT, clip
 from ..executor import Escaped, contained, in_thread, run_coroutine, working_for
 from ..intra import IntraProcessNode
 from ._base import LifecycleNodeBase
@@ -198,7 +198,12 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         return self._failure
 
     def fail_transition(self, reason: str) -> TransitionCallbackReturn:
-        """Log ``reason`` and fail the transition with it: ``return self.fail_transition("port busy")``."""
+        """Log ``reason`` and fail the transition with it: ``return self.fail_transition("port busy")``.
+
+        A reason over 800 characters is clipped (:func:`~container.clip`), in
+        the log and in the answer: it may echo a peer's value.
+        """
+        reason = clip(reason, limit=MESSAGE_LIMIT)
         self.get_logger().error(reason)
         self._failure = reason
         return FAILURE
@@ -423,8 +428,11 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             raise
         except BaseException as exc:  # sys.exit() in a callback is an error, not an exit
             error = exc.error if isinstance(exc, Escaped) else exc
-            details = "".join(traceback.format_exception(error)).rstrip()
-            self._failure = f"{name}() raised {type(error).__name__}: {error}"
+            # Clipped line by line: the error's text may echo a peer's value.
+            details = "\n".join(
+                clip(line, limit=MESSAGE_LIMIT) for line in "".join(traceback.format_exception(error)).splitlines()
+            )
+            self._failure = f"{name}() raised {type(error).__name__}: {clip(str(error), limit=MESSAGE_LIMIT)}"
             self.get_logger().error(f"{self._failure}\n{details}")
             return ERROR
         if not isinstance(result, TransitionCallbackReturn):

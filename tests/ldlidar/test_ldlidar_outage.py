@@ -186,8 +186,8 @@ def test_an_outage_is_on_diagnostics_every_period_and_logged_when_it_starts_and_
         await wait_until_async(lambda: logged(Log.INFO, "valid packets again after"), "the outage's end in the log")
         [ended] = logged(Log.INFO, "valid packets again after")
         told = float(re.findall(r"after ([\d.]+) s", ended)[0])
-        # From the last valid packet to the report that saw the next ones: long by at most a period.
-        assert lasted - 0.3 <= told <= lasted + PERIOD_S + 0.8, (lasted, ended)
+        # From the last valid packet parsed (late on a busy machine) to the report that saw the next ones.
+        assert lasted - 0.5 <= told <= lasted + PERIOD_S + 0.8, (lasted, ended)
         seen = len(statuses())
         await wait_until_async(lambda: any(s.level == DiagnosticStatus.OK for s in statuses()[seen:]), "OK again")
         assert len(logged(Log.WARN, "no valid packet for")) == 1

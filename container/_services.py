@@ -143,8 +143,7 @@ class ContainerServices:
                 # Loaded, and stays so to be inspected or unloaded by its id
                 # (as a container file's node that fails to come up does).
                 log.error(
-                    f"Loaded {what} as '{loaded.full_name}' but autostart failed: "
-                    f"{clip(str(exc), limit=MESSAGE_LIMIT)}"
+                    f"Loaded {what} as '{loaded.full_name}' but autostart failed: {clip(str(exc), limit=MESSAGE_LIMIT)}"
                 )
                 response.success = False
                 response.error_message = clip(

@@ -329,7 +329,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             f"{label} [{tid}]" for tid, label, *_ in self._machine("available_transitions")
         )
         self.get_logger().warning(
-            f"Transition {clip(repr(request))} is not available from state "
+            f"Transition {clip(request, quote=True)} is not available from state "
             f"'{self.lifecycle_state.label}'; available: {available or 'none'}"
         )
 
@@ -522,7 +522,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         async def requested() -> TransitionCallbackReturn | None:
             task = asyncio.current_task()
             if task is not None:  # named for the loop watchdog's report
-                task.set_name(f"transition {clip(repr(wanted))} of {self.get_fully_qualified_name()}")
+                task.set_name(f"transition {clip(wanted, quote=True)} of {self.get_fully_qualified_name()}")
             # Posted from the service's thread, so no callback of the node
             # created it: the watchdog is told whose work this is.
             with working_for(self, change_state_service(self)):
@@ -534,7 +534,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             response.success = pending.result(None if limit is None else limit + _ANSWER_MARGIN_S) is SUCCESS
         except concurrent.futures.TimeoutError:
             self.get_logger().error(
-                f"Transition {clip(repr(wanted))} did not end within {limit:g} s (transition_timeout): "
+                f"Transition {clip(wanted, quote=True)} did not end within {limit:g} s (transition_timeout): "
                 "is the event loop stuck in a callback? Answered success=false"
             )
             # The answer was failure: so is the outcome, once the loop gets to it.

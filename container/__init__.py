@@ -11,7 +11,9 @@ private and may change. Plugin authors need :data:`hookimpl`, :class:`LifecycleN
 
 The errors and the hook markers load with the package; everything that needs
 rclpy loads on first use, so a plugin's ROS-free parts (a decoder, a command
-line tool) can use the error hierarchy without starting ROS.
+line tool) can use the error hierarchy without starting ROS. :func:`clip`
+is how a value from outside (a peer's request, a parameter) is echoed in a
+log line or an answer.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from ._errors import (
     TransitionError,
 )
 from ._hookspecs import RegisterNodeType, hookimpl, hookspec
+from ._text import clip
 from ._throttle import Throttle
 
 if TYPE_CHECKING:
@@ -63,6 +66,7 @@ __all__ = [
     "SecurityError",
     "Throttle",
     "TransitionError",
+    "clip",
     "contain_fault",
     "copy_message",
     "enable_intra_process",

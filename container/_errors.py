@@ -12,13 +12,17 @@
     └── SecurityError              DDS security was asked for and cannot be had
 
 Each keeps what it is about as attributes (``source``, ``node``, ``device``,
-...) and the bare ``reason``, so callers never take the message apart.
+...) and the bare ``reason``, so callers never take the message apart. The
+attributes hold values whole; messages echo a value from outside clipped
+(:func:`~container.clip`), so that ``str(exc)`` is fit for a log line.
 Foreign errors (rclpy, import machinery, serial, YAML) are translated into
 these where they enter our code, chained with ``raise ... from exc`` so the
 original traceback is kept.
 """
 
 from __future__ import annotations
+
+from ._text import clip
 
 __all__ = [
     "ConfigError",
@@ -110,7 +114,8 @@ class DeviceError(ContainerError):
     """
 
     def __init__(self, message: str, *, device: str) -> None:
-        super().__init__(f"{device}: {message}", reason=message)
+        # The device may be a peer's parameter: the message shows its start and its length.
+        super().__init__(f"{clip(device)}: {message}", reason=message)
         self.device = device
 
 

@@ -31,6 +31,7 @@ from typing import Any, Final
 from urllib.parse import unquote, urlsplit
 
 from ._errors import ConfigError
+from ._text import clip
 
 __all__ = ["DEFAULT_SERIAL_PATTERNS", "DevicePolicy", "PortRefused", "device_policy", "set_device_policy"]
 
@@ -45,11 +46,12 @@ _NETWORK_SCHEMES: Final = frozenset({"socket", "rfc2217"})
 class PortRefused(ConfigError):
     """A port or file the device policy does not allow; the message says why and what would.
 
-    :param port: what was asked for, as given.
+    :param port: what was asked for, as given (the message shows it clipped).
     """
 
     def __init__(self, message: str, *, port: str) -> None:
-        super().__init__(message, source=f"port {port!r}")
+        # A peer's parameter: a 1 MB port must not make a 1 MB log line.
+        super().__init__(message, source=f"port {clip(port, quote=True)}")
         self.port = port
 
 

@@ -191,6 +191,42 @@ def test_request_strings_are_clipped_in_logs_and_answers(
     assert len(line) < 1000 and "characters)" in line
 
 
+#: A megabyte in each field of a LoadNode request that is echoed, and the words
+#: around it in the answer (None: loaded, and echoed in the log only).
+HUGE = "x" * 1_000_000
+ECHOES = {
+    "node name": (load_request(name=HUGE), "Invalid node name 'xxx"),
+    "namespace": (load_request(name="n1", namespace=HUGE), "Invalid namespace '/xxx"),
+    "remap rule": (load_request(name="n2", remap_rules=[HUGE]), "Invalid remap rule 'xxx"),
+    "parameter value": (
+        load_request(name="n3", parameters=[parameter("rate", HUGE)]),
+        "Component constructor threw an exception",
+    ),
+    "parameter name": (  # told at configure
+        load_request(name="n4", parameters=[parameter(HUGE, 1)], extra_arguments=[parameter("autostart", True)]),
+        None,
+    ),
+    "extra argument": (load_request(name="n5", extra_arguments=[parameter(HUGE, 1)]), None),
+}
+
+
+@pytest.mark.parametrize("field", list(ECHOES))
+def test_a_megabyte_in_any_field_is_echoed_clipped_with_its_length(
+    container: ContainerProcess, client: ContainerClient, field: str
+) -> None:
+    request, refusal = ECHOES[field]
+    answer = client.load(request)
+    if refusal is None:
+        assert answer.success, answer.error_message
+        # Told in a warning: "Unknown parameter 'xxx…' (1000000 characters) ignored", "Extra component argument ...".
+        container.wait_for_line("(1000000 characters)")
+    else:
+        assert not answer.success
+        assert refusal in answer.error_message and len(answer.error_message) < 1000, answer.error_message[:1000]
+        container.wait_for_line("Refused to load")
+    assert max(len(line) for line in container.lines) < 1000
+
+
 @pytest.mark.parametrize("how", ["remove_node", "destroy_node"])
 def test_removed_node_starts_none_of_its_queued_callbacks(
     context: Context, executor: AsyncioExecutor, how: str

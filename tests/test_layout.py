@@ -160,7 +160,7 @@ def test_public_names_are_exactly_these() -> None:
         "ConfigError", "ContainerError", "ContainerServices", "DeviceError", "ExecutorError",
         "LifecycleManager", "LifecycleNode", "LoadError", "LoadRequest", "LoadedNode",
         "ManagerSettings", "NodeType", "PluginError", "PluginRegistry", "RegisterNodeType", "SecurityError",
-        "Throttle", "TransitionError", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
+        "Throttle", "TransitionError", "clip", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
         "hookimpl", "hookspec",
     ])  # fmt: skip
     assert container.executor.__all__ == [

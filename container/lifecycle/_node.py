@@ -48,7 +48,7 @@ from rclpy.timer import Timer
 from .. import checks
 from .._compat import change_state_service, managed_entities, query_services, state_machine
 from .._errors import TransitionError
-from .._text import clip
+from .._text import MESSAGE_LIMIT, clip
 from ..executor import Escaped, contained, in_thread, run_coroutine, working_for
 from ..intra import IntraProcessNode
 from ._base import LifecycleNodeBase
@@ -198,7 +198,12 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         return self._failure
 
     def fail_transition(self, reason: str) -> TransitionCallbackReturn:
-        """Log ``reason`` and fail the transition with it: ``return self.fail_transition("port busy")``."""
+        """Log ``reason`` and fail the transition with it: ``return self.fail_transition("port busy")``.
+
+        A reason over 800 characters is clipped (:func:`~container.clip`), in
+        the log and in the answer: it may echo a peer's value.
+        """
+        reason = clip(reason, limit=MESSAGE_LIMIT)
         self.get_logger().error(reason)
         self._failure = reason
         return FAILURE
@@ -324,7 +329,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             f"{label} [{tid}]" for tid, label, *_ in self._machine("available_transitions")
         )
         self.get_logger().warning(
-            f"Transition {clip(repr(request))} is not available from state "
+            f"Transition {clip(request, quote=True)} is not available from state "
             f"'{self.lifecycle_state.label}'; available: {available or 'none'}"
         )
 
@@ -423,8 +428,11 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             raise
         except BaseException as exc:  # sys.exit() in a callback is an error, not an exit
             error = exc.error if isinstance(exc, Escaped) else exc
-            details = "".join(traceback.format_exception(error)).rstrip()
-            self._failure = f"{name}() raised {type(error).__name__}: {error}"
+            # Clipped line by line: the error's text may echo a peer's value.
+            details = "\n".join(
+                clip(line, limit=MESSAGE_LIMIT) for line in "".join(traceback.format_exception(error)).splitlines()
+            )
+            self._failure = f"{name}() raised {type(error).__name__}: {clip(str(error), limit=MESSAGE_LIMIT)}"
             self.get_logger().error(f"{self._failure}\n{details}")
             return ERROR
         if not isinstance(result, TransitionCallbackReturn):
@@ -514,7 +522,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         async def requested() -> TransitionCallbackReturn | None:
             task = asyncio.current_task()
             if task is not None:  # named for the loop watchdog's report
-                task.set_name(f"transition {clip(repr(wanted))} of {self.get_fully_qualified_name()}")
+                task.set_name(f"transition {clip(wanted, quote=True)} of {self.get_fully_qualified_name()}")
             # Posted from the service's thread, so no callback of the node
             # created it: the watchdog is told whose work this is.
             with working_for(self, change_state_service(self)):
@@ -526,7 +534,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             response.success = pending.result(None if limit is None else limit + _ANSWER_MARGIN_S) is SUCCESS
         except concurrent.futures.TimeoutError:
             self.get_logger().error(
-                f"Transition {clip(repr(wanted))} did not end within {limit:g} s (transition_timeout): "
+                f"Transition {clip(wanted, quote=True)} did not end within {limit:g} s (transition_timeout): "
                 "is the event loop stuck in a callback? Answered success=false"
             )
             # The answer was failure: so is the outcome, once the loop gets to it.

@@ -67,6 +67,10 @@ class Lidar:
     :ivar stalls: stalls (see *stall*) since :meth:`open`.
     :ivar last_error: why the device failed or a reopen attempt failed,
         while it is being reopened; ``None`` when it works.
+    :ivar bytes_read: bytes read from the port since :meth:`open`, valid or
+        not (with :attr:`stats`, tells a silent port from a garbled one).
+    :ivar packet_time: ``time.monotonic()`` when the latest valid packet was
+        parsed; ``None`` before the first.
     """
 
     def __init__(
@@ -117,6 +121,8 @@ class Lidar:
         self.reopens = 0
         self.last_error: str | None = None
         self.stalls = 0
+        self.bytes_read = 0
+        self.packet_time: float | None = None
         self._held = b""
         self._held_time = 0.0
         self._last_packet = 0.0
@@ -168,6 +174,7 @@ class Lidar:
                     if not chunk:
                         raise DeviceError("capture holds no valid packet", device=self.port)
                     received += len(chunk)
+                    self.bytes_read += len(chunk)
                     rows = self.parser.feed_rows(chunk)
                     if len(rows):
                         self._pending.append((rows, self._clock()))
@@ -190,7 +197,7 @@ class Lidar:
             # leave the port open behind the caller's back.
             await source.close()
             raise
-        self._last_packet = time.monotonic()
+        self._last_packet = self.packet_time = time.monotonic()
 
     async def scans(self) -> AsyncIterator[Scan]:
         """Yield scans until :meth:`close`, reopening the port after failures.
@@ -253,6 +260,7 @@ class Lidar:
                         yield scan
                 await self.close()
                 return
+            self.bytes_read += len(chunk)
             now = time.monotonic()
             if now - self._last_packet > self.stall:
                 self.stalls += 1
@@ -274,6 +282,7 @@ class Lidar:
             rows = self.parser.feed_rows(held)
             if len(rows):
                 self._pending.append((rows, self._held_time))
+                self.packet_time = time.monotonic()
 
     def _event(self, kind: EventKind, message: str) -> None:
         if self._on_event is not None:

@@ -85,6 +85,10 @@ _REPLAY_FLAGS: Final = os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC 
 
 #: Symlinks followed at most, as the kernel (MAXSYMLINKS).
 _MAX_SYMLINKS: Final = 40
+#: The longest path the kernel takes (PATH_MAX, its NUL included). Longer is
+#: refused before resolving: os.path.realpath on a 600 kB path of short
+#: components took 22 s, on the event loop of a configure.
+_PATH_MAX: Final = 4096
 
 #: Kinds of device a pattern admits only when it names them on purpose: it
 #: has no wildcard (one path, the device or a link to it), or its fixed part
@@ -273,6 +277,7 @@ class DevicePolicy:
             raise PortRefused("must not contain a NUL character", port=port)
         if not os.path.isabs(port):
             raise PortRefused("a serial device must be an absolute path (or 'auto')", port=port)
+        _check_length(port)
         try:
             hops = _hops(port)
         except OSError:
@@ -357,6 +362,7 @@ class DevicePolicy:
         :raises PortRefused: not admitted.
         :raises OSError: it is missing.
         """
+        _check_length(path)
         real = Path(os.path.realpath(path))
         if not self._replayable(real):
             where = ", ".join(str(d) for d in self.replay_dirs) or "none"
@@ -416,6 +422,12 @@ def _hops(port: str, *, strict: bool = True) -> list[str]:
     if strict and os.path.realpath(port, strict=True) != hops[-1]:
         raise OSError(errno.EAGAIN, "the path changed while it was checked", port)
     return hops
+
+
+def _check_length(path: str) -> None:
+    size = len(os.fsencode(path))
+    if size >= _PATH_MAX:
+        raise PortRefused(f"a path of {size} bytes: longer than the {_PATH_MAX - 1} a path may have", port=path)
 
 
 def _names_explicitly(pattern: str, prefix: str) -> bool:

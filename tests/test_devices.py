@@ -280,6 +280,16 @@ def test_patterns_match_resolved_places_not_strings(tmp_path: Path, pty: tuple[i
         os.close(other_slave)
 
 
+def test_a_path_longer_than_the_kernel_takes_is_refused_before_it_is_resolved() -> None:
+    """Resolving 600 kB of ``/a/a/...`` took 22 s, on the event loop of a configure."""
+    policy = DevicePolicy()
+    for port in ("/" + "a/" * 300_000, "/dev/ttyUSB" + "x" * 1_000_000, "file://" + "/a" * 300_000):
+        with pytest.raises(PortRefused, match=r"a path of \d+ bytes: longer than the 4095 a path may have"):
+            policy.check_port(port)
+    with pytest.raises(PortRefused, match="longer than the 4095"):
+        policy.open_serial("/" + "a/" * 300_000)
+
+
 def test_the_old_default_still_reads_and_admits_no_terminal() -> None:
     policy = DevicePolicy.from_mapping({"serial": list(OLD_DEFAULT)}, source="old.yaml: container.devices")
     assert policy.serial == OLD_DEFAULT

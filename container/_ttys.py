@@ -61,7 +61,7 @@ class TtyClass:
     minor: int
 
     def describe(self) -> str:
-        """A few words for a refusal: ``character device 4:0 (/dev/vc/0 system:vtmaster)``."""
+        """A few words for a refusal: ``character device 188:0 (usbserial /dev/ttyUSB serial)``."""
         served = f" ({self.driver})" if self.driver else ", not a terminal driver's"
         return f"character device {self.major}:{self.minor}{served}"
 
@@ -92,7 +92,8 @@ def classify(device: int, *, drivers: str = DRIVERS_FILE) -> TtyClass:
     major, minor = os.major(device), os.minor(device)
     for name, prefix, first_major, low, high, kind in _drivers(drivers):
         if major == first_major and low <= minor <= high:
-            return TtyClass(*_kind(prefix, kind), f"{name} {prefix} {kind}", major, minor)
+            driver = f"{prefix} {kind}" if name == prefix else f"{name} {prefix} {kind}"
+            return TtyClass(*_kind(prefix, kind), driver, major, minor)
     return TtyClass("other", "not a terminal", "", major, minor)
 
 

@@ -54,6 +54,15 @@ def refused(policy: DevicePolicy, port: str, *targets: str) -> str:
     return info.value.reason
 
 
+def usable_strace() -> str | None:
+    """strace, if it is installed and may trace here (a container may forbid ptrace)."""
+    strace = shutil.which("strace")
+    if strace is None:
+        return None
+    probe = subprocess.run([strace, "-qq", "-e", "trace=none", "true"], capture_output=True, timeout=30, check=False)
+    return strace if probe.returncode == 0 else None
+
+
 def device(path: str) -> str:
     if not os.path.exists(path):
         pytest.skip(f"{path} does not exist here")
@@ -111,7 +120,7 @@ def test_the_controlling_terminal_is_never_opened_and_stays_as_it_was(tmp_path: 
         before = termios.tcgetattr(slave)
         trace = tmp_path / "strace.txt"
         command = [sys.executable, "-c", CONTROLLING_TERMINAL_CHILD, os.ttyname(slave)]
-        strace = shutil.which("strace")
+        strace = usable_strace()
         if strace is not None:
             command = [strace, "-f", "-qq", "-e", "trace=open,openat,openat2", "-o", str(trace), *command]
         child = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=50, check=False)

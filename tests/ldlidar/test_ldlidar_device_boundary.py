@@ -127,8 +127,11 @@ def test_the_node_admits_its_own_emulator_and_no_other_pseudo_terminal(
     """``comm.serial_port: auto`` with no LiDAR attached runs on the default policy; a peer may not name that pty."""
     from tests.ldlidar.test_ldlidar_node import lidar_parameters
 
+    class Unplugged(LdLidarNode):
+        auto_port_patterns = ()  # no LiDAR attached, whatever this machine has
+
     async def scenario() -> None:
-        own: LdLidarNode = host(LdLidarNode, "own", parameter_overrides=lidar_parameters("auto"))
+        own: LdLidarNode = host(Unplugged, "own", parameter_overrides=lidar_parameters("auto"))
         assert await own.transition("configure")
         emulator = own.emulator
         assert emulator is not None and own.lidar is not None and own.lidar.state == "open"

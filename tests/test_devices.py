@@ -289,6 +289,37 @@ def test_patterns_match_resolved_places_not_strings(tmp_path: Path, pty: tuple[i
         os.close(other_slave)
 
 
+def test_a_replay_is_decided_on_the_file_it_resolves_to(tmp_path: Path) -> None:
+    captures = tmp_path / "captures"
+    captures.mkdir()
+    good = captures / "good.bin"
+    good.write_bytes(b"\x54" * 100)
+    outside = tmp_path / "shadow"
+    outside.write_text("root:x:\n")
+    (captures / "link.bin").symlink_to(outside)
+    os.mkfifo(captures / "fifo.bin")
+    (captures / "zero.bin").symlink_to("/dev/zero")
+    policy = DevicePolicy(replay_dirs=(captures,), replay_max_bytes=100)
+    fd = policy.open_replay(str(good))
+    try:
+        assert os.read(fd, 200) == b"\x54" * 100
+    finally:
+        os.close(fd)
+    for name, words, target in (
+        ("link.bin", "replays are allowed only of files under the directories", str(outside)),
+        ("fifo.bin", "a replay must be a regular file", str(captures / "fifo.bin")),
+        ("zero.bin", "replays are allowed only of files under the directories", "/dev/zero"),
+    ):
+        with OpenWatch() as watch, pytest.raises(PortRefused, match=words):
+            policy.open_replay(str(captures / name))
+        assert watch.opens_of(target) == [] and watch.left_open_on(target) == []
+    good.write_bytes(b"\x54" * 101)
+    with pytest.raises(PortRefused, match="the capture is 101 bytes, over the 100 allowed"):
+        policy.open_replay(str(good))
+    with pytest.raises(DeviceError, match="cannot read capture: No such file"):
+        policy.open_replay(str(captures / "missing.bin"))
+
+
 def test_a_path_longer_than_the_kernel_takes_is_refused_before_it_is_resolved() -> None:
     """Resolving 600 kB of ``/a/a/...`` took 22 s, on the event loop of a configure."""
     policy = DevicePolicy()

@@ -238,12 +238,18 @@ class LdLidarNode(LifecycleNode):
             recorded on the node, for :meth:`_release` to close.
         """
         port = settings.port
+        # A parameter may come from any peer that can load a node: the
+        # container's device policy (the operator's) says what it may name,
+        # here and at every open the Lidar makes, reopens included.
+        policy = device_policy()
         if port.lower() == "auto":
             port = await self._auto_port(settings.model)
+            if self._emulator is not None:
+                # Our own emulator's pty, whatever the operator's patterns
+                # say of pseudo-terminals; no other pty.
+                policy = policy.with_own_devices(self._emulator.owns)
         else:
-            # A parameter may come from any peer that can load a node: the
-            # container's device policy (the operator's) says what it may name.
-            device_policy().check_port(port)
+            policy.check_port(port)
         lidar = Lidar(
             port,
             model=settings.model,
@@ -260,6 +266,7 @@ class LdLidarNode(LifecycleNode):
             reopen_interval=_REOPEN_INTERVAL,
             reopen_max_interval=_REOPEN_MAX_INTERVAL,
             on_event=self._device_event,
+            policy=policy,
         )
         await lidar.open()
         self._settings = settings

@@ -125,7 +125,7 @@ def test_the_node_admits_its_own_emulator_and_no_other_pseudo_terminal(
     executor: AsyncioExecutor, host: Callable[..., Any], default_policy: DevicePolicy
 ) -> None:
     """``comm.serial_port: auto`` with no LiDAR attached runs on the default policy; a peer may not name that pty."""
-    from tests.ldlidar.test_ldlidar_node import lidar_parameters
+    from tests.ldlidar.node_support import lidar_parameters
 
     class Unplugged(LdLidarNode):
         auto_port_patterns = ()  # no LiDAR attached, whatever this machine has

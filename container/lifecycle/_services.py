@@ -1,14 +1,13 @@
-"""A lifecycle node's standard services, served keep-all like the container's own.
+"""A lifecycle node's standard services, served keep-all like the container's own, answers paced.
 
 rcl's lifecycle state machine can create ``<node>/change_state``,
 ``get_state``, ``get_available_states``, ``get_available_transitions`` and
 ``get_transition_graph`` itself, but only with rcl's default service QoS
 (keep-last 10): neither rcl_lifecycle nor rclpy's ``LifecycleStateMachine``
 (rclpy 7 and 9: ``LifecycleStateMachine(node, enable_com_interface)``, no
-options) takes another. Twenty ``change_state`` callers at once then lost
-up to half their answers, now and then the one whose transition took effect:
-requests beyond ten overwritten before they were taken, answers before the
-callers acknowledged them.
+options) takes another. Twenty ``change_state`` callers at once then got 10
+of 20 answers: the requests beyond ten were overwritten before the service
+took them.
 
 So :class:`~container.LifecycleNode` asks rcl for a state machine without
 them (``enable_communication_interface=False``; rcl still creates
@@ -16,7 +15,9 @@ them (``enable_communication_interface=False``; rcl still creates
 :class:`LifecycleServices` serves them: the same names and types, answered
 from the same state machine as rclpy's handlers answer, with the container
 services' QoS (:data:`container._qos.SERVICE_QOS`: keep-all, reliable,
-volatile, which clients with rclpy's default QoS match).
+volatile, which clients with rclpy's default QoS match). Every request is
+taken then; the answers of a burst are spaced (:mod:`._pacing`), since each
+client receives every answer of the service and keeps only its last 10.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTran
 from rclpy.callback_groups import ReentrantCallbackGroup
 
 from .._qos import SERVICE_QOS
+from ._pacing import AnswerPacer, paced
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -50,12 +52,14 @@ ChangeStateHandler = Callable[[ChangeState.Request, ChangeState.Response], Chang
 
 
 class LifecycleServices:
-    """Serve a lifecycle node's five standard services, keep-all.
+    """Serve a lifecycle node's five standard services, keep-all, their answers paced.
 
     ``change_state`` goes to the node's default callback group, as rclpy
     puts it: the node decides how transitions are ordered. The four queries
     only read, and share a reentrant group of their own, so that ``ros2
-    lifecycle get`` answers "configuring" while a transition awaits.
+    lifecycle get`` answers "configuring" while a transition awaits. Each
+    service spaces its answers in a burst (:mod:`._pacing`): every client
+    of a service receives every answer, and keeps only 10 by default.
 
     :param node: the lifecycle node to serve them on; they live as long as it does.
     :param read: reads an attribute of the node's rcl state machine, holding it.
@@ -67,32 +71,20 @@ class LifecycleServices:
         queries = ReentrantCallbackGroup()
         #: The ``change_state`` service (whose work the loop's watchdog names).
         self.change_state: Service[Any, Any] = node.create_service(
-            ChangeState, CHANGE_STATE, change_state, qos_profile=SERVICE_QOS
+            ChangeState, CHANGE_STATE, paced(change_state, AnswerPacer()), qos_profile=SERVICE_QOS
         )
+        served: list[tuple[type[Any], str, Callable[[Any, Any], Any]]] = [
+            (GetState, GET_STATE, self._get_state),
+            (GetAvailableStates, GET_AVAILABLE_STATES, self._get_available_states),
+            (GetAvailableTransitions, GET_AVAILABLE_TRANSITIONS, self._get_available_transitions),
+            (GetAvailableTransitions, GET_TRANSITION_GRAPH, self._get_transition_graph),
+        ]
         #: ``get_state``, ``get_available_states``, ``get_available_transitions``, ``get_transition_graph``.
-        self.queries: tuple[Service[Any, Any], ...] = (
-            node.create_service(GetState, GET_STATE, self._get_state, qos_profile=SERVICE_QOS, callback_group=queries),
+        self.queries: tuple[Service[Any, Any], ...] = tuple(
             node.create_service(
-                GetAvailableStates,
-                GET_AVAILABLE_STATES,
-                self._get_available_states,
-                qos_profile=SERVICE_QOS,
-                callback_group=queries,
-            ),
-            node.create_service(
-                GetAvailableTransitions,
-                GET_AVAILABLE_TRANSITIONS,
-                self._get_available_transitions,
-                qos_profile=SERVICE_QOS,
-                callback_group=queries,
-            ),
-            node.create_service(
-                GetAvailableTransitions,
-                GET_TRANSITION_GRAPH,
-                self._get_transition_graph,
-                qos_profile=SERVICE_QOS,
-                callback_group=queries,
-            ),
+                srv_type, name, paced(handler, AnswerPacer()), qos_profile=SERVICE_QOS, callback_group=queries
+            )
+            for srv_type, name, handler in served
         )
 
     # Plain callbacks: they answer from a lane's thread even while an

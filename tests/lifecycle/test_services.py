@@ -1,19 +1,25 @@
 """A hosted lifecycle node's standard services: every caller answered, as rclpy's own answer.
 
-rcl's lifecycle services keep the last 10 requests (and answers): 20
-``change_state`` callers at once, with rclpy's default client QoS, got 10 to
-20 answers. The node serves them itself, keep-all; these tests call them over
-DDS from clients with the default QoS, as ``ros2 lifecycle`` and launch_ros do.
+rcl's lifecycle services keep the last 10 requests: 20 ``change_state``
+callers at once, with rclpy's default client QoS, got 10 to 20 answers. The
+node serves them itself, keep-all, its answers paced (every client receives
+every answer, and keeps its last 10); these tests call them over DDS from
+clients with the default QoS, as ``ros2 lifecycle`` and launch_ros do.
 """
 
 from __future__ import annotations
 
+import contextlib
+import threading
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
 from rclpy.client import Client
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode as RclpyLifecycleNode
 from rclpy.node import Node
 from rclpy.task import Future
@@ -21,8 +27,9 @@ from rclpy.task import Future
 from container import LifecycleNode
 from container._compat import state_machine
 from container.testing import ContainerHost
+from tests.container_support import ContainerProcess
 from tests.lifecycle_support import TransitionLog
-from tests.waiting import wait_until_async
+from tests.waiting import wait_until, wait_until_async
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -38,6 +45,11 @@ QUERIES: dict[str, type[Any]] = {
     "get_transition_graph": GetAvailableTransitions,
 }
 LIFECYCLE_SERVICES = {"change_state", *QUERIES}
+
+BURST_CONTAINER = """
+nodes:
+  - {package: lifecycle_container, plugin: lifecycle_container::Talker, name: burst}
+"""
 
 
 async def _ready(*clients: Client[Any, Any]) -> None:
@@ -55,38 +67,70 @@ async def _answers(futures: list[Future[Any]], what: str) -> list[Any]:
     return [future.result() for future in futures]
 
 
-async def test_every_change_state_caller_of_a_burst_is_answered(container_host: ContainerHost) -> None:
-    node = await container_host.load("lifecycle_container::Talker", name="burst", autostart=False)
-    client = container_host.client
-    # A client each, with rclpy's default QoS (keep-last 10), as twenty tools would call.
-    callers: list[Client[Any, Any]] = [client.create_client(ChangeState, "/burst/change_state") for _ in range(CALLERS)]
-    get_state: Client[Any, Any] = client.create_client(GetState, "/burst/get_state")
-    events = TransitionLog(client, ["/burst"])
-    await _ready(get_state, *callers)
-    await events.wait_matched_async()
+@contextlib.contextmanager
+def _spun(node: Node) -> Iterator[Node]:
+    """``node`` spun by rclpy's own executor on a thread of its own, as a tool's would be."""
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, name="callers", daemon=True)
+    spinner.start()
+    try:
+        yield node
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        node.destroy_node()
 
-    for burst, (label, goal) in enumerate(BURSTS):
-        start = container_host.state_of(node)
-        before = len(events)
-        # All sent before the container takes any: the service's request
-        # history holds 20 at once.
-        futures = [caller.call_async(ChangeState.Request(transition=Transition(label=label))) for caller in callers]
-        answers = await _answers(futures, f"burst {burst} ({label!r} from {start!r})")
 
-        # Transitions never overlap: the first taken moves the node, the
-        # other 19 find it where configure (cleanup) is no longer available.
-        assert [answer.success for answer in answers].count(True) == 1, f"burst {burst}"
-        assert container_host.state_of(node) == goal
-        state = await get_state.call_async(GetState.Request())
-        assert state.current_state.label == goal
-        await events.wait_for_async("/burst", goal, after=before)
+def _answered(futures: list[Future[Any]], what: str) -> list[Any]:
+    wait_until(
+        lambda: all(future.done() for future in futures),
+        lambda: "answers to " + what + ": " + "".join("x" if future.done() else "." for future in futures),
+    )
+    return [future.result() for future in futures]
 
-    # One transition per burst on transition_event, each through its transition state.
-    middles = {"configure": "configuring", "cleanup": "cleaningup"}
-    expected = [("unconfigured" if label == "configure" else "inactive", middles[label]) for label, _ in BURSTS]
-    pairs = events.pairs("/burst")
-    assert pairs[0::2] == expected
-    assert [goal for _, goal in pairs[1::2]] == [goal for _, goal in BURSTS]
+
+# A container process, so that its answers reach the callers on DDS's
+# schedule, not interleaved with the callers' own work as in one process.
+def test_every_change_state_caller_of_a_burst_is_answered(
+    run_container: Callable[..., ContainerProcess], context: Context
+) -> None:
+    container = run_container(BURST_CONTAINER)
+    with _spun(Node("callers", context=context)) as callers_node:
+        # A client each, with rclpy's default QoS (keep-last 10), as twenty
+        # tools would call; each receives all twenty answers (DDS sends every
+        # client of a service every answer) and keeps the last ten it has not taken.
+        callers: list[Client[Any, Any]] = [
+            callers_node.create_client(ChangeState, "/burst/change_state") for _ in range(CALLERS)
+        ]
+        get_state: Client[Any, Any] = callers_node.create_client(GetState, "/burst/get_state")
+        events = TransitionLog(callers_node, ["/burst"])
+        wait_until(
+            lambda: all(caller.service_is_ready() for caller in (get_state, *callers)),
+            lambda: f"the services of /burst\n{container.output()}",
+        )
+        events.wait_matched()
+
+        for burst, (label, goal) in enumerate(BURSTS):
+            before = len(events)
+            # All sent at once: the service's request history holds them all.
+            futures = [caller.call_async(ChangeState.Request(transition=Transition(label=label))) for caller in callers]
+            answers = _answered(futures, f"burst {burst} ({label!r})\n{container.output()}")
+
+            # Transitions never overlap: the first taken moves the node, the
+            # other 19 find it where the transition is no longer available.
+            assert [answer.success for answer in answers].count(True) == 1, f"burst {burst}"
+            events.wait_for("/burst", goal, after=before)
+            state = _answered([get_state.call_async(GetState.Request())], "get_state")[0]
+            assert state.current_state.label == goal, f"burst {burst}"
+
+        # One transition per burst on transition_event, each through its transition state.
+        starts = {"configure": "unconfigured", "cleanup": "inactive"}
+        middles = {"configure": "configuring", "cleanup": "cleaningup"}
+        expected = [
+            step for label, goal in BURSTS for step in ((starts[label], middles[label]), (middles[label], goal))
+        ]
+        assert events.pairs("/burst") == expected
 
 
 async def test_the_standard_services_are_rclpy_s_names_types_and_answers(container_host: ContainerHost) -> None:

@@ -104,6 +104,11 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
     :param use_intra_process_comms: exchange messages in process with the
         other such nodes of the context (:mod:`container.intra`); every
         publisher and subscription of the node takes part.
+
+    rclpy's ``enable_communication_interface`` keyword is taken as in rclpy:
+    ``False`` serves none of the standard lifecycle services (the node
+    still publishes ``transition_event``); otherwise the node serves them
+    itself (:class:`~container.lifecycle._services.LifecycleServices`).
     """
 
     def __init__(
@@ -126,7 +131,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         # rcl's own lifecycle services keep 10 requests and cannot be told
         # otherwise; the node serves its own (_services), while rcl keeps
         # publishing transition_event.
-        serve_services = kwargs.pop("enable_communication_interface", True)
+        serve_services = bool(kwargs.pop("enable_communication_interface", True))
         super().__init__(
             node_name,
             use_intra_process_comms=use_intra_process_comms,

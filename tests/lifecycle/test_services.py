@@ -153,7 +153,7 @@ async def test_the_standard_services_are_rclpy_s_names_types_and_answers(contain
             service.replace("/theirs/", "/ours/"): types for service, types in lifecycle_services("theirs").items()
         }
 
-        clients = {
+        clients: dict[tuple[str, str], Client[Any, Any]] = {
             (name, query): client.create_client(srv_type, f"/{name}/{query}")
             for name in ("ours", "theirs")
             for query, srv_type in QUERIES.items()

@@ -28,10 +28,10 @@ from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ._container import LoadRequest, type_label
 from ._errors import ContainerError, LoadError
+from ._qos import SERVICE_QOS
 from ._text import MESSAGE_LIMIT, clip
 
 if TYPE_CHECKING:
@@ -77,20 +77,6 @@ def _parameters(messages: Sequence[ParameterMsg], *, what: str) -> tuple[Paramet
             # An out-of-range type id, or a value rclpy cannot hold.
             raise LoadError(f"Invalid {what} {clip(message.name, quote=True)}: {clip(str(exc))}") from exc
     return tuple(parameters)
-
-
-#: The container services' QoS: rclpy's services default (reliable,
-#: volatile) but keeping every request and every answer. With the default's
-#: keep-last 10, a burst of requests (500 from five clients, measured) lost
-#: most of them inside DDS, the request history overwritten before the
-#: container took them and answers before the clients acknowledged them:
-#: their callers waited for good. Keep-all bounds them by Fast DDS's
-#: resource limits instead (5,000 samples by default).
-SERVICE_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_ALL,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
 
 
 class ContainerServices:

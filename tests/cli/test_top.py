@@ -69,7 +69,9 @@ def test_top_shows_the_burning_node_first_with_what_it_burns(
         assert idle["cpu"] < 0.01, idle
     assert {"/idle_a", "/idle_b", "/ComponentManager"} <= set(names)
     timer = next(c for c in burner["callbacks"] if c["kind"] == "timer")
-    assert timer["duration_p50"] == pytest.approx(0.020, rel=0.5)
+    # A duration is wall time: never much below the 20 ms of CPU it burns, and
+    # stretched by whatever else wants the CPUs meanwhile (up to 3x allowed).
+    assert 0.016 <= timer["duration_p50"] <= 0.060, timer
     assert load["cpu"] >= load["callbacks_cpu"] > 0
 
     result = top("--once", "--node", "/burner")

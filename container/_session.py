@@ -54,7 +54,7 @@ from rclpy.utilities import try_shutdown
 
 from ._compat import RCLError
 from ._runtime import use_fast_discovery
-from .executor import AsyncioExecutor, end_spare_threads
+from .executor import AsyncioExecutor, end_resender, end_spare_threads
 
 __all__ = [
     "EXIT_FAILURE",
@@ -251,6 +251,7 @@ def run_session(
     finally:
         try_shutdown(context=context)
     end_spare_threads(timeout=1.0)  # idle, not left behind
+    end_resender(timeout=1.0)  # the container's own, not a plugin's: its answers have nobody to go to now
     leftover = [t.name for t in threading.enumerate() if t not in before]
     if leftover or not clean:
         # Daemon threads would die silently with the process; say so instead.

@@ -235,6 +235,9 @@ def run_session(
                 code = exit_code_for(session.signal)
         finally:
             clean = executor.shutdown()
+            # The container's own thread, not a plugin's: ended before the
+            # context, its answers to clients that never matched dropped.
+            end_resender(timeout=1.0)
             if session.hard_stop is not None:
                 session.hard_stop.join(1.0)
             if session.signal is None:
@@ -251,7 +254,6 @@ def run_session(
     finally:
         try_shutdown(context=context)
     end_spare_threads(timeout=1.0)  # idle, not left behind
-    end_resender(timeout=1.0)  # the container's own, not a plugin's: its answers have nobody to go to now
     leftover = [t.name for t in threading.enumerate() if t not in before]
     if leftover or not clean:
         # Daemon threads would die silently with the process; say so instead.

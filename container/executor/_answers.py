@@ -346,13 +346,13 @@ class _Resender:
             if client.guid is not None:
                 _log.warning(
                     "%s: its response reader did not match in %.1f s (an incompatible QoS?): "
-                    "%d answers dropped, and its answers for the next %.0f s will be",
+                    "dropped %d answer(s), and will drop its answers for %.0f s",
                     client.describe(), RETRY_S, count, GIVEN_UP_S,
                 )
             else:
                 _log.warning(
                     "%s: a client's response reader did not match in %.1f s (an incompatible QoS?): "
-                    "%d answers dropped; more will be, without another line",
+                    "dropped %d answer(s), and will drop more without another line",
                     client.describe(), RETRY_S, count,
                 )
 

@@ -100,6 +100,7 @@ def trial(code: Path | None, *, requests: int, seconds: float, service: str, wor
     )  # fmt: skip
     lines: list[str] = []
     ready = threading.Event()
+    never = threading.Event()  # waited on for time to pass (never set)
 
     def read() -> None:
         assert proc.stdout is not None
@@ -129,11 +130,13 @@ def trial(code: Path | None, *, requests: int, seconds: float, service: str, wor
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     try:
-        if not ready.wait(60.0) or not client.wait_for_service(timeout_sec=30.0):
+        # Its own wait_for_service never returns true (rmw asks for its reader too): a
+        # well-formed client of the same participant waits for the service.
+        if not ready.wait(60.0) or not node.create_client(srv_type, path).wait_for_service(timeout_sec=30.0):
             raise SystemExit("the container did not come up:\n" + "\n".join(lines[-20:]))
         deadline = time.monotonic() + 10.0
         while len(heard) < 5 and time.monotonic() < deadline:
-            ready.wait(0.05)  # a poll of the listener, not a pause the figures rely on
+            never.wait(0.05)  # a poll of the listener, not a pause the figures rely on
         first = len(heard)
         start = time.perf_counter()
         spacing = seconds / 2 / max(requests, 1)
@@ -141,10 +144,10 @@ def trial(code: Path | None, *, requests: int, seconds: float, service: str, wor
             client.call_async(srv_type.Request())
             pause = start + (index + 1) * spacing - time.perf_counter()
             if pause > 0:
-                ready.wait(pause)  # pacing the attack, as a peer would
+                never.wait(pause)  # pacing the attack, as a peer would
         remaining = start + seconds - time.perf_counter()
         if remaining > 0:
-            ready.wait(remaining)
+            never.wait(remaining)
         window = heard[max(first - 1, 0) :]
         proc.send_signal(signal.SIGINT)
         code_at_exit = proc.wait(30.0)

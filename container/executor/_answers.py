@@ -23,8 +23,12 @@ So answers are sent per client, keyed by the GUID in the request header
 the compiled engine's header is the bytes of ``rmw_request_id_t``, rclpy's
 header has it read by ``_compat.request_client``):
 
-- to a client known to be matched (an answer to it went through), inline,
-  wherever the callback ran: rmw does not wait;
+- to a client known to be matched, inline, wherever the callback ran: rmw
+  does not wait. Known: an answer to it went through, or (its first answer)
+  the node's graph knows its response reader on the service's response
+  topic, with a QoS every writer there offers (:func:`_in_graph`: tens of
+  microseconds, once per client; so a well-formed client's first answer
+  goes out at once, even when its service is destroyed right after);
 - to a client not known yet, from the resender thread (``respond-again``):
   the compiled send (``Server.send(..., let_go=True)``) lets go of the GIL
   while rmw waits, tried again every :data:`RETRY_EVERY_S`; its first
@@ -70,6 +74,8 @@ import time
 from typing import Any
 
 from rclpy.exceptions import InvalidHandle
+from rclpy.node import Node
+from rclpy.qos import QoSCompatibility, qos_check_compatible
 
 from .._compat import client_not_matched, raise_client_not_matched, request_client
 from . import _engine
@@ -102,18 +108,20 @@ _GUID_SIZE = 16
 _matched: dict[tuple[Any, bytes | None], None] = {}
 
 
-def respond(srv: Any, response: Any, header: Any, *, server: Server | None = None) -> None:
+def respond(srv: Any, response: Any, header: Any, *, server: Server | None = None, node: Node | None = None) -> None:
     """Send ``response`` to the client ``header`` names: inline if it is known to be
     matched, else through the resender (module docstring).
 
     ``server``: the service's compiled answers, which ``header`` came from
-    (``None``: rclpy's ``send_response``, with rclpy's header).
+    (``None``: rclpy's ``send_response``, with rclpy's header). ``node``: the
+    service's, whose graph may know the client's response reader.
     """
     guid = header[:_GUID_SIZE] if isinstance(header, bytes) else request_client(header)
     key = (srv, guid)
     if guid is not None:
-        if key in _matched:
+        if key in _matched or (not _resender.knows(key) and node is not None and _in_graph(node, srv, guid)):
             if _sent(srv, server, response, header):
+                _resender.matched(key)
                 return
             _resender.unmatched(key)  # rmw waited: not matched after all
         _resender.add(key, srv, server, response, header)
@@ -121,6 +129,31 @@ def respond(srv: Any, response: Any, header: Any, *, server: Server | None = Non
         _resender.add(key, srv, server, response, header)
     elif not _sent(srv, server, response, header):
         _resender.add(key, srv, server, response, header, tried=True)
+
+
+def _in_graph(node: Node, srv: Any, guid: bytes) -> bool:
+    """Whether the graph knows the response reader ``guid`` on the service's reply
+    topic, with a QoS every writer there offers (so it matched, or is about to).
+
+    A first answer to a client not known yet: ``ros2 service call`` and every
+    new client (tens of microseconds). Where the graph does not say so (not
+    discovered yet, an incompatible QoS), the resender sends it.
+    """
+    try:
+        with srv.handle:
+            topic = f"rr{srv.handle.name}Reply"  # rmw's name for the service's response topic
+        readers = node.get_subscriptions_info_by_topic(topic, no_mangle=True)
+        reader = next((info for info in readers if bytes(info.endpoint_gid[:_GUID_SIZE]) == guid), None)
+        if reader is None:
+            return False
+        writers = node.get_publishers_info_by_topic(topic, no_mangle=True)
+    except InvalidHandle:
+        return False
+    return bool(writers) and all(
+        info.topic_type == reader.topic_type
+        and qos_check_compatible(info.qos_profile, reader.qos_profile)[0] == QoSCompatibility.OK
+        for info in writers
+    )
 
 
 def end_resender(*, timeout: float) -> None:
@@ -149,6 +182,13 @@ def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go
             return False
         raise
     return True
+
+
+def _remember_matched(key: tuple[Any, bytes | None]) -> None:
+    """Changed only under the resender's lock; read without it (respond's one lookup)."""
+    _matched[key] = None
+    while len(_matched) > MAX_CLIENTS:
+        del _matched[next(iter(_matched))]
 
 
 class _Client:
@@ -195,6 +235,16 @@ class _Resender:
         self._ending = False
         #: Answers dropped, in all (tests and the curious read it).
         self.dropped = 0
+
+    def knows(self, key: tuple[Any, bytes | None]) -> bool:
+        """Whether answers to that client wait here, or it was given up on."""
+        return key in self._clients
+
+    def matched(self, key: tuple[Any, bytes | None]) -> None:
+        """Remember that an answer to that client went through: its next ones go inline."""
+        if key not in _matched:
+            with self._wake:
+                _remember_matched(key)
 
     def unmatched(self, key: tuple[Any, bytes | None]) -> None:
         """Forget that a client was matched (its send waited after all)."""
@@ -313,10 +363,7 @@ class _Resender:
                 client.answers.popleft()
                 self._waiting -= 1
                 if outcome and client.guid is not None:
-                    # Changed only under this lock; read without it (respond's one lookup).
-                    _matched[client.key] = None
-                    while len(_matched) > MAX_CLIENTS:
-                        del _matched[next(iter(_matched))]
+                    _remember_matched(client.key)
                     if not client.answers:
                         self._clients.pop(client.key, None)
 

@@ -205,3 +205,33 @@ def test_the_resender_ends_when_asked_and_when_idle(
     finally:
         executor.shutdown(timeout_sec=5.0)
         thread.join(5.0)
+
+
+def test_a_well_formed_clients_first_answer_is_sent_inline(
+    executor: AsyncioExecutor, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The graph knows its response reader, with a QoS the service's writer offers:
+    no hand-over to the resender, even for its first answer (an answer sent just
+    before its service goes away still goes out)."""
+    handed: list[Any] = []
+    add = _answers._resender.add
+
+    def spy(*args: Any, **kwargs: Any) -> None:
+        handed.append(args)
+        add(*args, **kwargs)
+
+    monkeypatch.setattr(_answers._resender, "add", spy)
+    server, callers = make_node("inline_server"), make_node("inline_callers")
+    server.create_service(Trigger, "inline", lambda request, response: response)
+    client: Client[Any, Any] = callers.create_client(Trigger, "inline")
+    executor.add_node(server)
+    executor.add_node(callers)
+    thread = _spin(executor)
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        response: Any = client.call(Trigger.Request(), timeout_sec=5.0)
+        assert response is not None
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    assert handed == []

@@ -42,8 +42,7 @@ from std_srvs.srv import SetBool
 
 from container import AsyncioExecutor
 from container._compat import WaitSet, request_client
-from container.executor import HAS_PUBLISHER_GID
-from container.executor import _fastpath
+from container.executor import HAS_PUBLISHER_GID, _fastpath
 from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier
 from container.executor._waitset import EntityWaitSet
 from tests.engine_support import compiled_only, engines
@@ -263,7 +262,12 @@ def test_rclpys_request_header_names_the_client_the_compiled_one_does(node: Node
     server = _fastpath.Server(service=service.handle, srv_type=SetBool)
     first.call_async(SetBool.Request())
     compiled: list[Any] = []
-    assert _until(lambda: compiled.append(server.take()) or compiled[-1] is not None)
+
+    def take_compiled() -> bool:
+        compiled.append(server.take())
+        return compiled[-1] is not None
+
+    assert _until(take_compiled)
     guid = compiled[-1][1][:16]
     for client in (first, second):
         client.call_async(SetBool.Request())

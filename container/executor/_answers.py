@@ -124,7 +124,7 @@ def respond(srv: Any, response: Any, header: Any, *, server: Server | None = Non
                 _resender.matched(key)
                 return
             _resender.unmatched(key)  # rmw waited: not matched after all
-        _resender.add(key, srv, server, response, header)
+        _resender.add(key, srv, server, response, header, node=node)
     elif _resender.suspect(key):
         _resender.add(key, srv, server, response, header)
     elif not _sent(srv, server, response, header):
@@ -195,17 +195,23 @@ class _Client:
     """The answers waiting for one client (``guid``), or for one service's clients
     whose headers name none (``guid`` ``None``)."""
 
-    __slots__ = ("answers", "dropped", "given_up_at", "guid", "key", "logged", "next_try", "server", "srv", "until")
+    __slots__ = (
+        "answers", "dropped", "given_up_at", "guid", "key", "logged", "next_try", "node", "server", "srv", "stalled",
+        "until",
+    )  # fmt: skip
 
-    def __init__(self, key: tuple[Any, bytes | None], srv: Any, server: Server | None) -> None:
+    def __init__(self, key: tuple[Any, bytes | None], srv: Any, server: Server | None, node: Node | None) -> None:
         self.key = key
         self.srv = srv
         self.server = server
+        self.node = node
         self.guid = key[1]
         #: ``(deadline, response, header)``, oldest first.
         self.answers: collections.deque[tuple[float, Any, Any]] = collections.deque()
         self.next_try = 0.0
         self.given_up_at: float | None = None
+        #: The last try held the GIL while rmw waited (the next one waits :data:`HOLDING_EVERY_S`).
+        self.stalled = False
         #: A service without GUIDs: its answers go to the resender until then.
         self.until = 0.0
         self.dropped = 0
@@ -258,14 +264,15 @@ class _Resender:
 
     def add(
         self, key: tuple[Any, bytes | None], srv: Any, server: Server | None, response: Any, header: Any,
-        *, tried: bool = False,
+        *, tried: bool = False, node: Node | None = None,
     ) -> None:
-        """Hand an answer over; ``tried``: it was just found unmatched (a service without GUIDs)."""
+        """Hand an answer over; ``tried``: it was just found unmatched (a service without GUIDs).
+        ``node``: the service's, whose graph tells a try that holds the GIL whether it can succeed."""
         now = time.monotonic()
         with self._wake:
             client = self._clients.get(key)
             if client is None:
-                client = self._clients[key] = _Client(key, srv, server)
+                client = self._clients[key] = _Client(key, srv, server, node)
                 self._forget_oldest()
             if client.guid is None and tried:
                 client.until = now + SUSPECT_S
@@ -356,7 +363,7 @@ class _Resender:
                 if not client.answers or client.answers[0] is not entry:
                     continue  # dropped meanwhile (the end, or forgotten)
                 if outcome is None:  # unmatched
-                    client.next_try = now + (HOLDING_EVERY_S if client.holds_gil else RETRY_EVERY_S)
+                    client.next_try = now + (HOLDING_EVERY_S if client.stalled else RETRY_EVERY_S)
                     if client.guid is None:
                         client.answers.rotate(-1)  # the others may be other clients'
                     continue
@@ -405,8 +412,22 @@ class _Resender:
 
     @staticmethod
     def _try(client: _Client, entry: tuple[float, Any, Any]) -> bool | None:
-        """Try once: ``True`` sent, ``None`` unmatched, ``False`` done with it otherwise."""
+        """Try once: ``True`` sent, ``None`` unmatched, ``False`` done with it otherwise.
+
+        A send that would hold the GIL while rmw waits is tried only once the
+        graph knows the client's response reader with a compatible QoS: an
+        incompatible client then costs no stall at all.
+        """
         _, response, header = entry
+        if (
+            client.holds_gil
+            and client.node is not None
+            and client.guid is not None
+            and not _in_graph(client.node, client.srv, client.guid)
+        ):
+            client.stalled = False
+            return None
+        client.stalled = client.holds_gil
         try:
             if _sent(client.srv, client.server, response, header, let_go=True):
                 return True

@@ -52,8 +52,10 @@ tries such a send only once the graph shows the client's response reader
 compatible (:func:`_in_graph`, every :data:`RETRY_EVERY_S`); an
 incompatible client is never tried, and costs nothing. Should a try still
 find the client unmatched (a reader the graph shows compatible that DDS
-does not match), the next is :data:`HOLDING_EVERY_S` later. Where a header's GUID cannot be read (a binding this does not know),
-a service's answers are sent inline until one finds its client unmatched
+does not match), the next is :data:`HOLDING_EVERY_S` later.
+
+Where a header's GUID cannot be read (a binding this does not know), a
+service's answers are sent inline until one finds its client unmatched
 (that send stalls the process up to 100 ms); from then on, for
 :data:`SUSPECT_S` seconds, they go to the resender, which tries them in
 turn, one unmatched try per :data:`HOLDING_EVERY_S` seconds, each answer

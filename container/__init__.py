@@ -11,7 +11,9 @@ private and may change. Plugin authors need :data:`hookimpl`, :class:`LifecycleN
 
 The errors and the hook markers load with the package; everything that needs
 rclpy loads on first use, so a plugin's ROS-free parts (a decoder, a command
-line tool) can use the error hierarchy without starting ROS.
+line tool) can use the error hierarchy without starting ROS. :func:`clip`
+is how a value from outside (a peer's request, a parameter) is echoed in a
+log line or an answer.
 """
 
 from __future__ import annotations
@@ -26,9 +28,11 @@ from ._errors import (
     ExecutorError,
     LoadError,
     PluginError,
+    SecurityError,
     TransitionError,
 )
 from ._hookspecs import RegisterNodeType, hookimpl, hookspec
+from ._text import clip
 from ._throttle import Throttle
 
 if TYPE_CHECKING:
@@ -59,8 +63,10 @@ __all__ = [
     "PluginError",
     "PluginRegistry",
     "RegisterNodeType",
+    "SecurityError",
     "Throttle",
     "TransitionError",
+    "clip",
     "contain_fault",
     "copy_message",
     "enable_intra_process",

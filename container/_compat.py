@@ -50,7 +50,6 @@ __all__ = [
     "WaitSet",
     "adopt_future",
     "callback_attribute",
-    "change_state_service",
     "client_not_matched",
     "enter_task",
     "event_handle",
@@ -62,7 +61,6 @@ __all__ = [
     "loop_ready_queue",
     "managed_entities",
     "mark_event_ready",
-    "query_services",
     "raise_client_not_matched",
     "request_client",
     "running_loop",
@@ -97,15 +95,6 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.executors.Executor", "_sigint_gc", "rclpy 1.0-10.x (instance attribute)"),
     ("rclpy.lifecycle.LifecycleNodeMixin", "_state_machine", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.lifecycle.LifecycleNodeMixin", "_managed_entities", "rclpy 4.0-10.x (instance attribute)"),
-    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_change_state", "rclpy 4.0-10.x (instance attribute)"),
-    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_get_state", "rclpy 4.0-10.x (instance attribute)"),
-    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_get_available_states", "rclpy 4.0-10.x (instance attribute)"),
-    (
-        "rclpy.lifecycle.LifecycleNodeMixin",
-        "_service_get_available_transitions",
-        "rclpy 4.0-10.x (instance attribute)",
-    ),
-    ("rclpy.lifecycle.LifecycleNodeMixin", "_service_get_transition_graph", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.node.Node", "_Node__node", "rclpy 1.0-10.x (instance attribute)"),
     ("sys", "_current_frames", "CPython 2.5-3.14; what faulthandler and py-spy read"),
     ("argparse", "_SubParsersAction", "CPython 3.2-3.14; what add_subparsers() returns"),
@@ -420,7 +409,14 @@ def state_machine_if_built(node: Node) -> Any | None:
 
 
 def state_machine(node: Node) -> Any:
-    """The rcl lifecycle state machine of a lifecycle node (rclpy has no accessor)."""
+    """The rcl lifecycle state machine of a lifecycle node (rclpy has no accessor).
+
+    rclpy's C++ ``LifecycleStateMachine``; of it the node uses, holding it
+    (``with machine:``), ``current_state``, ``available_states``,
+    ``available_transitions``, ``transition_graph`` (the standard services'
+    answers) and ``trigger_transition_by_id`` / ``_by_label`` (which publish
+    ``transition_event``), rclpy 4.0-10.x.
+    """
     return node._state_machine  # type: ignore[attr-defined]
 
 
@@ -428,18 +424,3 @@ def managed_entities(node: Node) -> set[Any]:
     """The entities (lifecycle publishers) a lifecycle node activates and deactivates."""
     entities: set[Any] = node._managed_entities  # type: ignore[attr-defined]
     return entities
-
-
-def change_state_service(node: Node) -> Any:
-    """The ``change_state`` service, whose handler the node base replaces."""
-    return node._service_change_state  # type: ignore[attr-defined]
-
-
-def query_services(node: Node) -> list[Any]:
-    """The lifecycle services that only read the state (``get_state`` and the like)."""
-    return [
-        node._service_get_state,  # type: ignore[attr-defined]
-        node._service_get_available_states,  # type: ignore[attr-defined]
-        node._service_get_available_transitions,  # type: ignore[attr-defined]
-        node._service_get_transition_graph,  # type: ignore[attr-defined]
-    ]

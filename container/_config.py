@@ -8,7 +8,7 @@
       parameters: [params.yaml]     # for the container node itself
       plugins: {allow: [...], block: [...], trace: false}
       devices:                      # what port parameters may name (container.devices)
-        serial: ["/dev/tty*", "/dev/serial/*", "/dev/ldlidar"]
+        serial: ["/dev/ttyUSB*", "/dev/ttyACM*", "/dev/serial/by-id/*", "/dev/serial/by-path/*", "/dev/ldlidar"]
         replay_dirs: [captures]     # file:// replays only below these (default: none)
         replay_max_bytes: 67108864
         network: false              # socket:// and rfc2217:// ports

@@ -215,7 +215,7 @@ class ComponentManager(Node):
             if key not in self._ignored_arguments:
                 self._ignored_arguments.add(key)
                 self.get_logger().warning(
-                    f"Extra component argument '{clip(key)}' is not used by this container: ignored "
+                    f"Extra component argument {clip(key, quote=True)} is not used by this container: ignored "
                     "(as rclcpp's container does); logged once"
                 )
         if request.log_level not in _LOG_LEVELS:
@@ -299,7 +299,7 @@ class ComponentManager(Node):
             error = exc.error if isinstance(exc, Escaped) else exc
             # The answer carries one line; the log, where it came from.
             self.get_logger().error(
-                f"Component constructor of {node_type.full_name} ('{clip(full_name)}') raised "
+                f"Component constructor of {node_type.full_name} ({clip(full_name, quote=True)}) raised "
                 f"{_one_line(error)}\n{format_plugin_frames(error.__traceback__, innermost_first=False)}"
             )
             raise LoadError(f"Component constructor threw an exception: {_one_line(error)}") from exc
@@ -495,13 +495,13 @@ def _check_name(what: str, value: str, validate: Callable[[str], object]) -> Non
     node after what comes before it: ``a\x00b`` would load as ``/a``.
     """
     if "\x00" in value:
-        raise LoadError(f"Invalid {what} {clip(repr(value))}: must not contain a NUL character")
+        raise LoadError(f"Invalid {what} {clip(value, quote=True)}: must not contain a NUL character")
     try:
         validate(value)
     except (InvalidNodeNameException, InvalidNamespaceException) as exc:
         # rclpy's message spans lines (the name, a caret under the fault).
         reason = str(exc).splitlines()[0].split(": ", 1)[-1].rstrip(":")
-        raise LoadError(f"Invalid {what} {clip(repr(value))}: {reason}") from None
+        raise LoadError(f"Invalid {what} {clip(value, quote=True)}: {reason}") from None
 
 
 #: A parameter name as rcl's ``-p`` parser takes one: tokens of letters,
@@ -514,14 +514,14 @@ def _check_parameter_name(name: str) -> None:
         problem = "must not be empty" if not name else (
             "must be words of letters, digits and '_' joined by '.' or '/' (no '..', '//', NUL, or '.'/'/' at an end)"
         )
-        raise LoadError(f"Invalid parameters: parameter name {clip(repr(name))} {problem}")
+        raise LoadError(f"Invalid parameters: parameter name {clip(name, quote=True)} {problem}")
 
 
 def _check_remap(rule: str) -> str:
     if "\x00" in rule:
-        raise LoadError(f"Invalid remap rule {clip(repr(rule))}: must not contain a NUL character")
+        raise LoadError(f"Invalid remap rule {clip(rule, quote=True)}: must not contain a NUL character")
     if not _REMAP.match(rule):
-        raise LoadError(f"Invalid remap rule '{clip(rule)}': expected 'from:=to'")
+        raise LoadError(f"Invalid remap rule {clip(rule, quote=True)}: expected 'from:=to'")
     return rule
 
 

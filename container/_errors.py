@@ -8,16 +8,21 @@
     ├── PluginError                a plugin distribution could not be used
     ├── LoadError                  a node could not be loaded into the container
     ├── TransitionError            a lifecycle transition could not be carried out
-    └── DeviceError                a device (serial port, capture file) failed
+    ├── DeviceError                a device (serial port, capture file) failed
+    └── SecurityError              DDS security was asked for and cannot be had
 
 Each keeps what it is about as attributes (``source``, ``node``, ``device``,
-...) and the bare ``reason``, so callers never take the message apart.
+...) and the bare ``reason``, so callers never take the message apart. The
+attributes hold values whole; messages echo a value from outside clipped
+(:func:`~container.clip`), so that ``str(exc)`` is fit for a log line.
 Foreign errors (rclpy, import machinery, serial, YAML) are translated into
 these where they enter our code, chained with ``raise ... from exc`` so the
 original traceback is kept.
 """
 
 from __future__ import annotations
+
+from ._text import clip
 
 __all__ = [
     "ConfigError",
@@ -26,6 +31,7 @@ __all__ = [
     "ExecutorError",
     "LoadError",
     "PluginError",
+    "SecurityError",
     "TransitionError",
 ]
 
@@ -108,5 +114,22 @@ class DeviceError(ContainerError):
     """
 
     def __init__(self, message: str, *, device: str) -> None:
-        super().__init__(f"{device}: {message}", reason=message)
+        # The device may be a peer's parameter: the message shows its start and its length.
+        super().__init__(f"{clip(device)}: {message}", reason=message)
         self.device = device
+
+
+class SecurityError(ContainerError):
+    """DDS security was asked for (``ROS_SECURITY_ENABLE=true``) and cannot be had.
+
+    Raised before rcl starts, where rcl or Fast DDS would refuse to (a
+    missing keystore or enclave under ``ROS_SECURITY_STRATEGY=Enforce``, a
+    Fast DDS without its security plugins): the message is the one line a
+    command prints before it exits 1.
+
+    :param enclave: the enclave rcl would look up.
+    """
+
+    def __init__(self, message: str, *, enclave: str) -> None:
+        super().__init__(message)
+        self.enclave = enclave

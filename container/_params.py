@@ -18,6 +18,7 @@ from rcl_interfaces.msg import Parameter as ParameterMsg
 from rclpy.parameter import Parameter, parameter_dict_from_yaml_file
 
 from ._errors import ConfigError
+from ._text import clip
 from ._yaml import read_yaml
 
 __all__ = ["ParameterSource", "node_parameters", "parameters_from_mapping"]
@@ -34,7 +35,8 @@ def parameters_from_mapping(values: Mapping[str, Any], *, source: str) -> list[P
             parameters.append(Parameter(name, value=value))
         except (TypeError, ValueError, AttributeError) as exc:
             raise ConfigError(
-                f"parameter {name!r}: value {value!r} is not a ROS parameter value ({exc})",
+                f"parameter {clip(name, quote=True)}: value {clip(value, quote=True)} is not a ROS parameter value "
+                f"({clip(str(exc))})",
                 source=source,
             ) from exc
     return parameters

@@ -34,6 +34,7 @@ from rclpy.node import Node
 from . import _hookspecs
 from ._errors import LoadError, PluginError
 from ._hookspecs import ros_package_name
+from ._text import clip
 
 __all__ = ["ENTRY_POINT_GROUP", "NodeType", "PluginRegistry", "ros_package_name"]
 
@@ -263,7 +264,7 @@ class PluginRegistry:
             return node_type
         for distribution, reason in self._stale.items():
             if ros_package_name(distribution) == package_name:
-                raise LoadError(f"Cannot load {plugin_name}: {reason}")
+                raise LoadError(f"Cannot load {clip(plugin_name)}: {reason}")
         for failure in reversed(self._failures):
             if failure.distribution and ros_package_name(failure.distribution) == package_name:
                 raise LoadError(f"Plugin failed to load: {failure}")

@@ -14,8 +14,10 @@ from pathlib import Path
 
 __all__ = [
     "DDS_PROFILE",
+    "LOG_FORMAT",
     "PROFILE_VARIABLES",
     "configure_logging",
+    "configure_warnings",
     "fast_dds_major",
     "profile_variable",
     "use_fast_discovery",
@@ -28,6 +30,9 @@ DDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
 #: the second too but with a deprecation warning on every process start;
 #: 2.x (Jazzy's 2.14) reads only the second.
 PROFILE_VARIABLES = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE")
+
+#: How the container's Python-level log lines look: rcutils' console lines, without the time.
+LOG_FORMAT = "[%(levelname)s] [%(name)s]: %(message)s"
 
 #: Distributions whose Fast DDS is 2.x, for installs without the wheels' metadata.
 _FAST_DDS_2 = frozenset({"humble", "iron", "jazzy"})
@@ -65,7 +70,15 @@ def fast_dds_major() -> int:
 
 def configure_logging(*, verbose: bool = False) -> None:
     """Send Python-level logs (plugin loading, dispatch failures) to stderr."""
-    logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
-        format="[%(levelname)s] [%(name)s]: %(message)s",
-    )
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format=LOG_FORMAT)
+
+
+def configure_warnings() -> None:
+    """Give Python-level warnings the container's format in a command that configured no logging.
+
+    A client command (``container list``, ``container lifecycle get``, ...)
+    logs only warnings and errors, which Python would print bare, with no
+    level to tell a warning from an error. Where logging is configured
+    already (``container run``, pytest) this does nothing.
+    """
+    logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT)

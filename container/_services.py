@@ -14,6 +14,10 @@ thread, where the container's bookkeeping lives, and share one mutually
 exclusive group so that requests apply in the order they arrive;
 ``list_nodes`` is plain, in a group of its own, and answers even during a
 slow unload or while a plugin's callback blocks the loop.
+
+Answers and log lines echo what a request named through
+:func:`~container.clip`: each value at most 200 characters with its length,
+a whole error message at most 800.
 """
 
 from __future__ import annotations
@@ -24,11 +28,11 @@ from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ._container import LoadRequest, type_label
 from ._errors import ContainerError, LoadError
-from ._text import CLIP_LIMIT, clip
+from ._qos import SERVICE_QOS
+from ._text import MESSAGE_LIMIT, clip
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -71,22 +75,8 @@ def _parameters(messages: Sequence[ParameterMsg], *, what: str) -> tuple[Paramet
             parameters.append(Parameter.from_parameter_msg(message))
         except (ValueError, TypeError) as exc:
             # An out-of-range type id, or a value rclpy cannot hold.
-            raise LoadError(f"Invalid {what} '{message.name}': {exc}") from exc
+            raise LoadError(f"Invalid {what} {clip(message.name, quote=True)}: {clip(str(exc))}") from exc
     return tuple(parameters)
-
-
-#: The container services' QoS: rclpy's services default (reliable,
-#: volatile) but keeping every request and every answer. With the default's
-#: keep-last 10, a burst of requests (500 from five clients, measured) lost
-#: most of them inside DDS, the request history overwritten before the
-#: container took them and answers before the clients acknowledged them:
-#: their callers waited for good. Keep-all bounds them by Fast DDS's
-#: resource limits instead (5,000 samples by default).
-SERVICE_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_ALL,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
 
 
 class ContainerServices:
@@ -120,14 +110,14 @@ class ContainerServices:
 
     async def _load(self, request: LoadNode.Request, response: LoadNode.Response) -> Any:
         log = self._manager.get_logger()
-        what = clip(type_label(request.package_name, request.plugin_name))
+        what = clip(type_label(request.package_name, request.plugin_name), quote=True)
         try:
             load = load_request_from_msg(request)
             loaded = await self._manager.load(load)
         except ContainerError as exc:
-            log.error(f"Refused to load {what}: {clip(str(exc))}")
+            log.error(f"Refused to load {what}: {clip(str(exc), limit=MESSAGE_LIMIT)}")
             response.success = False
-            response.error_message = clip(str(exc), limit=4 * CLIP_LIMIT)
+            response.error_message = clip(str(exc), limit=MESSAGE_LIMIT)
             return response
         response.full_node_name = loaded.full_name
         response.unique_id = loaded.unique_id
@@ -138,10 +128,12 @@ class ContainerServices:
             except ContainerError as exc:
                 # Loaded, and stays so to be inspected or unloaded by its id
                 # (as a container file's node that fails to come up does).
-                log.error(f"Loaded {what} as '{loaded.full_name}' but autostart failed: {clip(str(exc))}")
+                log.error(
+                    f"Loaded {what} as '{loaded.full_name}' but autostart failed: {clip(str(exc), limit=MESSAGE_LIMIT)}"
+                )
                 response.success = False
                 response.error_message = clip(
-                    f"Loaded as unique_id {loaded.unique_id} but autostart failed: {exc}", limit=4 * CLIP_LIMIT
+                    f"Loaded as unique_id {loaded.unique_id} but autostart failed: {exc}", limit=MESSAGE_LIMIT
                 )
         return response
 
@@ -149,9 +141,9 @@ class ContainerServices:
         try:
             _, notes = await self._manager.unload(request.unique_id)
         except ContainerError as exc:
-            self._manager.get_logger().error(f"Refused to unload: {exc}")
+            self._manager.get_logger().error(f"Refused to unload: {clip(str(exc), limit=MESSAGE_LIMIT)}")
             response.success = False
-            response.error_message = str(exc)
+            response.error_message = clip(str(exc), limit=MESSAGE_LIMIT)
             return response
         response.success = True
         # rclcpp leaves it empty on success; here it says what was cut short.

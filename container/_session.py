@@ -4,6 +4,11 @@ Every command (``container run``, ``container manager``, ``container load``,
 ``container lifecycle ...``) runs its work through :func:`run_session`, so all
 of them start ROS and end alike:
 
+* DDS security decided before rcl starts, by rcl's own rules
+  (:mod:`container._security`): a refusal is one line and exit 1, a
+  process that will run without the security its environment seems to ask
+  for says so in one warning; what rcl still refuses at start-up is one
+  line too, never a traceback;
 * a fresh context initialised with only the command line's ROS arguments
   (the ``--ros-args ... [--]`` sections, :func:`container.cli.split_ros_args`),
   which rcl parses with its own semantics; the command's own ``-p
@@ -53,7 +58,9 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import try_shutdown
 
 from ._compat import RCLError
-from ._runtime import use_fast_discovery
+from ._errors import SecurityError
+from ._runtime import configure_warnings, use_fast_discovery
+from ._security import NO_SECURITY_PLUGINS, check_security, clear_rcl_error
 from .executor import AsyncioExecutor, end_resender, end_spare_threads
 
 __all__ = [
@@ -129,12 +136,12 @@ def exit_now(code: int) -> NoReturn:
 def ros_failure(error: BaseException) -> str:
     """One line for an error rcl raised, naming the cause a user can act on."""
     text = str(error)
+    # Said before rcl starts (check_security) where it can be known; these
+    # are for what only the middleware finds out.
     if "doesn't have the security libraries" in text:
-        return (
-            "ROS_SECURITY_ENABLE is true, but this Fast DDS is built without its security plugins "
-            "(the PyPI wheels' Fast DDS is): use a ROS 2 whose Fast DDS was built with -DSECURITY=ON, "
-            "or unset ROS_SECURITY_ENABLE"
-        )
+        return NO_SECURITY_PLUGINS
+    if "couldn't find all security files" in text:
+        return "DDS security: Fast DDS could not find all the enclave's security files (ROS_SECURITY_STRATEGY=Enforce)"
     first = text.strip().splitlines()[0] if text.strip() else type(error).__name__
     # rcl appends ", at <file>:<line>" locations of its own sources.
     return f"ROS error: {first.split(', at /')[0]}"
@@ -205,6 +212,16 @@ def run_session(
         configures logging (``--log-level``) from them.
     """
     use_fast_discovery()
+    configure_warnings()
+    # Security requested is security, or said in one line, before rcl
+    # starts: rcl would run without it unsaid, or fail with no reason.
+    try:
+        security = check_security(ros_args)
+    except SecurityError as exc:
+        print(f"container: {exc}", file=sys.stderr, flush=True)
+        return EXIT_FAILURE
+    if security.warning is not None:
+        _log.warning(security.warning)
     # rclpy warns about the half-made node it cleans up after a failed
     # creation; the failure itself is reported (ros_failure), once.
     warnings.filterwarnings("ignore", message="Failed to fini rosout publisher", category=RuntimeWarning)
@@ -217,6 +234,13 @@ def run_session(
         rclpy.init(args=["container", *ros_args], context=context, signal_handler_options=SignalHandlerOptions.NO)
     except KeyboardInterrupt:
         return exit_code_for(signal.SIGINT)
+    except RCLError as exc:
+        # What rcl refuses that nothing checked before (an invalid --enclave
+        # name, a security failure check_security could not foresee).
+        print(f"container: {ros_failure(exc)}", file=sys.stderr, flush=True)
+        return EXIT_FAILURE
+    if security.stale_rcl_error:
+        clear_rcl_error()
     code = EXIT_FAILURE
     clean = False
     try:

@@ -4,7 +4,8 @@ A value from a container file, a manager setting or a node parameter is
 checked by the same functions, so the same mistake reads the same wherever
 it is made. Each returns the value converted to the type it promises, or
 raises :class:`~container.ConfigError` whose ``source`` says where the value
-came from (``where``) and whose ``reason`` says what is wrong with it::
+came from (``where``) and whose ``reason`` says what is wrong with it (the
+value echoed clipped, :func:`~container.clip`)::
 
     timeout = checks.number(value, where="comm.timeout_msec", positive=True)
 """
@@ -17,6 +18,7 @@ from collections.abc import Iterable, Sequence
 from typing import Any, Protocol
 
 from ._errors import ConfigError
+from ._text import clip
 
 __all__ = ["boolean", "integer", "number", "string", "strings", "unread_parameters"]
 
@@ -25,21 +27,21 @@ def string(value: Any, *, where: str, empty: bool = False) -> str:
     """A string; blank ones are refused unless ``empty``."""
     if not isinstance(value, str) or not (empty or value.strip()):
         kind = "a string" if empty else "a non-empty string"
-        raise ConfigError(f"must be {kind}, not {value!r}", source=where)
+        raise ConfigError(f"must be {kind}, not {clip(value, quote=True)}", source=where)
     return value
 
 
 def strings(value: Any, *, where: str) -> tuple[str, ...]:
     """A list of strings."""
     if not isinstance(value, Sequence) or isinstance(value, str) or not all(isinstance(v, str) for v in value):
-        raise ConfigError(f"must be a list of strings, not {value!r}", source=where)
+        raise ConfigError(f"must be a list of strings, not {clip(value, quote=True)}", source=where)
     return tuple(value)
 
 
 def boolean(value: Any, *, where: str) -> bool:
     """``true`` or ``false``; never a number or a string that looks like one."""
     if not isinstance(value, bool):
-        raise ConfigError(f"must be true or false, not {value!r}", source=where)
+        raise ConfigError(f"must be true or false, not {clip(value, quote=True)}", source=where)
     return value
 
 
@@ -48,7 +50,7 @@ def integer(value: Any, *, where: str, minimum: int | None = None, maximum: int 
     if isinstance(value, float) and value.is_integer():
         value = int(value)
     if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"must be an integer, not {value!r}", source=where)
+        raise ConfigError(f"must be an integer, not {clip(value, quote=True)}", source=where)
     _bounds(value, minimum, maximum, where)
     return value
 
@@ -66,7 +68,7 @@ def number(
     :param positive: refuse zero and below.
     """
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ConfigError(f"must be a finite number, not {value!r}", source=where)
+        raise ConfigError(f"must be a finite number, not {clip(value, quote=True)}", source=where)
     if positive and value <= 0:
         raise ConfigError(f"must be positive, not {value:g}", source=where)
     _bounds(value, minimum, maximum, where)
@@ -108,5 +110,5 @@ def unread_parameters(node: _DeclaresParameters, names: Iterable[str]) -> list[s
     for name in unread:
         close = difflib.get_close_matches(name, declared, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        warnings.append(f"Unknown parameter {name!r} ignored: this node does not read it{hint}")
+        warnings.append(f"Unknown parameter {clip(name, quote=True)} ignored: this node does not read it{hint}")
     return warnings

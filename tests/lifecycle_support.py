@@ -15,7 +15,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from container import AsyncioExecutor
-from tests.waiting import wait_until
+from tests.waiting import wait_until, wait_until_async
 
 T = TypeVar("T")
 
@@ -63,13 +63,19 @@ class TransitionLog:
             )
             self._changed.notify_all()
 
+    def _unmatched(self) -> list[str]:
+        return [name for name, sub in self._subscriptions.items() if sub.get_publisher_count() == 0]
+
+    def _unmatched_text(self) -> str:
+        return f"transition_event publishers of {self._unmatched()}"
+
     def wait_matched(self, *, timeout: float = 10.0) -> None:
         """Block until each node's ``transition_event`` publisher is discovered."""
+        wait_until(lambda: not self._unmatched(), self._unmatched_text, timeout=timeout)
 
-        def unmatched() -> list[str]:
-            return [name for name, sub in self._subscriptions.items() if sub.get_publisher_count() == 0]
-
-        wait_until(lambda: not unmatched(), lambda: f"transition_event publishers of {unmatched()}", timeout=timeout)
+    async def wait_matched_async(self, *, timeout: float = 10.0) -> None:
+        """:meth:`wait_matched` from the executor's loop, which must keep running meanwhile."""
+        await wait_until_async(lambda: not self._unmatched(), self._unmatched_text, timeout=timeout)
 
     def pairs(self, node: str | None = None) -> list[tuple[str, str]]:
         with self._changed:

@@ -53,5 +53,7 @@ def test_plugin_author_surface() -> None:
 
 
 def test_errors_share_one_root() -> None:
-    for name in ("ConfigError", "DeviceError", "ExecutorError", "LoadError", "PluginError", "TransitionError"):
+    for name in (
+        "ConfigError", "DeviceError", "ExecutorError", "LoadError", "PluginError", "SecurityError", "TransitionError"
+    ):
         assert issubclass(getattr(container, name), container.ContainerError)

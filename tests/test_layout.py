@@ -28,6 +28,7 @@ ALLOWED = {
     "container.lifecycle": (
         "container._compat",
         "container._errors",
+        "container._qos",
         "container._text",
         "container.checks",
         "container.executor",
@@ -159,8 +160,8 @@ def test_public_names_are_exactly_these() -> None:
         "ENTRY_POINT_GROUP", "AsyncioExecutor", "CallbackErrorHandler", "ComponentManager",
         "ConfigError", "ContainerError", "ContainerServices", "DeviceError", "ExecutorError",
         "LifecycleManager", "LifecycleNode", "LoadError", "LoadRequest", "LoadedNode",
-        "ManagerSettings", "NodeType", "PluginError", "PluginRegistry", "RegisterNodeType",
-        "Throttle", "TransitionError", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
+        "ManagerSettings", "NodeType", "PluginError", "PluginRegistry", "RegisterNodeType", "SecurityError",
+        "Throttle", "TransitionError", "clip", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
         "hookimpl", "hookspec",
     ])  # fmt: skip
     assert container.executor.__all__ == [

@@ -37,6 +37,7 @@ from std_srvs.srv import Trigger
 
 from .. import checks
 from .._errors import ConfigError, TransitionError
+from .._text import clip
 from ._client import LifecycleClient, transition_id
 from ._heartbeat import MIN_HEARTBEAT_PERIOD, HeartbeatWatch
 
@@ -362,7 +363,9 @@ class LifecycleManager(Node):
                 if state in step.done:
                     return False
                 if state not in step.start:
-                    raise TransitionError(f"not possible from state '{state}'", node=node, transition=label)
+                    raise TransitionError(
+                        f"not possible from state {clip(state, quote=True)}", node=node, transition=label
+                    )
                 await self._transition(client, step, state)
                 self.get_logger().info(f"{node}: {label} -> {step.goal}")
                 return True
@@ -382,13 +385,13 @@ class LifecycleManager(Node):
         _, now = await client.get_state()
         if not ok:
             raise TransitionError(
-                f"change_state answered success=false; the node is {now}",
+                f"change_state answered success=false; the node is {clip(now)}",
                 node=client.target,
                 transition=step.label,
             )
         if now != step.goal:
             raise TransitionError(
-                f"change_state succeeded but get_state reports '{now}', not '{step.goal}'",
+                f"change_state succeeded but get_state reports {clip(now, quote=True)}, not '{step.goal}'",
                 node=client.target,
                 transition=step.label,
             )

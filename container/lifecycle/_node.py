@@ -4,8 +4,9 @@ rclpy's :class:`rclpy.lifecycle.LifecycleNode` runs transition callbacks
 synchronously inside its ``change_state`` service, raises on a transition
 that is not available from the current state (rclpy#1209), and enables
 lifecycle publishers only if ``on_activate()`` remembers to call ``super()``.
-This base keeps rclpy's rcl state machine, its standard services and
-``transition_event``, and replaces how a transition is *driven*:
+This base keeps rclpy's rcl state machine and ``transition_event``, serves
+the standard services itself, keep-all (:mod:`container.lifecycle._services`:
+rcl's keep only 10 requests), and replaces how a transition is *driven*:
 
 * transition callbacks may be ``async def``; while one awaits, the event loop
   and every other node keep running. Plain callbacks run on a short-lived
@@ -30,7 +31,6 @@ import contextlib
 import inspect
 import threading
 import traceback
-import weakref
 from collections.abc import AsyncIterator, Callable
 from typing import Any, cast
 
@@ -38,7 +38,7 @@ import lifecycle_msgs.msg
 import lifecycle_msgs.srv
 from lifecycle_msgs.msg import State
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.callback_groups import CallbackGroup, ReentrantCallbackGroup
+from rclpy.callback_groups import CallbackGroup
 from rclpy.clock import Clock
 from rclpy.lifecycle import LifecyclePublisher, LifecycleState, TransitionCallbackReturn
 from rclpy.publisher import Publisher
@@ -46,13 +46,14 @@ from rclpy.qos import QoSProfile
 from rclpy.timer import Timer
 
 from .. import checks
-from .._compat import change_state_service, managed_entities, query_services, state_machine
+from .._compat import managed_entities, state_machine
 from .._errors import TransitionError
-from .._text import clip
+from .._text import MESSAGE_LIMIT, clip
 from ..executor import Escaped, contained, in_thread, run_coroutine, working_for
 from ..intra import IntraProcessNode
 from ._base import LifecycleNodeBase
 from ._heartbeat import DEFAULT_HEARTBEAT_PERIOD, MIN_HEARTBEAT_PERIOD, HeartbeatPublisher, status_type
+from ._services import LifecycleServices
 
 __all__ = ["LifecycleNode"]
 
@@ -103,6 +104,11 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
     :param use_intra_process_comms: exchange messages in process with the
         other such nodes of the context (:mod:`container.intra`); every
         publisher and subscription of the node takes part.
+
+    rclpy's ``enable_communication_interface`` keyword is taken as in rclpy:
+    ``False`` serves none of the standard lifecycle services (the node
+    still publishes ``transition_event``); otherwise the node serves them
+    itself (:class:`~container.lifecycle._services.LifecycleServices`).
     """
 
     def __init__(
@@ -122,7 +128,16 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         self._unread_check: tuple[str, ...] | None = tuple(
             getattr(p, "name", "") for p in kwargs.get("parameter_overrides") or ()
         )
-        super().__init__(node_name, use_intra_process_comms=use_intra_process_comms, **kwargs)
+        # rcl's own lifecycle services keep 10 requests and cannot be told
+        # otherwise; the node serves its own (_services), while rcl keeps
+        # publishing transition_event.
+        serve_services = bool(kwargs.pop("enable_communication_interface", True))
+        super().__init__(
+            node_name,
+            use_intra_process_comms=use_intra_process_comms,
+            enable_communication_interface=False,
+            **kwargs,
+        )
         self._managed_timers: set[Timer] = set()
         self._paused_timers: set[Timer] = set()
         self._transition_lock = asyncio.Lock()
@@ -147,16 +162,11 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
                 node=self.get_fully_qualified_name(),
                 transition="create",
             )
-        # rclpy binds its synchronous handler at construction; ours awaits.
-        change_state_service(self).callback = self._serve_change_state
-        # rclpy serves get_state and the like in the default group, where a
-        # transition that awaits for seconds would hold them up: `ros2
-        # lifecycle get` must answer "configuring" meanwhile. They only read.
-        queries = ReentrantCallbackGroup()
-        for service in query_services(self):
-            self.default_callback_group.entities.discard(weakref.ref(service))
-            service.callback_group = queries
-            queries.add_entity(service)
+        self._lifecycle_services: LifecycleServices | None = None
+        if serve_services:
+            self._lifecycle_services = LifecycleServices(
+                self, read=self._machine, change_state=self._serve_change_state
+            )
         self._heartbeat: HeartbeatPublisher | None = None
         if period > 0:
             if status_type() is None:
@@ -198,7 +208,12 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         return self._failure
 
     def fail_transition(self, reason: str) -> TransitionCallbackReturn:
-        """Log ``reason`` and fail the transition with it: ``return self.fail_transition("port busy")``."""
+        """Log ``reason`` and fail the transition with it: ``return self.fail_transition("port busy")``.
+
+        A reason over 800 characters is clipped (:func:`~container.clip`), in
+        the log and in the answer: it may echo a peer's value.
+        """
+        reason = clip(reason, limit=MESSAGE_LIMIT)
         self.get_logger().error(reason)
         self._failure = reason
         return FAILURE
@@ -324,7 +339,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             f"{label} [{tid}]" for tid, label, *_ in self._machine("available_transitions")
         )
         self.get_logger().warning(
-            f"Transition {clip(repr(request))} is not available from state "
+            f"Transition {clip(request, quote=True)} is not available from state "
             f"'{self.lifecycle_state.label}'; available: {available or 'none'}"
         )
 
@@ -423,8 +438,11 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             raise
         except BaseException as exc:  # sys.exit() in a callback is an error, not an exit
             error = exc.error if isinstance(exc, Escaped) else exc
-            details = "".join(traceback.format_exception(error)).rstrip()
-            self._failure = f"{name}() raised {type(error).__name__}: {error}"
+            # Clipped line by line: the error's text may echo a peer's value.
+            details = "\n".join(
+                clip(line, limit=MESSAGE_LIMIT) for line in "".join(traceback.format_exception(error)).splitlines()
+            )
+            self._failure = f"{name}() raised {type(error).__name__}: {clip(str(error), limit=MESSAGE_LIMIT)}"
             self.get_logger().error(f"{self._failure}\n{details}")
             return ERROR
         if not isinstance(result, TransitionCallbackReturn):
@@ -510,14 +528,16 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
                 response.success = False
             return response
         limit = self._timeout(None)
+        services = self._lifecycle_services
+        service: object = services.change_state if services is not None else self._serve_change_state
 
         async def requested() -> TransitionCallbackReturn | None:
             task = asyncio.current_task()
             if task is not None:  # named for the loop watchdog's report
-                task.set_name(f"transition {clip(repr(wanted))} of {self.get_fully_qualified_name()}")
+                task.set_name(f"transition {clip(wanted, quote=True)} of {self.get_fully_qualified_name()}")
             # Posted from the service's thread, so no callback of the node
             # created it: the watchdog is told whose work this is.
-            with working_for(self, change_state_service(self)):
+            with working_for(self, service):
                 return await self._request(wanted, timeout=None, abandoned=abandoned)
 
         abandoned = threading.Event()
@@ -526,7 +546,7 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             response.success = pending.result(None if limit is None else limit + _ANSWER_MARGIN_S) is SUCCESS
         except concurrent.futures.TimeoutError:
             self.get_logger().error(
-                f"Transition {clip(repr(wanted))} did not end within {limit:g} s (transition_timeout): "
+                f"Transition {clip(wanted, quote=True)} did not end within {limit:g} s (transition_timeout): "
                 "is the event loop stuck in a callback? Answered success=false"
             )
             # The answer was failure: so is the outcome, once the loop gets to it.

@@ -82,8 +82,9 @@ nodes:
     autostart: true
 """
 LIDAR = """
-# The emulator's port is a pseudo-terminal, which the default device policy refuses.
-container: {name: ComponentManager, devices: {serial: ["/dev/tty*", "/dev/pts/*"]}}
+# The emulator's port is a pseudo-terminal, which the default device policy refuses
+# unless the node started the emulator itself: named explicitly here.
+container: {name: ComponentManager, devices: {serial: ["/dev/pts/*"]}}
 nodes:
   - package: ldlidar
     plugin: ldlidar::LdLidarNode

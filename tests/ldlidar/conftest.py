@@ -23,9 +23,10 @@ def capture() -> Path:
 
 @pytest.fixture(autouse=True)
 def device_policy_for_tests() -> Iterator[DevicePolicy]:
-    """Let the LiDAR node open what the tests give it: emulators' pseudo-terminal
-    links under the temporary directory (``/dev/pts/*``) and captures there
-    and in ``../shared``; the default policy allows neither."""
+    """Let the LiDAR node open what the tests give it: emulators' pseudo-terminals,
+    through their links under the temporary directory (named explicitly:
+    ``/dev/pts/*``), and captures there and in ``../shared``; the default
+    policy allows neither (only a node's own emulator's pty)."""
     policy = DevicePolicy(
         serial=(*DEFAULT_SERIAL_PATTERNS, "/dev/pts/*"),
         replay_dirs=(Path(tempfile.gettempdir()).resolve(), SHARED.resolve()),

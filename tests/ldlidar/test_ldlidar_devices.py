@@ -16,6 +16,7 @@ import pytest
 
 from ldlidar import (
     DeviceError,
+    DeviceRefused,
     Emulator,
     Lidar,
     LidarError,
@@ -238,7 +239,7 @@ async def test_replayer_plays_a_capture_on_a_pty_at_the_devices_pace(capture: Pa
 
 
 @pytest.mark.asyncio
-async def test_file_url_options() -> None:
+async def test_file_url_options(tmp_path: Path) -> None:
     replay = open_source("file:///tmp/capture.bin?rate=2.5&loop=1", baudrate=230400)
     assert isinstance(replay, ReplaySource) and replay.rate == 2.5 and replay.device == "/tmp/capture.bin"
     assert isinstance(open_source("/dev/ttyUSB0", baudrate=921600), SerialSource)
@@ -246,6 +247,9 @@ async def test_file_url_options() -> None:
         with pytest.raises(DeviceError, match="bad replay URL"):
             open_source(bad, baudrate=230400)
     with pytest.raises(DeviceError, match="cannot read"):
+        await open_source(f"file://{tmp_path}/nope.bin", baudrate=230400).open()
+    # Outside the directories the device policy names: refused, exists or not.
+    with pytest.raises(DeviceRefused, match="replays are allowed only of files under"):
         await open_source("file:///nope.bin", baudrate=230400).open()
 
 

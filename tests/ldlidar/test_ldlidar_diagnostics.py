@@ -7,7 +7,8 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from ldlidar import Lidar
-from ldlidar._diagnostics import Diagnostics, _Counts, _health
+from ldlidar._diagnostics import Diagnostics, _Counts, _health, byte_rate
+from ldlidar._outage import OutageLog
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
@@ -27,7 +28,39 @@ def test_a_streaming_device_is_ok() -> None:
 
 def test_silence_is_an_error() -> None:
     silent = _Counts(when=11.5, packets=1000, scans=30)
-    assert _health(lidar(), LAST, silent, stopped=None, failed=False) == (ERROR, "no data for 1.5 s")
+    assert _health(lidar(), LAST, silent, stopped=None, failed=False) == (ERROR, "no bytes for 1.5 s")
+
+
+def test_bytes_without_a_packet_header_are_told_from_silence() -> None:
+    """A wrong baud rate or another device: bytes at a rate, and never a header."""
+    garbled = _Counts(when=11.0, packets=1000, scans=30, bytes=23_400, crc_errors=1, skipped_bytes=23_400)
+    level, message = _health(lidar(), LAST, garbled, stopped=None, failed=False)
+    assert level == ERROR
+    assert message == (
+        "bytes but no valid packet for 1.0 s: 23.4 kB/s, no packet header in them: a wrong baud rate "
+        "(reading at 230400) or not an LD-series LiDAR (1 failed CRC, 0 with impossible angles)"
+    )
+
+
+def test_bytes_failing_their_crc_are_line_noise() -> None:
+    noisy = _Counts(when=11.0, packets=1000, scans=30, bytes=17_625, crc_errors=375)
+    level, message = _health(lidar(), LAST, noisy, stopped=None, failed=False)
+    assert level == ERROR and "17.6 kB/s, packets failing their CRC: line noise or a wrong baud rate" in message
+
+
+def test_packets_with_impossible_angles_and_no_valid_one_are_a_device_fault() -> None:
+    faulty = _Counts(when=12.0, packets=1000, scans=30, bytes=35_250, implausible=750)
+    level, message = _health(lidar(), LAST, faulty, stopped=None, failed=False)
+    assert level == ERROR
+    assert message == (
+        "bytes but no valid packet for 2.0 s: 17.6 kB/s, packets with a valid CRC but impossible angles: "
+        "a device fault (0 failed CRC, 750 with impossible angles)"
+    )
+
+
+def test_byte_rates_read_as_a_person_would_say_them() -> None:
+    assert byte_rate(LAST, _Counts(when=11.0, bytes=120)) == "120 B/s"
+    assert byte_rate(LAST, _Counts(when=12.0, bytes=46_900)) == "23.4 kB/s"
 
 
 def test_packets_without_a_revolution_warn_of_the_motor() -> None:
@@ -85,7 +118,9 @@ def test_report_names_the_node_and_device_and_says_whether_it_publishes() -> Non
     assert (status.level, status.message) == (OK, "streaming, publishing")
 
     [status] = diagnostics.report(stamp=Time(sec=9), node_state="active", scans=20, published=10).status
-    assert status.level == ERROR and status.message.startswith("no data for")
+    assert status.level == ERROR and status.message.startswith("no bytes for")
+    values = {v.key: v.value for v in status.values}
+    assert (values["bytes"], values["byte rate (B/s)"]) == ("0", "0")
 
 
 def test_simulated_scans_are_never_ok() -> None:
@@ -119,3 +154,55 @@ def test_packets_with_a_valid_crc_but_impossible_angles_are_a_device_fault_not_l
     assert (level, message) == (
         WARN, "device fault: 5 packet(s) with a valid CRC but impossible angles in the last 1.0 s"
     )
+
+
+# -- outages in the log ---------------------------------------------------------------------
+def test_an_outage_is_told_once_when_it_starts_and_once_when_it_ends() -> None:
+    device = lidar()
+    device.packet_time = 10.0
+    log = OutageLog(device, threshold=5.0)
+    assert log.update(_Counts(when=10.0, packets=1000, bytes=47_000)) is None
+    # Bytes keep coming, none valid: nothing until the threshold, then one line.
+    assert log.update(_Counts(when=14.0, packets=1000, bytes=127_000)) is None
+    started = log.update(_Counts(when=15.5, packets=1000, bytes=157_000, crc_errors=2))
+    assert started is not None and started.started
+    assert started.message == (
+        "/dev/ttyUSB9: no valid packet for 5.5 s: bytes arrive (20.0 kB/s) but no packet header in them: "
+        "a wrong baud rate (reading at 230400) or not an LD-series LiDAR (2 failed CRC, 0 with impossible angles); "
+        "the end of this outage will be logged"
+    )
+    for second in range(16, 40):
+        assert log.update(_Counts(when=float(second), packets=1000, bytes=second * 20_000)) is None
+    device.packet_time = 40.2
+    ended = log.update(_Counts(when=40.5, packets=1010, bytes=900_000))
+    assert ended is not None and not ended.started and not log.ongoing
+    assert ended.message == "/dev/ttyUSB9: valid packets again after 30.5 s without one"
+    assert log.update(_Counts(when=41.5, packets=1385, bytes=917_625)) is None
+
+
+def test_a_silent_or_lost_device_is_an_outage_with_its_cause() -> None:
+    device = lidar()
+    device.packet_time = 10.0
+    log = OutageLog(device, threshold=5.0)
+    assert log.update(_Counts(when=10.0, packets=1000, bytes=47_000)) is None
+    silent = log.update(_Counts(when=16.0, packets=1000, bytes=47_000))
+    assert silent is not None and "no valid packet for 6.0 s: no bytes arrive" in silent.message
+
+    device = lidar()
+    device.packet_time = 10.0
+    device.state, device.last_error = "reconnecting", "/dev/ttyUSB9: port closed (device unplugged?)"
+    log = OutageLog(device, threshold=5.0)
+    lost = log.update(_Counts(when=16.0, packets=1000))
+    assert lost is not None and "device lost (/dev/ttyUSB9: port closed (device unplugged?)), reopening" in lost.message
+
+
+def test_no_outage_starts_once_reading_has_stopped_and_closing_ends_one() -> None:
+    device = lidar()
+    device.packet_time = 10.0
+    log = OutageLog(device, threshold=5.0)
+    assert log.update(_Counts(when=20.0, packets=1000), reading=False) is None
+    assert log.close(21.0) is None
+    assert log.update(_Counts(when=20.0, packets=1000)) is not None
+    closed = log.close(23.0)
+    assert closed is not None and not closed.started
+    assert closed.message == "/dev/ttyUSB9: closed after 13.0 s without a valid packet"

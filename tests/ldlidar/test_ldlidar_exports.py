@@ -10,7 +10,7 @@ from tests.ldlidar.ldlidar_support import CAPTURE, decode_command_modules
 EXPECTED = {
     "HEADER", "HEALTH_SIZE", "HEALTH_TYPE", "INFO_SIZE", "INFO_TYPE", "MODELS",
     "PACKET_SIZE", "PACKET_TYPE", "POINTS_PER_PACKET", "TIMESTAMP_WRAP_MS",
-    "DecodedStream", "DeviceClock", "DeviceError", "Direction", "Emulator", "Lidar",
+    "DecodedStream", "DeviceClock", "DeviceError", "DeviceRefused", "Direction", "Emulator", "Lidar",
     "LidarError", "Model", "Packet", "PacketGenerator", "ParserStats", "ProtocolError",
     "ReplaySource", "Replayer", "Room", "Scan", "ScanAssembler", "SerialSource", "Source",
     "StreamParser", "crc8", "decode_bytes", "decode_file", "decode_packet",
@@ -40,6 +40,7 @@ def test_unknown_attribute_raises() -> None:
 def test_errors_form_one_hierarchy() -> None:
     assert issubclass(ldlidar.ProtocolError, ldlidar.LidarError)
     assert issubclass(ldlidar.DeviceError, ldlidar.LidarError)
+    assert issubclass(ldlidar.DeviceRefused, ldlidar.DeviceError)
     err = ldlidar.DeviceError("gone", device="/dev/ttyUSB0")
     assert err.device == "/dev/ttyUSB0" and "gone" in str(err)
 

@@ -6,10 +6,8 @@ import math
 import os
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,64 +19,21 @@ from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Log
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import LaserScan
 
 from container import AsyncioExecutor, PluginRegistry
 from ldlidar import Emulator
 from ldlidar.plugin import SCAN_QOS, LdLidarNode, find_serial_ports
 from tests.container_support import REPO, ContainerProcess
+from tests.ldlidar.node_support import ROSOUT_QOS, Recorder, lidar_parameters, logged
 from tests.lifecycle_support import run
 from tests.waiting import wait_until_async
 
 EXAMPLE = REPO / "examples" / "lidar.yaml"
-ROSOUT_QOS = QoSProfile(
-    depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
-)
 
 
 # -- helpers ---------------------------------------------------------------------------
-
-def lidar_parameters(port: str, **more: Any) -> list[Parameter[Any]]:
-    """Overrides for an LD06 on ``port``; keyword names use ``__`` for ``.``."""
-    values = {"comm.serial_port": port, **{k.replace("__", "."): v for k, v in more.items()}}
-    return [Parameter(name, value=value) for name, value in values.items()]
-
-
-@dataclass(frozen=True)
-class Received:
-    at: float
-    msg: Any
-
-
-class Recorder:
-    """Everything that arrives on one topic, with its monotonic arrival time."""
-
-    def __init__(self, observer: Node, msg_type: Any, topic: str, qos: QoSProfile | int) -> None:
-        self.items: list[Received] = []
-        self._lock = threading.Lock()
-        self.subscription = observer.create_subscription(msg_type, topic, self._record, qos)
-
-    def _record(self, msg: Any) -> None:
-        with self._lock:
-            self.items.append(Received(time.monotonic(), msg))
-
-    def __len__(self) -> int:
-        with self._lock:
-            return len(self.items)
-
-    def since(self, index: int) -> list[Received]:
-        with self._lock:
-            return self.items[index:]
-
-    def messages(self) -> list[Any]:
-        with self._lock:
-            return [item.msg for item in self.items]
-
-
-def logged(rosout: Recorder, node: str) -> list[str]:
-    return [msg.msg for msg in rosout.messages() if msg.name == node]
-
 
 def check_scan_fields(scans: list[LaserScan], *, bins: int = 455) -> None:
     for scan in scans:

@@ -8,12 +8,14 @@ talker at its rate throughout, and SIGINT still orderly.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import signal
 import socket
 import subprocess
 import sys
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -25,7 +27,7 @@ from std_msgs.msg import String
 
 from container import AsyncioExecutor
 from container.devices import DevicePolicy, PortRefused
-from tests.container_support import REPO, ContainerProcess
+from tests.container_support import REPO, ContainerProcess, LoggedProcess
 
 TALKER = """
 container:
@@ -118,6 +120,9 @@ def test_a_peer_cannot_make_the_container_open_what_the_operator_did_not_allow(
             "/etc/shadow": "not a serial device the default device policy allows",
             "/dev/null": "not a serial device the default device policy allows",
             "/dev/tty/../null": "not a serial device the default device policy allows",
+            "/dev/tty": "not a serial device the default device policy allows",
+            "/dev/tty0": "not a serial device the default device policy allows",
+            "/dev/ttyS0": "not a serial device the default device policy allows",
         }
         for index, (port, reason) in enumerate(cases.items()):
             started = time.monotonic()
@@ -167,6 +172,65 @@ def test_what_the_container_file_allows_opens(
     assert "over the" in too_big.stderr and "replay_max_bytes" in too_big.stderr, too_big.stderr
     fifo = load_lidar("fifo", f"file://{captures / 'fifo'}")
     assert "a replay must be a regular file" in fifo.stderr, fifo.stderr
+
+
+def controlling_terminal(pid: int) -> int:
+    """The device number of *pid*'s controlling terminal (0: none)."""
+    with open(f"/proc/{pid}/stat") as stat:
+        return int(stat.read().rsplit(")", 1)[1].split()[4])
+
+
+def open_files(pid: int) -> list[str]:
+    found = []
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        with contextlib.suppress(OSError):  # closed meanwhile
+            found.append(os.readlink(f"/proc/{pid}/fd/{fd}"))
+    return found
+
+
+# Run with a pseudo-terminal as its controlling terminal, as from the
+# operator's shell: a session leader (LoggedProcess starts one) opening the
+# terminal without O_NOCTTY, then becoming the container.
+ON_A_TERMINAL = """
+import os, sys
+terminal = os.open(sys.argv[1], os.O_RDWR)
+os.dup2(terminal, 0)
+os.execv(sys.argv[2], sys.argv[2:])
+"""
+
+
+# A container process on a terminal.
+@pytest.mark.slow
+def test_a_peer_naming_dev_tty_leaves_the_containers_terminal_alone_and_ctrl_c_still_stops_it(
+    tmp_path: Path,
+) -> None:
+    """``-p comm.serial_port:=/dev/tty`` left the terminal at 230400 baud, raw, without ISIG: Ctrl-C did nothing.
+
+    The container file still lists the default of before (``/dev/tty*``), so
+    /dev/tty passes by name and is refused for what it is.
+    """
+    config = tmp_path / "container.yaml"
+    config.write_text(TALKER.format(devices='  devices: {serial: ["/dev/tty*", "/dev/serial/*", "/dev/ldlidar"]}'))
+    master, slave = os.openpty()
+    try:
+        before = termios.tcgetattr(slave)
+        command = [sys.executable, "-m", "container", "run", str(config)]
+        proc = LoggedProcess([sys.executable, "-c", ON_A_TERMINAL, os.ttyname(slave), *command], name="container")
+        try:
+            proc.wait_for_line("ready with")
+            assert controlling_terminal(proc.process.pid) == os.fstat(slave).st_rdev
+            result = load_lidar("hostile", "/dev/tty")
+            assert result.returncode == 1, result.stdout
+            assert "the controlling terminal, never opened" in result.stderr, result.stderr
+            assert "/dev/tty" not in open_files(proc.process.pid)
+            assert termios.tcgetattr(slave) == before  # speed, ISIG, ICANON, ECHO
+            os.write(master, b"\x03")  # Ctrl-C, as typed
+            assert proc.process.wait(timeout=30) == 0, proc.output()
+        finally:
+            proc.close()
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 def test_the_policy_from_a_container_file(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ import pytest
 from container import ConfigError
 from ldlidar import MODELS
 from ldlidar._settings import PARAMETERS, Settings, read_settings
+from ldlidar.plugin import DIAGNOSTICS_PERIOD
 
 DEFAULTS = {name: default for name, default, _ in PARAMETERS}
 
@@ -27,6 +28,8 @@ def test_defaults_are_an_upright_ld06_found_automatically() -> None:
     assert settings.direction == "ccw" and settings.frame_id == "ldlidar_link"
     assert (settings.bins, settings.range_min, settings.range_max) == (455, 0.03, 15.0)
     assert settings.crop is None
+    # A report a second, as ROS's diagnostic_updater; an outage worth a log line after 5 s.
+    assert (settings.diagnostics_period, settings.outage) == (DIAGNOSTICS_PERIOD, 5.0)
 
 
 def test_values_are_converted_to_what_the_device_takes() -> None:
@@ -70,6 +73,9 @@ def test_values_are_converted_to_what_the_device_takes() -> None:
         ("lidar.range_min", float("nan"), "must be a finite number, not nan"),
         ("lidar.range_max", 0.03, "must be above lidar.range_min (0.03), not 0.03"),
         ("lidar.enable_angle_crop", "yes", "must be true or false, not 'yes'"),
+        ("diagnostics.period_msec", 50, "must be within [100, 60000], not 50"),
+        ("diagnostics.outage_msec", 0, "must be positive, not 0"),
+        ("lidar.model", "L" * 300, f"unknown LiDAR model '{'L' * 200}…' (300 characters); known: LD06, LD19, STL27L"),
     ],
 )
 def test_a_bad_value_is_refused_naming_its_parameter(parameter: str, value: Any, reason: str) -> None:

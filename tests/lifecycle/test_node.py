@@ -212,6 +212,32 @@ def test_exception_in_a_transition_runs_on_error(
     ]
 
 
+class Echoer(LifecycleNode):
+    """Configure echoes a megabyte parameter: in a failure's reason, or in an exception's text."""
+
+    value = "/dev/" + "a" * (1024 * 1024 - 5)
+
+    def __init__(self, name: str, *, raises: bool, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.raises = raises
+
+    async def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.raises:
+            raise ValueError(f"cannot open {self.value}")
+        return self.fail_transition(f"cannot open {self.value}")
+
+
+@pytest.mark.parametrize("raises", [False, True], ids=["fail_transition", "raised"])
+def test_a_failures_reason_is_bounded_whatever_it_echoes(
+    executor: AsyncioExecutor, host: Callable[..., Any], raises: bool
+) -> None:
+    node: Echoer = host(Echoer, "echoer", raises=raises)
+    assert not run(executor, node.transition("configure"))
+    failure = node.last_failure
+    assert failure is not None and len(failure) < 1000
+    assert failure.endswith("… (1048588 characters)"), failure[-100:]
+
+
 class Counter(LifecycleNode):
     """A managed timer publishing a count; on_activate does not call super()."""
 

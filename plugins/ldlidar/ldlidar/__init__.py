@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from ._errors import DeviceError, LidarError, ProtocolError
+from ._errors import DeviceError, DeviceRefused, LidarError, ProtocolError
 from ._parser import ParserStats, StreamParser
 from ._protocol import (
     HEADER,
@@ -62,6 +62,7 @@ __all__ = [
     "DecodedStream",
     "DeviceClock",
     "DeviceError",
+    "DeviceRefused",
     "Direction",
     "Emulator",
     "Lidar",

@@ -3,6 +3,12 @@
 Rates and the verdict cover the period since the previous report, not the
 whole run: a burst of line noise warns once and then clears, and a device
 that stops sending turns ERROR within one period however long it ran well.
+
+A period without a valid packet says which of two faults it is, since they
+call for different fixes: no bytes at all (power, cable, the wrong port) or
+bytes that form no valid packet, with their rate and what the parser made
+of them (packets failing their CRC, packets with impossible angles, no
+packet header at all: see :func:`why_no_packets`).
 """
 
 from __future__ import annotations
@@ -14,11 +20,14 @@ from typing import Final
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from container import clip
+
 from ._lidar import Lidar
+from ._protocol import PACKET_SIZE
 
-__all__ = ["DIAGNOSTICS_PERIOD", "Diagnostics"]
+__all__ = ["DIAGNOSTICS_PERIOD", "Diagnostics", "byte_rate", "why_no_packets"]
 
-#: Seconds between two ``/diagnostics`` messages.
+#: Seconds between two ``/diagnostics`` messages unless ``diagnostics.period_msec`` says otherwise.
 DIAGNOSTICS_PERIOD: Final = 1.0
 
 
@@ -28,6 +37,7 @@ class _Counts:
 
     when: float
     packets: int = 0
+    bytes: int = 0
     scans: int = 0
     crc_errors: int = 0
     implausible: int = 0
@@ -40,6 +50,7 @@ class _Counts:
         return cls(
             when=time.monotonic(),
             packets=stats.packets,
+            bytes=lidar.bytes_read,
             scans=scans,
             crc_errors=stats.crc_errors,
             implausible=stats.implausible,
@@ -62,6 +73,11 @@ class Diagnostics:
         self._name = f"{node_name}: LiDAR"
         self._emulated = emulated
         self._counts = _Counts.now(lidar, 0)
+
+    @property
+    def counts(self) -> _Counts:
+        """The counters at the latest report (at creation, before the first)."""
+        return self._counts
 
     def report(
         self,
@@ -92,15 +108,18 @@ class Diagnostics:
             level, message = DiagnosticStatus.WARN, "simulated: no LiDAR found, scans come from the built-in emulator"
         if level == DiagnosticStatus.OK or self._emulated:
             message += ", publishing" if node_state == "active" else ", not publishing (node inactive)"
+        port = clip(lidar.port)
         values = {
-            "port": lidar.port,
+            "port": port,
             "emulated": "yes" if self._emulated else "no",
             "baudrate": str(lidar.baudrate),
             "device state": lidar.state,
             "node state": node_state,
             "packet rate (Hz)": f"{(now.packets - last.packets) / elapsed:.1f}",
+            "byte rate (B/s)": f"{(now.bytes - last.bytes) / elapsed:.0f}",
             "scan rate (Hz)": f"{(now.scans - last.scans) / elapsed:.2f}",
             "packets": str(stats.packets),
+            "bytes": str(lidar.bytes_read),
             "scans": str(scans),
             "scans published": str(published),
             "crc errors": str(stats.crc_errors),
@@ -112,13 +131,13 @@ class Diagnostics:
             "reconnects": str(lidar.reopens),
             "stalls": str(lidar.stalls),
             "device clock jumps": str(lidar.assembler.clock.jumps),
-            "last error": lidar.last_error or "none",
+            "last error": clip(lidar.last_error or "none"),
         }
         status = DiagnosticStatus(
             level=level,
             name=self._name,
             message=message,
-            hardware_id=f"{lidar.model.name} on {lidar.port}",
+            hardware_id=f"{lidar.model.name} on {port}",
             values=[KeyValue(key=key, value=text) for key, text in values.items()],
         )
         msg = DiagnosticArray(status=[status])
@@ -132,9 +151,15 @@ def _health(lidar: Lidar, last: _Counts, now: _Counts, *, stopped: str | None, f
     if stopped is not None:
         return (DiagnosticStatus.ERROR if failed else DiagnosticStatus.WARN), f"not reading: {stopped}"
     if lidar.state == "reconnecting":
-        return DiagnosticStatus.ERROR, f"device lost ({lidar.last_error}); reopening, {lidar.reopens} reopen(s) so far"
+        return DiagnosticStatus.ERROR, (
+            f"device lost ({clip(lidar.last_error or 'unknown')}); reopening, {lidar.reopens} reopen(s) so far"
+        )
     if now.packets == last.packets:
-        return DiagnosticStatus.ERROR, f"no data for {elapsed:.1f} s"
+        if now.bytes == last.bytes:
+            return DiagnosticStatus.ERROR, f"no bytes for {elapsed:.1f} s"
+        return DiagnosticStatus.ERROR, (
+            f"bytes but no valid packet for {elapsed:.1f} s: {byte_rate(last, now)}, {why_no_packets(lidar, last, now)}"
+        )
     if now.scans == last.scans:
         return DiagnosticStatus.WARN, "packets but no complete revolution (motor stopped?)"
     code = lidar.stats.last_health_code
@@ -154,3 +179,38 @@ def _health(lidar: Lidar, last: _Counts, now: _Counts, *, stopped: str | None, f
             f"line noise: {crc_errors} CRC error(s), {skipped} byte(s) skipped in the last {elapsed:.1f} s"
         )
     return DiagnosticStatus.OK, "streaming"
+
+
+def byte_rate(last: _Counts, now: _Counts) -> str:
+    """The rate bytes arrived at from *last* to *now*, for a person: ``23.4 kB/s``, ``120 B/s``."""
+    rate = (now.bytes - last.bytes) / max(now.when - last.when, 1e-6)
+    return f"{rate / 1000:.1f} kB/s" if rate >= 1000 else f"{rate:.0f} B/s"
+
+
+def why_no_packets(lidar: Lidar, last: _Counts, now: _Counts) -> str:
+    """What the parser made of bytes that held no valid packet, from *last* to *now*, likeliest cause first.
+
+    A valid CRC over impossible angles is the device's doing (random bytes
+    pass both checks about once in 200 million); packet windows failing
+    their CRC, when they account for most of the bytes, are line noise or a
+    wrong baud rate; bytes with no packet header at all are a wrong baud
+    rate or another device. (Random bytes hold a data packet's two-byte
+    header once in 65,536, so a few CRC failures among many bytes do not
+    make noise the cause.)
+    """
+    received = now.bytes - last.bytes
+    implausible = now.implausible - last.implausible
+    crc_errors = now.crc_errors - last.crc_errors
+    health = now.health_frames - last.health_frames
+    counts = f"{crc_errors} failed CRC, {implausible} with impossible angles"
+    if implausible:
+        return f"packets with a valid CRC but impossible angles: a device fault ({counts})"
+    if health:
+        code = lidar.stats.last_health_code
+        return f"{health} health frame(s), last error code {code}, and no data packet ({counts})"
+    if crc_errors * PACKET_SIZE * 2 >= received:
+        return f"packets failing their CRC: line noise or a wrong baud rate ({counts})"
+    return (
+        f"no packet header in them: a wrong baud rate (reading at {lidar.baudrate}) or not an LD-series LiDAR "
+        f"({counts})"
+    )

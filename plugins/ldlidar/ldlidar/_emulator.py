@@ -248,6 +248,17 @@ class Emulator:
             raise LidarError(f"emulator is {self.state}: no link")
         return os.path.join(self._dir, f"ldlidar-{self.model.name.lower()}")
 
+    def owns(self, device: int) -> bool:
+        """Whether *device* (an ``st_rdev``) is this emulator's pseudo-terminal, now.
+
+        What a node that started this emulator admits besides the
+        operator's device policy (:meth:`container.devices.DevicePolicy.with_own_devices`):
+        this very pty, not pseudo-terminals at large.
+        """
+        with self._lock:
+            slave = self._slave
+            return slave is not None and os.fstat(slave).st_rdev == device
+
     async def __aenter__(self) -> Self:
         await self.start()
         return self

@@ -6,7 +6,8 @@
     └── LidarError                 anything this package raises on purpose
         ├── ProtocolError          bytes that are not a valid frame
         └── DeviceError            a device (serial port, capture file, emulator) failed
-                                   (also a container.DeviceError)
+            │                      (also a container.DeviceError)
+            └── DeviceRefused      the device policy refused what the port names now
 
 A container that loads the node, or a program that drives a :class:`Lidar`,
 can therefore catch ``container.ContainerError`` or ``container.DeviceError``
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import container
 
-__all__ = ["DeviceError", "LidarError", "ProtocolError"]
+__all__ = ["DeviceError", "DeviceRefused", "LidarError", "ProtocolError"]
 
 
 class LidarError(container.ContainerError):
@@ -36,4 +37,15 @@ class DeviceError(LidarError, container.DeviceError):
     """A device failed: it could not open, vanished, or sent nothing valid.
 
     :param device: the port, URL or file of the device.
+    """
+
+
+class DeviceRefused(DeviceError):
+    """The container's device policy refused what the port names, at this open.
+
+    Chained to the policy's :class:`container.devices.PortRefused`. A
+    device error all the same: a port that named a serial adapter at
+    configure may name something else when it is reopened (a re-pointed
+    symlink), and the reopen loop keeps waiting for the device, opening
+    nothing meanwhile.
     """

@@ -4,6 +4,9 @@ The community driver exits when the port cannot open and never reopens after
 a USB adapter is pulled. Here :meth:`Lidar.open` raises :class:`DeviceError`
 (so a configure transition can fail cleanly), and :meth:`Lidar.scans` keeps
 reopening the same path (a udev or emulator symlink) until it comes back.
+Every open, each reopen included, asks the container's device policy anew:
+a symlink re-pointed while the device was away is decided on what it
+points to now, and refused without being opened.
 
 Faults are never quiet: a caller passes ``on_event`` and hears of the device
 being lost, reconnected (and after how long), stalling (and for how long)
@@ -21,7 +24,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from ._errors import DeviceError
+from container.devices import DevicePolicy
+
+from ._errors import DeviceError, DeviceRefused
 from ._parser import ParserStats, StreamParser
 from ._protocol import PACKET_SIZE, Model, get_model
 from ._scan import Direction, Scan, ScanAssembler
@@ -32,7 +37,7 @@ __all__ = ["EventKind", "Lidar"]
 #: Bytes gathered before parsing at the latest, whatever is expected.
 _HOLD_MAX = 16384
 
-EventKind = Literal["lost", "reconnected", "stalled", "clock_jump"]
+EventKind = Literal["lost", "reconnected", "refused", "stalled", "clock_jump"]
 """What :class:`Lidar` reports through ``on_event``."""
 
 
@@ -58,7 +63,10 @@ class Lidar:
         count as a stall (reported when data resumes).
     :param on_event: called with an :data:`EventKind` and a one-line
         message when the device is lost or reconnected, stalls, or its clock
-        jumps.
+        jumps, and when the device policy refuses a reopen (once per reason).
+    :param policy: what the port may name, decided at every open and
+        reopen; the process's (:func:`container.devices.device_policy`) if
+        not given.
     :param bins, direction, range_min, range_max, crop, noise_filter: see
         :class:`ScanAssembler`.
     :ivar state: ``unopened``, ``open``, ``reconnecting`` (the port failed and
@@ -67,6 +75,10 @@ class Lidar:
     :ivar stalls: stalls (see *stall*) since :meth:`open`.
     :ivar last_error: why the device failed or a reopen attempt failed,
         while it is being reopened; ``None`` when it works.
+    :ivar bytes_read: bytes read from the port since :meth:`open`, valid or
+        not (with :attr:`stats`, tells a silent port from a garbled one).
+    :ivar packet_time: ``time.monotonic()`` when the latest valid packet was
+        parsed; ``None`` before the first.
     """
 
     def __init__(
@@ -89,8 +101,10 @@ class Lidar:
         clock: Callable[[], float] = time.time,
         stall: float = 0.25,
         on_event: Callable[[EventKind, str], None] | None = None,
+        policy: DevicePolicy | None = None,
     ) -> None:
         self.port = port
+        self.policy = policy
         self.model = get_model(model) if isinstance(model, str) else model
         self.baudrate = baudrate if baudrate is not None else self.model.baudrate
         self.poll_interval = poll_interval
@@ -117,6 +131,8 @@ class Lidar:
         self.reopens = 0
         self.last_error: str | None = None
         self.stalls = 0
+        self.bytes_read = 0
+        self.packet_time: float | None = None
         self._held = b""
         self._held_time = 0.0
         self._last_packet = 0.0
@@ -155,7 +171,9 @@ class Lidar:
         self.state = "open"
 
     async def _connect(self) -> None:
-        source = open_source(self.port, baudrate=self.baudrate, poll_interval=self.poll_interval)
+        source = open_source(
+            self.port, baudrate=self.baudrate, poll_interval=self.poll_interval, policy=self.policy
+        )
         await source.open()
         self._source = source
         if isinstance(source, ReplaySource) and source.rate is not None:
@@ -168,6 +186,7 @@ class Lidar:
                     if not chunk:
                         raise DeviceError("capture holds no valid packet", device=self.port)
                     received += len(chunk)
+                    self.bytes_read += len(chunk)
                     rows = self.parser.feed_rows(chunk)
                     if len(rows):
                         self._pending.append((rows, self._clock()))
@@ -190,7 +209,7 @@ class Lidar:
             # leave the port open behind the caller's back.
             await source.close()
             raise
-        self._last_packet = time.monotonic()
+        self._last_packet = self.packet_time = time.monotonic()
 
     async def scans(self) -> AsyncIterator[Scan]:
         """Yield scans until :meth:`close`, reopening the port after failures.
@@ -253,6 +272,7 @@ class Lidar:
                         yield scan
                 await self.close()
                 return
+            self.bytes_read += len(chunk)
             now = time.monotonic()
             if now - self._last_packet > self.stall:
                 self.stalls += 1
@@ -274,6 +294,7 @@ class Lidar:
             rows = self.parser.feed_rows(held)
             if len(rows):
                 self._pending.append((rows, self._held_time))
+                self.packet_time = time.monotonic()
 
     def _event(self, kind: EventKind, message: str) -> None:
         if self._on_event is not None:
@@ -322,6 +343,8 @@ class Lidar:
             try:
                 await self._connect()
             except DeviceError as exc:
+                if isinstance(exc, DeviceRefused) and str(exc) != self.last_error:
+                    self._event("refused", f"{self.port}: not reopened: {exc.reason}")
                 self.last_error = str(exc)
                 if self.reopen_max_interval is not None:
                     interval = min(interval * 2, max(self.reopen_max_interval, self.reopen_interval))

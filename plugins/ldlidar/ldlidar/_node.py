@@ -15,6 +15,7 @@ stalled, its clock jumping) are logged as warnings, not only counted on
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Sequence
 from typing import Any, Final
 
@@ -28,13 +29,14 @@ from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverriding
 from rclpy.timer import Timer
 from sensor_msgs.msg import LaserScan
 
-from container import ConfigError, DeviceError, LifecycleNode, Throttle
+from container import ConfigError, DeviceError, LifecycleNode, Throttle, clip
 from container.devices import DevicePolicy, PortRefused, device_policy
 
-from ._diagnostics import DIAGNOSTICS_PERIOD, Diagnostics
+from ._diagnostics import Diagnostics
 from ._emulator import Emulator
 from ._lidar import EventKind, Lidar
 from ._messages import to_laser_scan
+from ._outage import OutageLog
 from ._ports import AUTO_PORT_PATTERNS, find_serial_ports
 from ._protocol import Model
 from ._scan import Scan
@@ -79,6 +81,10 @@ _REOPEN_MAX_INTERVAL: Final = 2.0
 _EVENT_LOG_PERIOD: Final = 10.0
 _THROTTLED_EVENTS: Final = frozenset({"clock_jump", "stalled"})
 
+#: Characters of a device event's line: its port and its reason (an OS or
+#: pyserial error may echo the port, which a peer chose), clipped beyond.
+_EVENT_LIMIT: Final = 800
+
 
 class LdLidarNode(LifecycleNode):
     """An LDRobot LD06 / LD19 / STL-27L LiDAR publishing ``~/scan`` while active.
@@ -121,6 +127,7 @@ class LdLidarNode(LifecycleNode):
         self._diagnostics_publisher: Publisher[Any] | None = None
         self._diagnostics_timer: Timer | None = None
         self._diagnostics: Diagnostics | None = None
+        self._outage: OutageLog | None = None
         self._scans = 0
         self._published = 0
         self._message: LaserScan | None = None
@@ -179,7 +186,7 @@ class LdLidarNode(LifecycleNode):
             raise
         assert self._lidar is not None
         log.info(
-            f"Configured: {settings.model.name} on {self._lidar.port} at {self._lidar.baudrate} "
+            f"Configured: {settings.model.name} on {clip(self._lidar.port)} at {self._lidar.baudrate} "
             f"baud; publishing on {self._scan_publisher_topic()} once active"
         )
         return SUCCESS
@@ -231,12 +238,18 @@ class LdLidarNode(LifecycleNode):
             recorded on the node, for :meth:`_release` to close.
         """
         port = settings.port
+        # A parameter may come from any peer that can load a node: the
+        # container's device policy (the operator's) says what it may name,
+        # here and at every open the Lidar makes, reopens included.
+        policy = device_policy()
         if port.lower() == "auto":
             port = await self._auto_port(settings.model)
+            if self._emulator is not None:
+                # Our own emulator's pty, whatever the operator's patterns
+                # say of pseudo-terminals; no other pty.
+                policy = policy.with_own_devices(self._emulator.owns)
         else:
-            # A parameter may come from any peer that can load a node: the
-            # container's device policy (the operator's) says what it may name.
-            device_policy().check_port(port)
+            policy.check_port(port)
         lidar = Lidar(
             port,
             model=settings.model,
@@ -253,6 +266,7 @@ class LdLidarNode(LifecycleNode):
             reopen_interval=_REOPEN_INTERVAL,
             reopen_max_interval=_REOPEN_MAX_INTERVAL,
             on_event=self._device_event,
+            policy=policy,
         )
         await lidar.open()
         self._settings = settings
@@ -260,12 +274,13 @@ class LdLidarNode(LifecycleNode):
         self._scans = self._published = 0
         self._reader_error = None
         self._diagnostics = Diagnostics(lidar, node_name=self.get_name(), emulated=self._emulator is not None)
+        self._outage = OutageLog(lidar, threshold=settings.outage)
         self._scan_publisher = self._create_scan_publisher()
         self._diagnostics_publisher = self.create_publisher(
             DiagnosticArray, "/diagnostics", 10, managed=False
         )
         self._diagnostics_timer = self.create_timer(
-            DIAGNOSTICS_PERIOD, self._publish_diagnostics, managed=False
+            settings.diagnostics_period, self._publish_diagnostics, managed=False
         )
         self._reader = asyncio.get_running_loop().create_task(
             self._read(lidar), name=f"ldlidar-reader:{self.get_fully_qualified_name()}"
@@ -290,6 +305,7 @@ class LdLidarNode(LifecycleNode):
             raise ConfigError(str(exc), source=f"qos_overrides.{self.resolve_topic_name('~/scan')}") from None
 
     def _device_event(self, kind: EventKind, message: str) -> None:
+        message = clip(message, limit=_EVENT_LIMIT)
         if kind in _THROTTLED_EVENTS:
             self._events(kind, message)
         else:
@@ -323,6 +339,10 @@ class LdLidarNode(LifecycleNode):
             await asyncio.wait([reader])
         lidar, self._lidar = self._lidar, None
         self._diagnostics = None
+        outage, self._outage = self._outage, None
+        notice = outage.close(time.monotonic()) if outage is not None else None
+        if notice is not None:
+            self.get_logger().info(notice.message)
         if lidar is not None:
             await lidar.close()
         if self._diagnostics_timer is not None:
@@ -353,13 +373,13 @@ class LdLidarNode(LifecycleNode):
             raise
         except Exception as exc:
             self._reader_error = exc
-            log.error(f"Reading {lidar.port} failed: {type(exc).__name__}: {exc}")
+            log.error(f"Reading {clip(lidar.port)} failed: {type(exc).__name__}: {clip(str(exc), limit=_EVENT_LIMIT)}")
             # Error processing closes everything; it must not run inside the
             # task it cancels, so it gets a task of its own.
             self._failing = asyncio.get_running_loop().create_task(self.fail(exc))
             return
         log.info(
-            f"End of {lidar.port}: {lidar.stats.packets} packets, {self._scans} scans; "
+            f"End of {clip(lidar.port)}: {lidar.stats.packets} packets, {self._scans} scans; "
             "nothing more to publish"
         )
 
@@ -387,8 +407,8 @@ class LdLidarNode(LifecycleNode):
         if self._lidar is None:
             return "the port is not open"
         if self._reader_error is not None:
-            return f"reading failed: {self._reader_error}"
-        return f"{self._lidar.port} has ended"
+            return f"reading failed: {clip(str(self._reader_error), limit=_EVENT_LIMIT)}"
+        return f"{clip(self._lidar.port)} has ended"
 
     async def _publish_diagnostics(self) -> None:
         diagnostics, publisher = self._diagnostics, self._diagnostics_publisher
@@ -405,6 +425,15 @@ class LdLidarNode(LifecycleNode):
                 failed=self._reader_error is not None,
             )
         )
+        # The log hears of a long outage twice, when it starts and when it ends, never once a period.
+        notice = self._outage.update(diagnostics.counts, reading=reading) if self._outage is not None else None
+        if notice is None:
+            return
+        # Two call sites: rclpy refuses one call site logging at two severities.
+        if notice.started:
+            self.get_logger().warning(notice.message)
+        else:
+            self.get_logger().info(notice.message)
 
 
 def _allowed(policy: DevicePolicy, port: str) -> bool:

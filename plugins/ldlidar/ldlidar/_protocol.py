@@ -26,6 +26,8 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Final
 
+from container import clip
+
 from ._errors import ProtocolError
 
 __all__ = [
@@ -145,7 +147,7 @@ def get_model(name: str) -> Model:
         return MODELS[key]
     except KeyError:
         raise ValueError(
-            f"unknown LiDAR model {name!r}; known: {', '.join(MODELS)}"
+            f"unknown LiDAR model {clip(name, quote=True)}; known: {', '.join(MODELS)}"
         ) from None
 
 

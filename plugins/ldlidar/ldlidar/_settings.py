@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Final
 
-from container import ConfigError, checks
+from container import ConfigError, checks, clip
 
 from ._protocol import Model, get_model
 from ._scan import Direction
@@ -30,6 +30,21 @@ __all__ = ["ALIASES", "PARAMETERS", "REFUSED", "Migration", "Settings", "migrate
 #: Largest ``comm.poll_msec``: 30 ms of an STL-27L at 921600 baud is 2.8 kB,
 #: within the 4 KiB the kernel's line discipline buffers between two reads.
 _MAX_POLL_MS: Final = 30
+
+#: Bounds of ``diagnostics.period_msec``: a report costs a message of some
+#: 20 values; ten a second is plenty for a person or an aggregator, and one a
+#: minute is as rare as a status can be and still be current.
+_MIN_PERIOD_MS: Final = 100
+_MAX_PERIOD_MS: Final = 60000
+
+#: Default ``diagnostics.outage_msec``. Longer than what the node rides out
+#: by itself, each with a line or a count of its own (a stall, a revolution
+#: of line noise, a replug: ``comm.timeout_msec`` and the first reopen
+#: attempts, 1 + 0.1 + 0.2 + 0.4 + 0.8 + 1.6 s by default), so that only
+#: an outage a person must hear of is logged; the same as
+#: diagnostic_aggregator's default ``timeout``, after which it marks a
+#: silent status stale.
+_OUTAGE_MS: Final = 5000
 
 #: (name, default, description) of every parameter, in declaration order.
 PARAMETERS: Final[tuple[tuple[str, Any, str], ...]] = (
@@ -64,6 +79,17 @@ PARAMETERS: Final[tuple[tuple[str, Any, str], ...]] = (
     ("lidar.units", "M", "Units of the ranges: only M (metres, as sensor_msgs/LaserScan defines them)."),
     ("general.publish_when_subscribed", False, "Build and publish scans only while ~/scan has a subscriber."),
     ("general.debug_mode", False, "Log at debug level, one line per revolution."),
+    (
+        "diagnostics.period_msec",
+        1000,
+        f"Milliseconds between two /diagnostics reports ({_MIN_PERIOD_MS}-{_MAX_PERIOD_MS}).",
+    ),
+    (
+        "diagnostics.outage_msec",
+        _OUTAGE_MS,
+        "Milliseconds without a valid packet after which an outage is logged (a WARN when it starts, "
+        "an INFO when it ends).",
+    ),
 )
 
 _TOPIC_REMAP = (
@@ -163,6 +189,10 @@ class Settings:
     range_min: float
     range_max: float
     crop: tuple[float, float] | None
+    #: Seconds between two ``/diagnostics`` reports.
+    diagnostics_period: float
+    #: Seconds without a valid packet that make an outage worth a log line.
+    outage: float
     noise_filter: bool = False
     publish_when_subscribed: bool = False
     debug: bool = False
@@ -199,7 +229,7 @@ def read_settings(value: Callable[[str], Any]) -> Settings:
         raise ConfigError(str(exc), source=_where("lidar.model")) from None
     verse = text("lidar.rot_verse").upper()
     if verse not in ("CW", "CCW"):
-        raise ConfigError(f"must be 'CW' or 'CCW', not {verse!r}", source=_where("lidar.rot_verse"))
+        raise ConfigError(f"must be 'CW' or 'CCW', not {clip(verse, quote=True)}", source=_where("lidar.rot_verse"))
     frame_id = text("lidar.frame_id")
     bins = checks.integer(value("lidar.bins"), where=_where("lidar.bins"), minimum=0)
     range_min = checks.number(value("lidar.range_min"), where=_where("lidar.range_min"), minimum=0)
@@ -211,7 +241,7 @@ def read_settings(value: Callable[[str], Any]) -> Settings:
     units = text("lidar.units").upper()
     if units not in ("M", "METERS", "METRES"):
         raise ConfigError(
-            f"only M (metres) is supported, not {units!r}: sensor_msgs/LaserScan ranges are metres "
+            f"only M (metres) is supported, not {clip(units, quote=True)}: sensor_msgs/LaserScan ranges are metres "
             "(REP 103), and consumers (slam_toolbox, nav2, rviz2) read them so",
             source=_where("lidar.units"),
         )
@@ -240,6 +270,15 @@ def read_settings(value: Callable[[str], Any]) -> Settings:
             value("general.publish_when_subscribed"), where=_where("general.publish_when_subscribed")
         ),
         debug=checks.boolean(value("general.debug_mode"), where=_where("general.debug_mode")),
+        diagnostics_period=checks.number(
+            value("diagnostics.period_msec"),
+            where=_where("diagnostics.period_msec"),
+            minimum=_MIN_PERIOD_MS,
+            maximum=_MAX_PERIOD_MS,
+        )
+        / 1000,
+        outage=checks.number(value("diagnostics.outage_msec"), where=_where("diagnostics.outage_msec"), positive=True)
+        / 1000,
     )
 
 

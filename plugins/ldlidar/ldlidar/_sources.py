@@ -3,8 +3,12 @@
 Both are async byte-chunk sources with the same small surface (:class:`Source`)
 and an explicit state: ``unopened`` → ``open`` → ``closed``; a closed source
 is not reopened, a new one is made (the port may be a different device by
-then). Serial and OS errors are translated into :class:`DeviceError` here,
-at the boundary, chained to the original.
+then). Every open goes through the container's device policy
+(:mod:`container.devices`): a serial port is opened and checked by
+:meth:`DevicePolicy.open_serial` and only then handed to pyserial, a capture
+by :meth:`DevicePolicy.open_replay`. Serial and OS errors are translated
+into :class:`DeviceError` here, at the boundary, chained to the original; a
+refusal is a :class:`DeviceRefused`.
 """
 
 from __future__ import annotations
@@ -13,12 +17,14 @@ import asyncio
 import contextlib
 import errno
 import os
-import stat
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any, Literal, Protocol, Self
 from urllib.parse import parse_qs, unquote, urlsplit
 
-from ._errors import DeviceError
+import container
+from container.devices import DevicePolicy, PortRefused, device_policy
+
+from ._errors import DeviceError, DeviceRefused
 
 if TYPE_CHECKING:
     from types import TracebackType
@@ -129,6 +135,8 @@ class SerialSource(_Base):
     :param poll_interval: seconds between reads while nothing is due;
         ``None`` reads through pyserial-asyncio as soon as bytes arrive
         (every burst wakes the loop).
+    :param policy: what the port may name, decided at every open; the
+        process's (:func:`container.devices.device_policy`) if not given.
     """
 
     def __init__(
@@ -138,8 +146,10 @@ class SerialSource(_Base):
         baudrate: int,
         read_size: int = 4096,
         poll_interval: float | None = None,
+        policy: DevicePolicy | None = None,
     ) -> None:
         super().__init__(port)
+        self.policy = policy
         if poll_interval is not None and poll_interval <= 0:
             raise ValueError(f"poll_interval must be positive or None, got {poll_interval}")
         self.baudrate = baudrate
@@ -157,8 +167,10 @@ class SerialSource(_Base):
         self._more = False
 
     async def open(self) -> None:
-        """Open the port at :attr:`baudrate`.
+        """Open the port at :attr:`baudrate`, if the device policy admits what it names now.
 
+        :raises DeviceRefused: the policy refuses it; nothing was opened,
+            or what was opened was closed untouched.
         :raises DeviceError: the port does not exist, is busy, or refuses
             the settings.
         """
@@ -167,18 +179,26 @@ class SerialSource(_Base):
         import serial_asyncio
 
         loop = asyncio.get_running_loop()
+        policy = self.policy if self.policy is not None else device_policy()
+        # Off the event loop, and bounded: opening can block (a network URL
+        # connecting, a device that does not answer its ioctls). Shielded:
+        # a port the thread opens after the wait ended is closed, not leaked.
+        opening = asyncio.ensure_future(asyncio.to_thread(_open_port, policy, self._device, self.baudrate))
         try:
-            # Off the event loop, and bounded: opening can block (a network
-            # URL connecting, a device that does not answer its ioctls).
-            # timeout=0: a read returns at once with whatever is there.
-            opening = asyncio.to_thread(serial.serial_for_url, self._device, baudrate=self.baudrate, timeout=0)
-            instance = await asyncio.wait_for(opening, OPEN_TIMEOUT)
-        except TimeoutError:
+            instance = await asyncio.wait_for(asyncio.shield(opening), OPEN_TIMEOUT)
+        except BaseException as exc:
             self._state = "closed"
-            raise DeviceError(f"opening took over {OPEN_TIMEOUT:g} s", device=self._device) from None
-        except (serial.SerialException, OSError, ValueError) as exc:
-            self._state = "closed"
-            raise DeviceError(f"cannot open at {self.baudrate} baud: {exc}", device=self._device) from exc
+            if not opening.done():
+                opening.add_done_callback(_close_late)
+            if isinstance(exc, TimeoutError):
+                raise DeviceError(f"opening took over {OPEN_TIMEOUT:g} s", device=self._device) from None
+            if isinstance(exc, PortRefused):
+                raise DeviceRefused(exc.reason, device=self._device) from exc
+            if isinstance(exc, container.DeviceError):
+                raise DeviceError(exc.reason, device=self._device) from exc
+            if isinstance(exc, (serial.SerialException, OSError, ValueError)):
+                raise DeviceError(f"cannot open at {self.baudrate} baud: {exc}", device=self._device) from exc
+            raise
         if self.poll_interval is None:
             # What serial_asyncio.open_serial_connection builds, around the port opened above.
             reader = asyncio.StreamReader(limit=_STREAM_LIMIT, loop=loop)
@@ -303,6 +323,35 @@ class SerialSource(_Base):
                 await writer.wait_closed()
 
 
+def _open_port(policy: DevicePolicy, port: str, baudrate: int) -> Any:
+    """Open *port* as the policy allows and return the ``serial.Serial`` (on a worker thread).
+
+    A device path is opened and checked by the policy, then handed to
+    pyserial by descriptor; a pyserial URL (``socket://``) is checked, then
+    opened by pyserial. Told apart as :meth:`DevicePolicy.check_port` tells
+    them: whatever it takes for a path is opened as one.
+    """
+    import serial
+
+    from ._pyserial import serial_on_descriptor
+
+    if urlsplit(port).scheme and "://" in port:
+        policy.check_port(port)
+        return serial.serial_for_url(port, baudrate=baudrate, timeout=0)
+    fd = policy.open_serial(port)
+    try:
+        return serial_on_descriptor(fd, baudrate=baudrate)
+    finally:
+        os.close(fd)
+
+
+def _close_late(opening: asyncio.Future[Any]) -> None:
+    """Close a port whose open finished after its caller stopped waiting."""
+    if not opening.cancelled() and opening.exception() is None:
+        with contextlib.suppress(Exception):
+            opening.result().close()
+
+
 class ReplaySource(_Base):
     """A capture file streamed at the pace its device sent it.
 
@@ -319,6 +368,11 @@ class ReplaySource(_Base):
     :param tick: packets due within this many seconds of each other go in
         one chunk, as a USB adapter delivers bursts.
     :param loop: start over at the end instead of ending.
+    :param max_bytes: the largest capture read, below the policy's
+        ``replay_max_bytes``; ``None``: the policy's.
+    :param policy: where a capture may be and how big, decided at every
+        open; the process's (:func:`container.devices.device_policy`) if not
+        given.
     """
 
     def __init__(
@@ -329,8 +383,10 @@ class ReplaySource(_Base):
         tick: float = 0.005,
         loop: bool = False,
         max_bytes: int | None = None,
+        policy: DevicePolicy | None = None,
     ) -> None:
         super().__init__(os.fspath(path))
+        self.policy = policy
         #: The largest capture read; ``None``: any size.
         self.max_bytes = max_bytes
         if rate is not None and not rate > 0:
@@ -348,18 +404,26 @@ class ReplaySource(_Base):
         self._begin = 0.0
 
     async def open(self) -> None:
-        """Read the capture and work out when each packet is due.
+        """Read the capture, if the device policy admits it now, and work out when each packet is due.
 
+        :raises DeviceRefused: the policy refuses it (where it is, what it is, its size).
         :raises DeviceError: the file is missing or unreadable.
         """
         self._require("unopened", "open")
+        policy = self.policy if self.policy is not None else device_policy()
         try:
             self._data = await asyncio.wait_for(
-                asyncio.to_thread(_read_regular_file, self._device, self.max_bytes), OPEN_TIMEOUT
+                asyncio.to_thread(_read_capture, policy, self._device, self.max_bytes), OPEN_TIMEOUT
             )
         except TimeoutError:
             self._state = "closed"
             raise DeviceError(f"reading the capture took over {OPEN_TIMEOUT:g} s", device=self._device) from None
+        except PortRefused as exc:
+            self._state = "closed"
+            raise DeviceRefused(exc.reason, device=self._device) from exc
+        except container.DeviceError as exc:
+            self._state = "closed"
+            raise DeviceError(exc.reason, device=self._device) from exc
         except OSError as exc:
             self._state = "closed"
             raise DeviceError(f"cannot read capture: {exc.strerror or exc}", device=self._device) from exc
@@ -406,27 +470,27 @@ class ReplaySource(_Base):
         self._data = b""
 
 
-def _read_regular_file(path: str, max_bytes: int | None) -> bytes:
-    """Read ``path``, which must be a regular file of at most ``max_bytes``.
+def _read_capture(policy: DevicePolicy, path: str, max_bytes: int | None) -> bytes:
+    """Read the capture at ``path``: a regular file the policy admits, of at most ``max_bytes``.
 
-    Opened without blocking and checked on the open descriptor, so a named
-    pipe or a device (``/dev/zero``) put there after any earlier check is
-    refused before a single read, and never fills memory.
+    Opened by the policy, without blocking, and checked on the open
+    descriptor, so a named pipe or a device (``/dev/zero``) put there after
+    any earlier check is refused before a single read, and never fills
+    memory.
     """
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    fd = policy.open_replay(path)
     try:
         info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise OSError(errno.EINVAL, "not a regular file (a pipe or a device?)")
-        if max_bytes is not None and info.st_size > max_bytes:
+        max_bytes = policy.replay_max_bytes if max_bytes is None else min(max_bytes, policy.replay_max_bytes)
+        if info.st_size > max_bytes:
             raise OSError(errno.EFBIG, f"the capture is {info.st_size} bytes, over the {max_bytes} allowed")
         with os.fdopen(fd, "rb", closefd=True) as file:
             fd = -1
-            data = file.read(info.st_size if max_bytes is None else max_bytes + 1)
+            data = file.read(max_bytes + 1)
     finally:
         if fd >= 0:
             os.close(fd)
-    if max_bytes is not None and len(data) > max_bytes:
+    if len(data) > max_bytes:
         raise OSError(errno.EFBIG, f"the capture grew over the {max_bytes} bytes allowed")
     return data
 
@@ -452,14 +516,20 @@ def replay_schedule(data: bytes) -> tuple[list[int], list[float], float]:
 
 
 def open_source(
-    url: str, *, baudrate: int, read_size: int = 4096, poll_interval: float | None = None
+    url: str,
+    *,
+    baudrate: int,
+    read_size: int = 4096,
+    poll_interval: float | None = None,
+    policy: DevicePolicy | None = None,
 ) -> SerialSource | ReplaySource:
     """Return an unopened source for *url*.
 
     ``file://path`` (or ``file:path``) replays a capture at the pace of the
     device's own timestamps; ``?rate=2`` replays it twice as fast, ``?loop=1``
     over and over. Anything else is a serial port or pyserial URL, read as
-    :class:`SerialSource` with *poll_interval*.
+    :class:`SerialSource` with *poll_interval*. Either opens as *policy*
+    allows (the process's device policy if not given).
 
     :raises DeviceError: a ``file:`` URL with a query it does not know.
     """
@@ -472,8 +542,9 @@ def open_source(
             if unknown:
                 raise ValueError(f"unknown option(s) {', '.join(unknown)}; known: rate, loop")
             rate = float(options.get("rate", ["1"])[-1])
-            replay = ReplaySource(path, rate=rate, loop=options.get("loop", ["0"])[-1] in ("1", "true", "yes"))
+            looping = options.get("loop", ["0"])[-1] in ("1", "true", "yes")
+            replay = ReplaySource(path, rate=rate, loop=looping, policy=policy)
         except ValueError as exc:
             raise DeviceError(f"bad replay URL: {exc}", device=url) from None
         return replay
-    return SerialSource(url, baudrate=baudrate, read_size=read_size, poll_interval=poll_interval)
+    return SerialSource(url, baudrate=baudrate, read_size=read_size, poll_interval=poll_interval, policy=policy)

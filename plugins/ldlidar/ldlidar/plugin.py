@@ -52,6 +52,11 @@ lidar.noise_filter                 false               drop isolated dim returns
 lidar.units                        ``M``               only metres; anything else is refused
 general.publish_when_subscribed    false               publish only while ~/scan has a subscriber
 general.debug_mode                 false               debug logging, a line per revolution
+diagnostics.period_msec            1000                ms between two ``/diagnostics`` reports
+                                                       (100-60000)
+diagnostics.outage_msec            5000                ms without a valid packet after which an
+                                                       outage is logged (WARN when it starts,
+                                                       INFO when it ends)
 qos_overrides./<node>/scan.        reliable, volatile, ~/scan's QoS, overridden the ROS way
 publisher.<policy>                 keep_last, 10
 =================================  ==================  =============================================
@@ -66,10 +71,11 @@ Topics:
   LaserScan display subscribes reliable by default and would never match a
   best-effort publisher; a best-effort (SensorData) subscriber such as
   slam_toolbox's still matches a reliable one.
-* ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``), about once a second
-  while configured (inactive or active): packet and scan rates, CRC errors,
-  resyncs, skipped bytes, reopens, stalls, clock jumps; level ERROR when no
-  data arrives.
+* ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``), every
+  ``diagnostics.period_msec`` while configured (inactive or active): packet,
+  scan and byte rates, CRC errors, resyncs, skipped bytes, reopens, stalls,
+  clock jumps; level ERROR when no valid packet arrives, saying whether no
+  bytes arrive or bytes that form no valid packet (at what rate, and why).
 
 The port is read from ``configure`` to ``cleanup``: a deactivated node stops
 publishing but keeps reading, so the parser and the device clock stay in sync.

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import ctypes
 import inspect
 import re
 import sys
@@ -61,6 +62,7 @@ __all__ = [
     "managed_entities",
     "mark_event_ready",
     "raise_client_not_matched",
+    "request_client",
     "running_loop",
     "runs_plain_callback",
     "set_event_index",
@@ -205,6 +207,37 @@ def client_not_matched(error: BaseException) -> bool:
     if isinstance(error, RuntimeWarning):
         return _CLIENT_NOT_MATCHED in str(error)
     return isinstance(error, RCLError) and "will not receive response" in str(error)
+
+
+#: Where a pybind11 instance keeps the pointer to its C++ value: right after the
+#: object header (pybind11's ``instance::simple_value_holder[0]``, since 2.2).
+_PYBIND_VALUE_AT = object.__basicsize__
+#: ``rmw_request_id_t``: ``int8_t writer_guid[16]`` then ``int64_t sequence_number``.
+_GUID_SIZE = 16
+_REQUEST_ID_SIZE = 24
+
+
+def request_client(header: Any) -> bytes | None:
+    """The client a request came from: the GUID in rclpy's request header (a
+    ``rmw_service_info_t`` or its ``request_id``), or ``None`` if it cannot be read.
+
+    rclpy's binding of ``rmw_request_id_t`` exposes the sequence number and
+    not ``writer_guid`` (rclpy 7 and 9): the GUID is read from the C struct
+    the pybind11 instance points to, and trusted only when the sequence
+    number read beside it is the one rclpy reports (else ``None``: a
+    layout this does not know).
+    """
+    request_id: Any = getattr(header, "request_id", header)
+    kind = type(request_id)
+    if kind is not RequestId:
+        return None
+    address = ctypes.c_void_p.from_address(id(request_id) + _PYBIND_VALUE_AT).value
+    if not address:
+        return None
+    raw = ctypes.string_at(address, _REQUEST_ID_SIZE)
+    if int.from_bytes(raw[_GUID_SIZE:], sys.byteorder, signed=True) != request_id.sequence_number:
+        return None
+    return raw[:_GUID_SIZE]
 
 
 def raise_client_not_matched() -> None:

@@ -61,7 +61,7 @@ from ._compat import RCLError
 from ._errors import SecurityError
 from ._runtime import configure_warnings, use_fast_discovery
 from ._security import NO_SECURITY_PLUGINS, check_security, clear_rcl_error
-from .executor import AsyncioExecutor, end_spare_threads
+from .executor import AsyncioExecutor, end_resender, end_spare_threads
 
 __all__ = [
     "EXIT_FAILURE",
@@ -259,6 +259,9 @@ def run_session(
                 code = exit_code_for(session.signal)
         finally:
             clean = executor.shutdown()
+            # The container's own thread, not a plugin's: ended before the
+            # context, its answers to clients that never matched dropped.
+            end_resender(timeout=1.0)
             if session.hard_stop is not None:
                 session.hard_stop.join(1.0)
             if session.signal is None:

@@ -167,8 +167,8 @@ def test_public_names_are_exactly_these() -> None:
     assert container.executor.__all__ == [
         "HAS_PUBLISHER_GID", "Accounting", "AsyncioExecutor", "CallbackErrorHandler", "CallbackLoad", "ContainerLoad",
         "Escaped", "ExecutorState", "GroupLoad", "NodeLoad", "call_soon", "contained", "describe",
-        "end_spare_threads", "format_plugin_frames", "in_thread", "publisher_gid", "result", "run_coroutine",
-        "working_for",
+        "end_resender", "end_spare_threads", "format_plugin_frames", "in_thread", "publisher_gid", "result",
+        "run_coroutine", "working_for",
     ]  # fmt: skip
     assert container.lifecycle.__all__ == [
         "LifecycleClient", "LifecycleManager", "LifecycleNode", "ManagerSettings", "bring_down", "bring_up",

@@ -6,14 +6,19 @@ import itertools
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from composition_interfaces.srv import ListNodes
+from lifecycle_msgs.srv import GetState
 from rcl_interfaces.srv import GetParameters
 from rclpy.client import Client
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
 
 from container import AsyncioExecutor
 from tests.component_support import ContainerClient, load_request, parameter
@@ -240,3 +245,61 @@ def test_a_load_period_that_is_not_a_positive_number_is_a_usage_error(value: str
         result.stderr
     )
     assert "Traceback" not in result.stderr
+
+
+def test_a_client_that_never_matches_costs_the_container_nothing_and_shutdown_exits_0(
+    run_container: Callable[..., ContainerProcess], client_node: Node, executor: AsyncioExecutor
+) -> None:
+    """The issue's attack: a keep-all, reliable, transient-local client (its response
+    reader never matches the services' volatile writers) asks the container's
+    ``list_nodes`` and a hosted node's ``get_state`` 50 times each while the
+    talker publishes at 20 Hz: the talker keeps its period (largest gap under
+    two periods, as the test process receives it), each client is given up on
+    in one log line, and SIGINT still ends the container with exit 0, its
+    resender not counted as a plugin's thread."""
+    unmatchable = QoSProfile(
+        history=HistoryPolicy.KEEP_ALL,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    proc = run_container("container:\n  name: ComponentManager\n" + DEMO)
+    proc.wait_for_line("I heard: [Hello World:")
+    heard: list[float] = []
+    client_node.create_subscription(String, "chatter", lambda message: heard.append(time.perf_counter()), 10)
+    services: list[tuple[Any, str]] = [
+        (ListNodes, "/ComponentManager/_container/list_nodes"),
+        (GetState, "/talker/get_state"),
+    ]
+    clients: list[tuple[Client[Any, Any], Any]] = [
+        (client_node.create_client(srv_type, name, qos_profile=unmatchable), srv_type.Request)
+        for srv_type, name in services
+    ]
+    # Their own wait_for_service never returns true (rmw asks for their readers too): well-formed
+    # clients of the same services wait for them, beside them in the same participant.
+    for srv_type, name in services:
+        assert client_node.create_client(srv_type, name).wait_for_service(timeout_sec=20.0)
+    wait_until(lambda: len(heard) >= 5, "the talker heard", executor=executor)
+    first = len(heard)
+    start = len(proc.lines)
+    futures = [client.call_async(request()) for client, request in clients for _ in range(50)]
+    asked = [time.monotonic()]
+
+    def given_up() -> bool:
+        if sum("did not match" in line for line in proc.lines[start:]) >= 2:
+            return True
+        if time.monotonic() - asked[0] > 1.0:  # in case the first ones came before their writers matched
+            asked[0] = time.monotonic()
+            futures.extend(client.call_async(request()) for client, request in clients)
+        return False
+
+    wait_until(given_up, lambda: f"both clients given up on:\n{proc.output()}", timeout=20.0, executor=executor)
+    wait_until(lambda: len(heard) >= first + 60, "the talker heard for 3 s more", executor=executor)
+    code = proc.stop(sig=signal.SIGINT)
+    output = "\n".join(proc.lines)
+    lines = [line for line in proc.lines[start:] if "did not match" in line]
+    assert len(lines) == 2, output  # one line per client, not per answer
+    assert not any(future.done() for future in futures)
+    gaps = [later - earlier for earlier, later in itertools.pairwise(heard[first - 1 :])]
+    assert max(gaps) < 0.1, f"largest gap {max(gaps) * 1000:.0f} ms"
+    assert code == 0, output
+    assert "threads left behind" not in output

@@ -11,6 +11,7 @@ rest of the container.
 """
 
 from ._accounting import Accounting, CallbackLoad, ContainerLoad, GroupLoad, NodeLoad
+from ._answers import end_resender
 from ._bridge import Escaped, contained, in_thread, result
 from ._culprit import working_for
 from ._entries import describe
@@ -22,7 +23,8 @@ from ._spare import end_spare_threads
 
 # The executor's API, then what the rest of the container shares with it:
 # running plugin code (``Escaped``, ``contained``, ``in_thread``, and
-# ``end_spare_threads`` for the threads ``in_thread`` keeps), awaiting
+# ``end_spare_threads`` for the threads ``in_thread`` keeps, ``end_resender``
+# for the thread that sends answers to clients not known to be matched), awaiting
 # an rclpy future (``result``), posting to a loop from another thread
 # (``call_soon``, ``run_coroutine``: the one way, see ``_inbox``), naming a
 # callback in a log (``describe``), showing a plugin's own frames of a stack
@@ -42,6 +44,7 @@ __all__ = [
     "call_soon",
     "contained",
     "describe",
+    "end_resender",
     "end_spare_threads",
     "format_plugin_frames",
     "in_thread",

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from rclpy.exceptions import InvalidHandle
+from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile
 
 from .._compat import (
@@ -155,7 +156,7 @@ def take_request(dispatcher: Dispatcher, entry: Entry, count: int = _engine.DRAI
                 return
             if header is None:
                 return
-        dispatcher.submit(entry, serve, (srv, server, callback, response_type, request, header))
+        dispatcher.submit(entry, serve, (srv, server, entry.node, callback, response_type, request, header))
 
 def take_waitable(dispatcher: Dispatcher, entry: Entry) -> None:
     waitable = entry.entity
@@ -182,18 +183,30 @@ def _held_at_most(qos: QoSProfile) -> int:
 
 
 async def _serve_async(
-    srv: Any, server: Server | None, callback: Callable[..., Any], response_type: type, request: Any, header: Any
+    srv: Any,
+    server: Server | None,
+    node: Node,
+    callback: Callable[..., Any],
+    response_type: type,
+    request: Any,
+    header: Any,
 ) -> None:
     """Run an ``async def`` service callback on ``request`` and send its answer.
 
     A module function given its arguments, not a closure made per request:
     a closure and its coroutine function cost a few percent of a service
     round trip."""
-    respond(srv, await callback(request, response_type()), header, server=server)
+    respond(srv, await callback(request, response_type()), header, server=server, node=node)
 
 
 def _serve(
-    srv: Any, server: Server | None, callback: Callable[..., Any], response_type: type, request: Any, header: Any
+    srv: Any,
+    server: Server | None,
+    node: Node,
+    callback: Callable[..., Any],
+    response_type: type,
+    request: Any,
+    header: Any,
 ) -> None:
     """Run a plain service callback on ``request`` and send its answer."""
-    respond(srv, callback(request, response_type()), header, server=server)
+    respond(srv, callback(request, response_type()), header, server=server, node=node)

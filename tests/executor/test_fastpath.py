@@ -41,8 +41,8 @@ from std_msgs.msg import Int64
 from std_srvs.srv import SetBool
 
 from container import AsyncioExecutor
-from container._compat import WaitSet
-from container.executor import HAS_PUBLISHER_GID
+from container._compat import WaitSet, request_client
+from container.executor import HAS_PUBLISHER_GID, _fastpath
 from container.executor._fastpath import DRAIN, EVENT, SUBSCRIPTION, Notifier
 from container.executor._waitset import EntityWaitSet
 from tests.engine_support import compiled_only, engines
@@ -250,6 +250,42 @@ def test_taker_takes_what_rclpy_takes(engine: ModuleType, node: Node) -> None:
     assert sequence is not None
     assert info["publication_sequence_number"] == sequence + 1
     assert info["source_timestamp"] >= first[1]["source_timestamp"] > 0
+
+
+def test_rclpys_request_header_names_the_client_the_compiled_one_does(node: Node) -> None:
+    """The answers are keyed by the client's GUID (``_answers``): the compiled header
+    carries it in its bytes; rclpy's binding hides it, ``request_client`` reads it."""
+    service: Any = node.create_service(SetBool, "fp_client_of", lambda request, response: response)
+    first: Any = node.create_client(SetBool, "fp_client_of")
+    second: Any = node.create_client(SetBool, "fp_client_of")
+    assert first.wait_for_service(timeout_sec=TIMEOUT) and second.wait_for_service(timeout_sec=TIMEOUT)
+    server = _fastpath.Server(service=service.handle, srv_type=SetBool)
+    first.call_async(SetBool.Request())
+    compiled: list[Any] = []
+
+    def take_compiled() -> bool:
+        compiled.append(server.take())
+        return compiled[-1] is not None
+
+    assert _until(take_compiled)
+    guid = compiled[-1][1][:16]
+    for client in (first, second):
+        client.call_async(SetBool.Request())
+    taken: list[Any] = []
+
+    def take() -> bool:
+        with service.handle:
+            _, info = service.handle.service_take_request(SetBool.Request)
+        if info is not None:
+            taken.append(info)
+        return len(taken) == 2
+
+    assert _until(take)
+    clients = [request_client(info) for info in taken]
+    assert [request_client(info.request_id) for info in taken] == clients
+    assert guid in clients and len(set(clients)) == 2
+    assert request_client(object()) is None and request_client(compiled[-1][1]) is None
+    server.close()
 
 
 @pytest.mark.parametrize("engine", engines())

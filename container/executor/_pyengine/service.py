@@ -15,9 +15,12 @@ rclpy's request id object here; :meth:`Server.send` takes only what
 
 Differences: a take makes a new C message each time (rclpy's), where the
 compiled ones keep one across takes; rmw's wait for an unmatched client (Fast DDS: up to 100 ms)
-holds the GIL whatever ``let_go`` asks (rclpy's call keeps it), and rclpy
+holds the GIL whatever ``let_go`` asks (rclpy's call keeps it: the resender,
+``_answers``, tries only a client the graph shows compatible), and rclpy
 tells an unmatched client by a ``RuntimeWarning`` or an ``RCLError``
-(``container._compat.client_not_matched``), where C reads rcl's return code.
+(``container._compat.client_not_matched``), where C reads rcl's return code;
+the client's GUID, which the compiled header carries in its bytes, is read
+from behind rclpy's header (``container._compat.request_client``).
 """
 
 from __future__ import annotations

@@ -1,0 +1,234 @@
+"""Answers to a client whose response reader never matches cost the process nothing.
+
+A client asking for transient-local answers (``TRANSIENT_LOCAL`` response
+reader) never matches a service's volatile response writer: Fast DDS's rmw
+waits 100 ms in every send to it and gives up. Such sends happen in the
+resender thread, never on the loop: without the GIL (the compiled send), or
+not at all while the graph shows the reader incompatible (rclpy's send, which
+keeps the GIL: the Python engine, services the compiled path cannot serve);
+the client is given up on once, with one log line.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from lifecycle_msgs.srv import GetState
+from rclpy.client import Client
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
+
+from container import AsyncioExecutor, LifecycleNode
+from container.executor import _answers
+from tests.waiting import wait_until
+
+#: The client of the issue: keep-all, reliable, transient-local (its response reader never matches).
+UNMATCHABLE = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
+#: A 20 Hz timer's period, and the largest gap allowed beside such a client: two periods.
+PERIOD_S = 0.05
+
+
+@pytest.fixture
+def make_node(context: Context) -> Iterator[Callable[..., Any]]:
+    nodes: list[Node] = []
+
+    def make(name: str, cls: type[Node] = Node) -> Any:
+        node = cls(name, context=context)
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        node.destroy_node()
+
+
+def _heard(client: Client[Any, Any], request_type: Any, futures: list[Any]) -> None:
+    """Ask until the service takes a request of ``client`` (one sent before its request
+    writer matched the service's reader is lost; its own ``wait_for_service`` never
+    returns true: rmw waits for its response reader too)."""
+    before = _answers._resender.dropped
+
+    def answered() -> bool:
+        if _answers._resender._waiting > 0 or _answers._resender.dropped > before:
+            return True
+        futures.append(client.call_async(request_type()))
+        return False
+
+    wait_until(answered, "a request of the unmatched client taken", timeout=20.0)
+
+
+def _spin(executor: AsyncioExecutor) -> threading.Thread:
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.parametrize("kind", ["plain", "async", "lifecycle", "rclpy"])
+def test_requests_from_a_client_that_never_matches_leave_a_20hz_timer_on_time(
+    kind: str,
+    executor: AsyncioExecutor,
+    make_node: Callable[..., Any],
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """50 requests from a transient-local client: the timer beside the service
+    keeps its period (largest gap under two), the answers are dropped after the
+    (here shortened) deadline with one log line for the client, none arrives."""
+    from container.executor import _waitset
+
+    monkeypatch.setattr(_answers, "RETRY_S", 0.5)
+    if kind == "rclpy":
+        monkeypatch.setattr(_waitset, "_server", lambda service: None)
+    served: list[int] = []
+
+    def answer(request: Any, response: Any) -> Any:
+        served.append(1)
+        return response
+
+    async def answer_async(request: Any, response: Any) -> Any:
+        return answer(request, response)
+
+    callers = make_node(f"unmatched_callers_{kind}")
+    if kind == "lifecycle":
+        server = make_node(f"unmatched_server_{kind}", LifecycleNode)
+        service_type: Any = GetState
+        service_name = f"/unmatched_server_{kind}/get_state"
+    else:
+        server = make_node(f"unmatched_server_{kind}")
+        service_type = Trigger
+        service_name = f"unmatched_{kind}"
+        # Keep-all, as the container's own services: every request is taken and answered.
+        server.create_service(
+            Trigger, service_name, answer_async if kind == "async" else answer,
+            qos_profile=QoSProfile(history=HistoryPolicy.KEEP_ALL),
+        )  # fmt: skip
+    ticks: list[float] = []
+    callers.create_timer(PERIOD_S, lambda: ticks.append(time.perf_counter()))
+    unmatched: Client[Any, Any] = callers.create_client(service_type, service_name, qos_profile=UNMATCHABLE)
+    good: Client[Any, Any] = callers.create_client(service_type, service_name)
+    executor.add_node(server)
+    executor.add_node(callers)
+    thread = _spin(executor)
+    try:
+        # The unmatched client's wait_for_service never returns true: rmw asks for its reader too.
+        assert good.wait_for_service(timeout_sec=10.0)
+        wait_until(lambda: len(ticks) >= 3, "the timer ticking")
+        with caplog.at_level(logging.WARNING, logger=_answers.__name__):
+            first_tick = len(ticks)
+            futures: list[Any] = []
+            _heard(unmatched, service_type.Request, futures)
+            futures += [unmatched.call_async(service_type.Request()) for _ in range(50 - len(futures))]
+            # A well-formed client of the same service is answered meanwhile.
+            response: Any = good.call(service_type.Request(), timeout_sec=5.0)
+            assert response is not None
+            wait_until(lambda: "did not match" in caplog.text, "the client given up on", timeout=15.0)
+            last_tick = len(ticks)
+            wait_until(lambda: len(ticks) >= last_tick + 3, "the timer ticking after")
+        lines = [record for record in caplog.records if "did not match" in record.getMessage()]
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    assert not any(future.done() for future in futures)  # it really never matched
+    assert len(lines) == 1, [record.getMessage() for record in lines]
+    if kind != "lifecycle":
+        assert len(served) >= 51  # the good client's, and the unmatched one's
+    gaps = [later - earlier for earlier, later in itertools.pairwise(ticks[first_tick - 1 :])]
+    lost = sum(max(0.0, gap - PERIOD_S) for gap in gaps)
+    assert max(gaps) < 2 * PERIOD_S, f"largest gap {max(gaps) * 1000:.0f} ms, {lost:.2f} s lost"
+
+
+def test_a_client_given_up_on_has_its_later_answers_dropped_at_once(
+    executor: AsyncioExecutor, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After the deadline, the client's further answers wait nowhere (nothing held for it)."""
+    monkeypatch.setattr(_answers, "RETRY_S", 0.3)
+    server, callers = make_node("given_up_server"), make_node("given_up_callers")
+    server.create_service(
+        Trigger, "given_up", lambda request, response: response, qos_profile=QoSProfile(history=HistoryPolicy.KEEP_ALL)
+    )
+    unmatched: Client[Any, Any] = callers.create_client(Trigger, "given_up", qos_profile=UNMATCHABLE)
+    executor.add_node(server)
+    executor.add_node(callers)
+    thread = _spin(executor)
+    resender = _answers._resender
+    try:
+        dropped = resender.dropped
+        _heard(unmatched, Trigger.Request, [])
+        wait_until(lambda: resender.dropped > dropped, "the first answers dropped", timeout=10.0)
+        before = resender.dropped
+        for _ in range(20):
+            unmatched.call_async(Trigger.Request())
+        wait_until(lambda: resender.dropped >= before + 20, "the later answers dropped", timeout=5.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+
+
+def test_the_resender_ends_when_asked_and_when_idle(
+    executor: AsyncioExecutor, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The container's own thread: ended by ``end_resender`` (a session's end),
+    or by itself after a while with nothing to send."""
+    monkeypatch.setattr(_answers, "IDLE_S", 0.2)
+    monkeypatch.setattr(_answers, "RETRY_S", 0.3)
+    server, callers = make_node("resender_end_server"), make_node("resender_end_callers")
+    server.create_service(Trigger, "resender_end", lambda request, response: response)
+    unmatched: Client[Any, Any] = callers.create_client(Trigger, "resender_end", qos_profile=UNMATCHABLE)
+    executor.add_node(server)
+    executor.add_node(callers)
+    thread = _spin(executor)
+
+    def resender() -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name == "respond-again"]
+
+    try:
+        _heard(unmatched, Trigger.Request, [])
+        wait_until(resender, "the resender started")
+        _answers.end_resender(timeout=2.0)
+        assert not resender()
+        unmatched.call_async(Trigger.Request())
+        wait_until(resender, "the resender started again")
+        wait_until(lambda: not resender(), "the resender ended, idle", timeout=10.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+
+
+def test_a_well_formed_clients_first_answer_is_sent_inline(
+    executor: AsyncioExecutor, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The graph knows its response reader, with a QoS the service's writer offers:
+    no hand-over to the resender, even for its first answer (an answer sent just
+    before its service goes away still goes out)."""
+    handed: list[Any] = []
+    add = _answers._resender.add
+
+    def spy(*args: Any, **kwargs: Any) -> None:
+        handed.append(args)
+        add(*args, **kwargs)
+
+    monkeypatch.setattr(_answers._resender, "add", spy)
+    server, callers = make_node("inline_server"), make_node("inline_callers")
+    server.create_service(Trigger, "inline", lambda request, response: response)
+    client: Client[Any, Any] = callers.create_client(Trigger, "inline")
+    executor.add_node(server)
+    executor.add_node(callers)
+    thread = _spin(executor)
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        response: Any = client.call(Trigger.Request(), timeout_sec=5.0)
+        assert response is not None
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+    assert handed == []

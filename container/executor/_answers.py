@@ -76,6 +76,7 @@ import collections
 import logging
 import threading
 import time
+import weakref
 from typing import Any
 
 from rclpy.exceptions import InvalidHandle
@@ -109,8 +110,13 @@ IDLE_S = 3.0
 #: The size of a GUID, the first bytes of the compiled engine's header (``rmw_request_id_t``).
 _GUID_SIZE = 16
 
-#: Clients known to be matched: ``(service, guid)``, oldest first.
-_matched: dict[tuple[Any, bytes | None], None] = {}
+#: A client of one service: the service weakly (an unloaded node's services, and
+#: the node their callbacks hold, are not kept alive by what is remembered here),
+#: and the GUID its headers name.
+_Key = tuple["weakref.ref[Any]", bytes | None]
+
+#: Clients known to be matched, oldest first.
+_matched: dict[_Key, None] = {}
 
 
 def respond(srv: Any, response: Any, header: Any, *, server: Server | None = None, node: Node | None = None) -> None:
@@ -122,7 +128,7 @@ def respond(srv: Any, response: Any, header: Any, *, server: Server | None = Non
     service's, whose graph may know the client's response reader.
     """
     guid = header[:_GUID_SIZE] if isinstance(header, bytes) else request_client(header)
-    key = (srv, guid)
+    key = (weakref.ref(srv), guid)
     if guid is not None:
         if key in _matched or (not _resender.knows(key) and node is not None and _in_graph(node, srv, guid)):
             if _sent(srv, server, response, header):
@@ -189,7 +195,7 @@ def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go
     return True
 
 
-def _remember_matched(key: tuple[Any, bytes | None]) -> None:
+def _remember_matched(key: _Key) -> None:
     """Changed only under the resender's lock; read without it (respond's one lookup)."""
     _matched[key] = None
     while len(_matched) > MAX_CLIENTS:
@@ -201,15 +207,17 @@ class _Client:
     whose headers name none (``guid`` ``None``)."""
 
     __slots__ = (
-        "answers", "dropped", "given_up_at", "guid", "key", "logged", "next_try", "node", "server", "srv", "stalled",
-        "until",
+        "answers", "dropped", "given_up_at", "guid", "key", "logged", "name", "next_try", "node", "server", "srv",
+        "stalled", "until",
     )  # fmt: skip
 
-    def __init__(self, key: tuple[Any, bytes | None], srv: Any, server: Server | None, node: Node | None) -> None:
+    def __init__(self, key: _Key, srv: Any, server: Server | None, node: Node | None) -> None:
         self.key = key
-        self.srv = srv
+        #: Held while answers wait (then let go: :meth:`let_go`).
+        self.srv: Any = srv
         self.server = server
         self.node = node
+        self.name = str(getattr(srv, "srv_name", srv))
         self.guid = key[1]
         #: ``(deadline, response, header)``, oldest first.
         self.answers: collections.deque[tuple[float, Any, Any]] = collections.deque()
@@ -222,16 +230,18 @@ class _Client:
         self.dropped = 0
         self.logged = False
 
-    @property
-    def holds_gil(self) -> bool:
-        """Whether a try keeps the GIL while rmw waits (rclpy's send, or the Python engine's)."""
-        return self.server is None or _engine.ENGINE != "compiled"
-
     def describe(self) -> str:
-        name = str(getattr(self.srv, "srv_name", self.srv))
         if self.guid is None:
-            return f"service {name}"
-        return f"service {name}: client {self.guid.hex()}"
+            return f"service {self.name}"
+        return f"service {self.name}: client {self.guid.hex()}"
+
+    def hold(self, srv: Any, server: Server | None, node: Node | None) -> None:
+        """Hold what the next answer is sent with (given again with each answer)."""
+        self.srv, self.server, self.node = srv, server, node
+
+    def let_go(self) -> None:
+        """Nothing waits: keep only what decides about later answers, not the service."""
+        self.srv = self.server = self.node = None
 
 
 class _Resender:
@@ -240,35 +250,35 @@ class _Resender:
     def __init__(self) -> None:
         self._wake = threading.Condition()
         #: Clients with answers waiting, given up on, or suspect: oldest first.
-        self._clients: dict[tuple[Any, bytes | None], _Client] = {}
+        self._clients: dict[_Key, _Client] = {}
         self._waiting = 0
         self._thread: threading.Thread | None = None
         self._ending = False
         #: Answers dropped, in all (tests and the curious read it).
         self.dropped = 0
 
-    def knows(self, key: tuple[Any, bytes | None]) -> bool:
+    def knows(self, key: _Key) -> bool:
         """Whether answers to that client wait here, or it was given up on."""
         return key in self._clients
 
-    def matched(self, key: tuple[Any, bytes | None]) -> None:
+    def matched(self, key: _Key) -> None:
         """Remember that an answer to that client went through: its next ones go inline."""
         if key not in _matched:
             with self._wake:
                 _remember_matched(key)
 
-    def unmatched(self, key: tuple[Any, bytes | None]) -> None:
+    def unmatched(self, key: _Key) -> None:
         """Forget that a client was matched (its send waited after all)."""
         with self._wake:
             _matched.pop(key, None)
 
-    def suspect(self, key: tuple[Any, bytes | None]) -> bool:
+    def suspect(self, key: _Key) -> bool:
         """Whether a service whose headers name no client sends its answers from the resender now."""
         client = self._clients.get(key)
         return client is not None and client.until > time.monotonic()
 
     def add(
-        self, key: tuple[Any, bytes | None], srv: Any, server: Server | None, response: Any, header: Any,
+        self, key: _Key, srv: Any, server: Server | None, response: Any, header: Any,
         *, tried: bool = False, node: Node | None = None,
     ) -> None:
         """Hand an answer over; ``tried``: it was just found unmatched (a service without GUIDs).
@@ -279,6 +289,8 @@ class _Resender:
             if client is None:
                 client = self._clients[key] = _Client(key, srv, server, node)
                 self._forget_oldest()
+            else:
+                client.hold(srv, server, node)
             if client.guid is None and tried:
                 client.until = now + SUSPECT_S
                 client.next_try = now + HOLDING_EVERY_S
@@ -327,6 +339,7 @@ class _Resender:
         """Drop every answer waiting for ``client``; how many there were."""
         count = len(client.answers)
         client.answers.clear()
+        client.let_go()
         self._waiting -= count
         self._count_dropped(client, count)
         return count
@@ -362,7 +375,8 @@ class _Resender:
                     self._wake.wait(wait)
                     continue
                 entry = client.answers[0]
-            outcome = self._try(client, entry)
+                holding = (client.srv, client.server, client.node)
+            outcome = self._try(client, entry, *holding)
             with self._wake:
                 now = idle_since = time.monotonic()
                 if not client.answers or client.answers[0] is not entry:
@@ -374,6 +388,8 @@ class _Resender:
                     continue
                 client.answers.popleft()
                 self._waiting -= 1
+                if not client.answers:
+                    client.let_go()
                 if outcome and client.guid is not None:
                     _remember_matched(client.key)
                     if not client.answers:
@@ -416,7 +432,9 @@ class _Resender:
                 )
 
     @staticmethod
-    def _try(client: _Client, entry: tuple[float, Any, Any]) -> bool | None:
+    def _try(
+        client: _Client, entry: tuple[float, Any, Any], srv: Any, server: Server | None, node: Node | None
+    ) -> bool | None:
         """Try once: ``True`` sent, ``None`` unmatched, ``False`` done with it otherwise.
 
         A send that would hold the GIL while rmw waits is tried only once the
@@ -424,17 +442,13 @@ class _Resender:
         incompatible client then costs no stall at all.
         """
         _, response, header = entry
-        if (
-            client.holds_gil
-            and client.node is not None
-            and client.guid is not None
-            and not _in_graph(client.node, client.srv, client.guid)
-        ):
+        holds_gil = server is None or _engine.ENGINE != "compiled"
+        if holds_gil and node is not None and client.guid is not None and not _in_graph(node, srv, client.guid):
             client.stalled = False
             return None
-        client.stalled = client.holds_gil
+        client.stalled = holds_gil
         try:
-            if _sent(client.srv, client.server, response, header, let_go=True):
+            if _sent(srv, server, response, header, let_go=True):
                 return True
         except InvalidHandle:
             return False  # the service is gone, and its client's wait with it

@@ -11,10 +11,12 @@ the client is given up on once, with one log line.
 
 from __future__ import annotations
 
+import gc
 import itertools
 import logging
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -232,3 +234,47 @@ def test_a_well_formed_clients_first_answer_is_sent_inline(
         executor.shutdown(timeout_sec=5.0)
         thread.join(5.0)
     assert handed == []
+
+
+def test_what_is_remembered_of_clients_keeps_no_service_or_node_alive(
+    executor: AsyncioExecutor, context: Context, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A client answered (remembered as matched) and a client given up on (remembered
+    for its later answers) hold their service weakly: an unloaded node goes, with its
+    services and what their callbacks hold."""
+    monkeypatch.setattr(_answers, "RETRY_S", 0.3)
+
+    class Served(Node):
+        def __init__(self) -> None:
+            super().__init__("remembered_server", context=context)
+            keep_all = QoSProfile(history=HistoryPolicy.KEEP_ALL)
+            self.create_service(Trigger, "remembered", self.answer, qos_profile=keep_all)
+
+        def answer(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+            return response
+
+    server = Served()
+    callers = make_node("remembered_callers")
+    client: Client[Any, Any] = callers.create_client(Trigger, "remembered")
+    unmatched: Client[Any, Any] = callers.create_client(Trigger, "remembered", qos_profile=UNMATCHABLE)
+    executor.add_node(server)
+    executor.add_node(callers)
+    thread = _spin(executor)
+    resender = _answers._resender
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        assert client.call(Trigger.Request(), timeout_sec=5.0) is not None
+        dropped = resender.dropped
+        _heard(unmatched, Trigger.Request, [])
+        wait_until(lambda: resender.dropped > dropped, "the unmatched client given up on", timeout=10.0)
+        remembered = len(_answers._matched) + len(resender._clients)
+        assert remembered >= 2, "neither client is remembered: nothing here is tested"
+        # Unloaded, as the container unloads a node; the executor spins on.
+        executor.remove_node(server)
+        gone = weakref.ref(server)
+        server.destroy_node()
+        del server
+        wait_until(lambda: gc.collect() >= 0 and gone() is None, "the unloaded node collected", timeout=5.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)

@@ -43,7 +43,9 @@ What is remembered is bounded: :data:`MAX_CLIENTS` clients known matched
 and as many waiting or given up on (the oldest forgotten first: a forgotten
 client's next answer goes through the thread once more), and
 :data:`MAX_WAITING` answers waiting in the thread (more are dropped, said
-once per client).
+once per client). A client is remembered by its service weakly, and holds
+the service (and the node its answers need) only while answers wait: an
+unloaded node goes, whoever its clients were.
 
 rclpy's send (``send_response``, for a service the compiled path cannot
 serve; the Python engine's ``Server``) keeps the GIL while rmw waits: there

@@ -39,12 +39,26 @@ def main() -> int:
     SIGINT and SIGTERM end the process at once until the session installs
     its own handlers, and again after a session that no signal stopped (the
     session restores them), to the end of the process.
+
+    Standard output closed by its reader (``container list | head -1``)
+    ends the command quietly with status 0 (:mod:`container._output` says
+    why SIGPIPE stays ignored); the last flush happens here, inside that
+    rule, not in the interpreter's exit.
     """
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, _exit_quietly)
+    from ._output import closed_early, guard_output
+
+    guard_output()
     from .cli import main as run_command
 
-    code = run_command()
+    try:
+        code = run_command()
+        sys.stdout.flush()
+    except BrokenPipeError:
+        if not closed_early():
+            raise  # not our standard output's: a real failure
+        code = 0
     if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
         from ._session import exit_now  # rclpy only loads when a session ran
 

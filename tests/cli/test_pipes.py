@@ -210,3 +210,22 @@ def test_a_server_whose_log_reader_goes_serves_on_and_stops_cleanly(tmp_path: Pa
         if process.poll() is None:
             process.kill()
             process.wait()
+
+
+def test_a_manager_whose_log_reader_goes_serves_on_and_stops_cleanly() -> None:
+    """``container manager 2>&1 | head -1``: its first line comes once it is ready; SIGINT then ends it with 0."""
+    args = ("manager", "--name", "unread_manager", "-p", "node_names:=[/absent]", "-p", "autostart:=true")
+    process = subprocess.Popen(
+        command(args), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=environment(buffered=False),
+    )
+    try:
+        assert process.stdout is not None
+        assert "STARTUP" in process.stdout.readline()
+        process.stdout.close()
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=20) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()

@@ -54,11 +54,15 @@ def main() -> int:
 
     try:
         code = run_command()
-        sys.stdout.flush()
     except BrokenPipeError:
         if not closed_early():
             raise  # not our standard output's: a real failure
-        code = 0
+        code = 0  # a command that only reads, stopped at a line nobody reads
+    try:
+        sys.stdout.flush()  # buffered output: a failure found only now keeps the command's own status
+    except BrokenPipeError:
+        if not closed_early():
+            raise
     if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
         from ._session import exit_now  # rclpy only loads when a session ran
 

@@ -8,11 +8,12 @@ here: the kernel would kill the process at that write, in the middle of a ROS
 session, so the client node's DDS participant would never be destroyed (the
 container and every peer keep it in discovery until its lease runs out; its
 shared-memory segments stay behind), and the shell would report 141, not 0.
-A plugin's sockets would inherit the disposition too, and so would every child
-process. So SIGPIPE stays ignored, and the standard streams are guarded
-instead (:func:`guard_output`, first thing, by the ``container`` process's
-entry point, :mod:`container.__main__`; this module imports only the
-standard library):
+The disposition is the whole process's, too: any socket a plugin or a
+transport writes to would kill the container when its peer hangs up, and
+every child process would inherit it. So SIGPIPE stays ignored, and the
+standard streams are guarded instead (:func:`guard_output`, by the
+``container`` process's entry point, :mod:`container.__main__`, before the
+command line is imported; this module imports only the standard library):
 
 * the first write or flush that finds its reader gone points the stream's
   file descriptor at ``/dev/null``, so that nothing written afterwards fails:

@@ -229,3 +229,9 @@ def test_a_manager_whose_log_reader_goes_serves_on_and_stops_cleanly() -> None:
         if process.poll() is None:
             process.kill()
             process.wait()
+
+
+def test_a_failure_keeps_its_status_with_nobody_reading(container: ContainerProcess, tmp_path: Path) -> None:
+    code = closed_at_once(("lifecycle", "get", "/absent", "--spin-time", "0.3"), tmp_path / "stderr")
+    assert code == 1
+    assert clean(tmp_path / "stderr") == "Node not found\n"

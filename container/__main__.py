@@ -39,12 +39,30 @@ def main() -> int:
     SIGINT and SIGTERM end the process at once until the session installs
     its own handlers, and again after a session that no signal stopped (the
     session restores them), to the end of the process.
+
+    Standard output closed by its reader (``container list | head -1``)
+    ends the command quietly with status 0 (:mod:`container._output` says
+    why SIGPIPE stays ignored); the last flush happens here, inside that
+    rule, not in the interpreter's exit.
     """
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, _exit_quietly)
+    from ._output import closed_early, guard_output
+
+    guard_output()
     from .cli import main as run_command
 
-    code = run_command()
+    try:
+        code = run_command()
+    except BrokenPipeError:
+        if not closed_early():
+            raise  # not our standard output's: a real failure
+        code = 0  # a command that only reads, stopped at a line nobody reads
+    try:
+        sys.stdout.flush()  # buffered output: a failure found only now keeps the command's own status
+    except BrokenPipeError:
+        if not closed_early():
+            raise
     if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
         from ._session import exit_now  # rclpy only loads when a session ran
 

@@ -19,6 +19,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
+from .._output import finish_without_output
 from . import _component, _index, _lifecycle, _manager, _run, _top
 
 if TYPE_CHECKING:
@@ -124,5 +125,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"container {args.command}: invalid ROS arguments: {problem}", file=sys.stderr)
         return 2
     args.ros_args = ros_args
+    if getattr(args, "finish_without_output", False):
+        # A command that acts does all it was asked when its reader goes
+        # away early; one that only reads stops (container._output).
+        finish_without_output()
     code: int = handler(args)
     return code

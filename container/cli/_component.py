@@ -86,7 +86,7 @@ def add_parser(subparsers: SubParsers) -> None:
         "-q", "--quiet", action="store_true", help="only print the component's unique ID and node name"
     )
     _add_spin_time(load)
-    load.set_defaults(handler=_run_load)
+    load.set_defaults(handler=_run_load, finish_without_output=True)
 
     unload = subparsers.add_parser(
         "unload",
@@ -97,7 +97,7 @@ def add_parser(subparsers: SubParsers) -> None:
     unload.add_argument("component_uid", type=int, nargs="+", help="unique ID of the component to unload")
     unload.add_argument("-q", "--quiet", action="store_true", help="only print component unique IDs")
     _add_spin_time(unload)
-    unload.set_defaults(handler=_run_unload)
+    unload.set_defaults(handler=_run_unload, finish_without_output=True)
 
     listing = subparsers.add_parser(
         "list",

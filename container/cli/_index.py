@@ -40,7 +40,7 @@ def add_parser(subparsers: SubParsers) -> None:
         help="register only this plugin distribution's package (repeatable); entries of others are kept",
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="print only problems")
-    parser.set_defaults(handler=_run)
+    parser.set_defaults(handler=_run, finish_without_output=True)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -57,6 +57,7 @@ def add_parser(subparsers: SubParsers) -> None:
     get = verb("get", "Get lifecycle state for one or more nodes", _get)
     get.add_argument("node_name", nargs="?", help="name of the ROS node; all nodes if omitted")
     set_ = verb("set", "Trigger lifecycle state transition", _set)
+    set_.set_defaults(finish_without_output=True)
     set_.add_argument("node_name", help="name of the ROS node")
     set_.add_argument("transition", help="the label or the id of the transition")
     list_ = verb("list", "Output a list of available transitions", _list)

@@ -47,7 +47,7 @@ def add_parser(subparsers: SubParsers) -> None:
         type=name_value,
         help="set a parameter (YAML value); repeatable",
     )
-    parser.set_defaults(handler=_run)
+    parser.set_defaults(handler=_run, finish_without_output=True)
 
 
 def _settings_mapping(path: str) -> dict[str, Any]:

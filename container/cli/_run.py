@@ -47,7 +47,7 @@ def add_parser(subparsers: SubParsers) -> None:
         help="accepted for rclcpp's component_container_isolated; no effect: every node "
         "already has its own callback lanes on the one executor",
     )
-    parser.set_defaults(handler=_run)
+    parser.set_defaults(handler=_run, finish_without_output=True)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -7,8 +7,12 @@ the domain (or one container's) and shows the latest window, like ``top``:
 
 * live (the default, on a terminal): nodes sorted by CPU; keys sort by
   another column, move the selection, open a node's callbacks;
-* ``--once``: one plain table per container, for scripts and tests;
-* ``--json``: the same windows as one JSON document.
+* ``--once``: one plain table per container, for scripts and tests; also
+  what ``top`` does when its output is not a terminal (``container top |
+  head``): a live view off a terminal would print nothing until it is
+  stopped, and a pipe's reader would wait for it forever;
+* ``--json``: the same windows as one JSON document (one, never one per
+  refresh: ``json.loads`` reads all of it).
 
 Without the ros2 daemon, containers are found by polling the graph, as the
 other commands do.
@@ -67,7 +71,10 @@ def add_parser(subparsers: SubParsers) -> None:
         ),
     )
     top.add_argument("container", nargs="?", default=None, help="one container node's full name (default: all)")
-    top.add_argument("--once", action="store_true", help="print one plain table per container and exit")
+    top.add_argument(
+        "--once", action="store_true",
+        help="print one plain table per container and exit (the default when output is not a terminal)",
+    )
     top.add_argument("--json", action="store_true", help="print one JSON document of every container and exit")
     top.add_argument(
         "--node", default=None, help="with --once: that node's callbacks too (its full name)"
@@ -130,7 +137,7 @@ def _run(args: argparse.Namespace) -> int:
     async def run(session: Session) -> int:
         with session.client_node(f"_container_top_{os.getpid()}") as node:
             reports = _Reports(node, container)
-            if args.once or args.json:
+            if args.once or args.json or not sys.stdout.isatty():
                 return await _once(reports, args)
             return await _live(reports, args, session.stopping)
 

@@ -34,6 +34,7 @@ from ._errors import (
 from ._hookspecs import RegisterNodeType, hookimpl, hookspec
 from ._text import clip
 from ._throttle import Throttle
+from ._warnings import LoadWarning
 
 if TYPE_CHECKING:
     from ._container import ComponentManager, LoadedNode, LoadRequest
@@ -57,6 +58,7 @@ __all__ = [
     "LifecycleNode",
     "LoadError",
     "LoadRequest",
+    "LoadWarning",
     "LoadedNode",
     "ManagerSettings",
     "NodeType",

@@ -12,6 +12,7 @@ import asyncio
 import sys
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from rclpy.context import Context
 from rclpy.exceptions import ParameterException
@@ -28,6 +29,9 @@ from ._session import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, Session, run_session
 from .devices import set_device_policy
 from .executor import AsyncioExecutor
 from .lifecycle import LifecycleManager, ManagerSettings, contain_fault
+
+if TYPE_CHECKING:
+    from rclpy.impl.rcutils_logger import RcutilsLogger
 
 __all__ = ["ContainerApp", "manager_extension", "run_container", "run_manager"]
 
@@ -167,6 +171,7 @@ class ContainerApp:
             running = [asyncio.ensure_future(extension(self)) for extension in extensions]
             loaded = len(self.manager.loaded())
             log.info(f"Container '{self.manager.get_fully_qualified_name()}' ready with {loaded} node(s)")
+            _summarise_warnings(log, constructed)
             if failed:
                 log.error(
                     f"{len(failed)} of the {len(specs)} node(s) the file lists failed: "
@@ -195,6 +200,21 @@ class ContainerApp:
             self.load.close()
         self.executor.remove_node(self.manager)
         self.manager.destroy_node()
+
+
+def _summarise_warnings(log: RcutilsLogger, constructed: Sequence[tuple[int, str, LoadedNode]]) -> None:
+    """Repeat, at ready, the warnings the file's loads caused: one line each, after a count.
+
+    They were logged as they happened, among the start-up's other lines;
+    whoever reads the start-up's end (a terminal, ``ros2 launch``'s output)
+    sees them here without scrolling back.
+    """
+    warned = [(entry, warning) for _, entry, loaded in constructed for warning in loaded.warnings]
+    if not warned:
+        return
+    log.warning(f"{len(warned)} warning(s) while loading the file's nodes:")
+    for entry, warning in warned:
+        log.warning(f"  {entry} [{warning.logger}]: {warning.message}")
 
 
 def run_container(

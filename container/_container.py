@@ -35,6 +35,7 @@ from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
 from ._text import clip
+from ._warnings import LoadWarning
 from .executor import Escaped, format_plugin_frames, in_thread
 from .intra import intra_process_class
 from .lifecycle import LifecycleNode, bring_down, bring_up, is_lifecycle
@@ -122,6 +123,9 @@ class LoadedNode:
     full_name: str
     #: Whether the executor runs its callbacks yet (see ``ComponentManager.load``).
     served: bool = True
+    #: What its load (and autostart) warned of, in order, for whoever asked
+    #: for it: the LoadNode answer, ``container run``'s summary. Logged too.
+    warnings: list[LoadWarning] = field(default_factory=list)
 
 
 class ComponentManager(Node):
@@ -211,13 +215,18 @@ class ComponentManager(Node):
         """
         node_type = self.registry.resolve(request.package, request.plugin)
         forward_global_arguments = _check_extra_arguments(request.extra_arguments)
+        own = self.get_logger().name
+        warnings: list[LoadWarning] = []
         for key in _ignored_extra_arguments(request.extra_arguments):
+            ignored = (
+                f"Extra component argument {clip(key, quote=True)} is not used by this container: ignored "
+                "(as rclcpp's container does)"
+            )
+            # Every load that passes it hears of it; the log, once.
+            warnings.append(LoadWarning(own, ignored))
             if key not in self._ignored_arguments:
                 self._ignored_arguments.add(key)
-                self.get_logger().warning(
-                    f"Extra component argument {clip(key, quote=True)} is not used by this container: ignored "
-                    "(as rclcpp's container does); logged once"
-                )
+                self.get_logger().warning(f"{ignored}; logged once")
         if request.log_level not in _LOG_LEVELS:
             raise LoadError(f"Invalid log_level {request.log_level}: expected one of 0, 10, 20, 30, 40, 50")
         remaps = [_check_remap(rule) for rule in request.remap_rules]
@@ -230,10 +239,12 @@ class ComponentManager(Node):
         full_name = _remapped_name(name, namespace, remaps)
         self._refuse_duplicate(full_name)
         if forward_global_arguments:
-            self.get_logger().warning(
+            forwarded = (
                 f"Loading {clip(full_name)} with forward_global_arguments: the container's own ROS "
                 "arguments (its name, namespace, parameters, remaps) apply to that node too"
             )
+            self.get_logger().warning(forwarded)
+            warnings.append(LoadWarning(own, forwarded))
         try:
             overrides = _overrides(request, full_name)
         except ConfigError as exc:
@@ -304,7 +315,8 @@ class ComponentManager(Node):
             )
             raise LoadError(f"Component constructor threw an exception: {_one_line(error)}") from exc
         loaded = LoadedNode(
-            next(self._ids), node, node_type, request, node.get_fully_qualified_name(), served=serve
+            next(self._ids), node, node_type, request, node.get_fully_qualified_name(), served=serve,
+            warnings=warnings,
         )
         self._loaded[loaded.unique_id] = loaded
         if serve:
@@ -312,10 +324,16 @@ class ComponentManager(Node):
         self.get_logger().info(
             f"Loaded {node_type.full_name} as '{loaded.full_name}' (unique_id {loaded.unique_id})"
         )
-        if not isinstance(node, LifecycleNode):
-            # Ours check after their first configure, when all is declared.
-            for warning in checks.unread_parameters(node, [parameter.name for parameter in overrides]):
-                node.get_logger().warning(warning)
+        logger = node.get_logger()
+        if isinstance(node, LifecycleNode):
+            # Ours check after their first configure, when all is declared;
+            # a typo of what the constructor declared is told now.
+            parameter_warnings = node.warn_likely_typos()
+        else:
+            parameter_warnings = checks.unread_parameters(node, [parameter.name for parameter in overrides])
+            for warning in parameter_warnings:
+                logger.warning(warning)
+        warnings.extend(LoadWarning(logger.name, warning) for warning in parameter_warnings)
         return loaded
 
     def serve_loaded(self, nodes: Iterable[LoadedNode]) -> None:
@@ -353,7 +371,22 @@ class ComponentManager(Node):
         :raises TransitionError: a transition failed; the node stays where it stopped.
         """
         if is_lifecycle(loaded.node):
-            await bring_up(self._host, loaded.node, timeout=timeout, until=until)
+            try:
+                await bring_up(self._host, loaded.node, timeout=timeout, until=until)
+            finally:
+                self._collect_configure_warnings(loaded)
+
+    @staticmethod
+    def _collect_configure_warnings(loaded: LoadedNode) -> None:
+        """Add what the node's configure warned of (its unread parameters) to its load's warnings."""
+        node = loaded.node
+        if not isinstance(node, LifecycleNode):
+            return
+        logger = node.get_logger().name
+        known = {warning.message for warning in loaded.warnings if warning.logger == logger}
+        loaded.warnings.extend(
+            LoadWarning(logger, message) for message in node.parameter_warnings if message not in known
+        )
 
     # -- unload -------------------------------------------------------------------
     async def unload(self, unique_id: int) -> tuple[LoadedNode, list[str]]:

@@ -17,7 +17,8 @@ slow unload or while a plugin's callback blocks the loop.
 
 Answers and log lines echo what a request named through
 :func:`~container.clip`: each value at most 200 characters with its length,
-a whole error message at most 800.
+a whole error message at most 800. A successful load's ``error_message``
+holds the warnings it caused, one line each (:mod:`container._warnings`).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from ._container import LoadRequest, type_label
 from ._errors import ContainerError, LoadError
 from ._qos import SERVICE_QOS
 from ._text import MESSAGE_LIMIT, clip
+from ._warnings import encode
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -132,9 +134,16 @@ class ContainerServices:
                     f"Loaded {what} as '{loaded.full_name}' but autostart failed: {clip(str(exc), limit=MESSAGE_LIMIT)}"
                 )
                 response.success = False
-                response.error_message = clip(
-                    f"Loaded as unique_id {loaded.unique_id} but autostart failed: {exc}", limit=MESSAGE_LIMIT
+                failure = clip(
+                    f"Loaded as unique_id {loaded.unique_id} but autostart failed: {' '.join(str(exc).split())}",
+                    limit=MESSAGE_LIMIT,
                 )
+                # The warnings may say why (a typo left a parameter at its default).
+                response.error_message = "\n".join(filter(None, [failure, encode(loaded.warnings)]))
+                return response
+        # rclcpp leaves it empty on success, and its clients read it only on
+        # failure: here it carries the warnings the load caused (_warnings).
+        response.error_message = encode(loaded.warnings)
         return response
 
     async def _unload(self, request: UnloadNode.Request, response: UnloadNode.Response) -> Any:

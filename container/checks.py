@@ -94,13 +94,17 @@ class _DeclaresParameters(Protocol):
 _ROS_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 
 
-def unread_parameters(node: _DeclaresParameters, names: Iterable[str]) -> list[str]:
+def unread_parameters(node: _DeclaresParameters, names: Iterable[str], *, likely_typos: bool = False) -> list[str]:
     """A warning for each of ``names`` (parameter overrides given to ``node``) that no declared parameter takes.
 
     rclpy keeps an override nobody declares without a word, so ``rat: 5.0``
     for ``rate`` runs on the default. Call it once the node has declared
     what it reads (after its constructor; a lifecycle node after configure).
     Each warning offers the closest declared name, if one is close.
+
+    :param likely_typos: only the names a declared one is close to. Before a
+        lifecycle node's configure, a name nothing declares yet may still be
+        declared by configure; one next to a declared name is a typo.
     """
     unread = [name for name in dict.fromkeys(names) if name not in _ROS_PARAMETERS and not node.has_parameter(name)]
     if not unread:
@@ -109,6 +113,8 @@ def unread_parameters(node: _DeclaresParameters, names: Iterable[str]) -> list[s
     warnings = []
     for name in unread:
         close = difflib.get_close_matches(name, declared, n=1)
+        if likely_typos and not close:
+            continue
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         warnings.append(f"Unknown parameter {clip(name, quote=True)} ignored: this node does not read it{hint}")
     return warnings

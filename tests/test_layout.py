@@ -159,7 +159,7 @@ def test_public_names_are_exactly_these() -> None:
     assert sorted(container.__all__) == sorted([
         "ENTRY_POINT_GROUP", "AsyncioExecutor", "CallbackErrorHandler", "ComponentManager",
         "ConfigError", "ContainerError", "ContainerServices", "DeviceError", "ExecutorError",
-        "LifecycleManager", "LifecycleNode", "LoadError", "LoadRequest", "LoadedNode",
+        "LifecycleManager", "LifecycleNode", "LoadError", "LoadRequest", "LoadWarning", "LoadedNode",
         "ManagerSettings", "NodeType", "PluginError", "PluginRegistry", "RegisterNodeType", "SecurityError",
         "Throttle", "TransitionError", "clip", "contain_fault", "copy_message", "enable_intra_process", "hand_over",
         "hookimpl", "hookspec",

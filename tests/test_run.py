@@ -88,6 +88,39 @@ def test_failed_entries_are_named_and_summed_up_and_the_rest_still_runs(
     assert proc.stop() == 0
 
 
+def test_the_summary_at_ready_repeats_the_warnings_of_the_files_loads(
+    run_container: Callable[..., ContainerProcess],
+) -> None:
+    proc = run_container(
+        DEMO
+        + """
+  - package: lifecycle_container
+    plugin: lifecycle_container::Talker
+    name: typo
+    parameters: [{rat: 5.0}]
+  - package: lifecycle_container
+    plugin: lifecycle_container::Talker
+    name: started
+    parameters: [{mesage: hi}]
+    autostart: true
+"""
+    )
+    ready = proc.lines.index(proc.wait_for_line("ready with 4 node(s)"))
+    # After ready, in load order: a typo of what the constructor declared
+    # (no configure needed), and one an autostart's configure found.
+    proc.wait_for_line("2 warning(s) while loading the file's nodes:", start=ready)
+    summary = proc.wait_for_line("nodes[2] (name: typo) [typo]: Unknown parameter 'rat'", start=ready)
+    assert summary.endswith("ignored: this node does not read it (did you mean 'rate'?)"), summary
+    proc.wait_for_line(
+        "nodes[3] (name: started) [started]: Unknown parameter 'mesage' ignored: this node does not read it "
+        "(did you mean 'message'?)",
+        start=ready,
+    )
+    # Still in the log as they happened, each once.
+    assert sum("[typo]: Unknown parameter 'rat'" in line for line in proc.lines[:ready]) == 1, proc.output()
+    assert proc.stop() == 0
+
+
 def test_on_failure_exit_takes_the_container_down_with_exit_1(
     run_container: Callable[..., ContainerProcess],
 ) -> None:

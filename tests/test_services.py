@@ -170,10 +170,60 @@ def test_unknown_extra_arguments_are_ignored_and_logged_once_as_rclcpp_does(
     start = len(container.lines)
     for name in ("extra1", "extra2"):
         response = client.load(load_request(name=name, extra_arguments=[parameter("enable_rosout", False)]))
-        assert (response.success, response.error_message) == (True, "")
+        # Each answer says so (the answer's warnings, see below); the log, once.
+        assert (response.success, response.error_message) == (
+            True,
+            "[WARN] [ComponentManager]: Extra component argument 'enable_rosout' is not used by this container: "
+            "ignored (as rclcpp's container does)",
+        )
     container.wait_for_line("Loaded lifecycle_container::Talker as '/extra2'", start=start)
     ignored = [line for line in container.lines[start:] if "'enable_rosout' is not used by this container" in line]
     assert len(ignored) == 1, container.lines[start:]
+
+
+def test_a_successful_answer_carries_the_warnings_its_load_caused(
+    client: ContainerClient, container: ContainerProcess
+) -> None:
+    # rclcpp leaves error_message empty on success; here it holds the
+    # warnings, one line each, as the container's log shows them.
+    clean = client.load(load_request(name="clean", parameters=[parameter("rate", 5.0)]))
+    assert (clean.success, clean.error_message) == (True, "")
+
+    # A typo of what the constructor declared: told at load, before configure.
+    typo = client.load(load_request(name="typo", parameters=[parameter("rat", 5.0)]))
+    assert typo.success
+    assert typo.error_message == (
+        "[WARN] [typo]: Unknown parameter 'rat' ignored: this node does not read it (did you mean 'rate'?)"
+    )
+    container.wait_for_line("[typo]: Unknown parameter 'rat' ignored")
+
+    # A name nothing is close to waits for configure: an autostart's is in the answer.
+    started = client.load(load_request(
+        name="started",
+        parameters=[parameter("rat", 5.0), parameter("zzz_unrelated", 1)],
+        extra_arguments=[parameter("autostart", True)],
+    ))
+    assert started.success
+    assert started.error_message.splitlines() == [
+        "[WARN] [started]: Unknown parameter 'rat' ignored: this node does not read it (did you mean 'rate'?)",
+        "[WARN] [started]: Unknown parameter 'zzz_unrelated' ignored: this node does not read it",
+    ]
+    container.wait_for_line("[started]: Unknown parameter 'zzz_unrelated' ignored")
+    # Each logged once: configure does not repeat what the load told.
+    assert sum("[started]: Unknown parameter 'rat'" in line for line in container.lines) == 1, container.output()
+
+    # A failed autostart's answer says why first, then the warnings.
+    failed = client.load(load_request(
+        name="failed",
+        parameters=[parameter("rate", -1.0), parameter("mesage", "hi")],
+        extra_arguments=[parameter("autostart", True)],
+    ))
+    assert not failed.success
+    first, *warnings = failed.error_message.splitlines()
+    assert first.startswith("Loaded as unique_id 4 but autostart failed: "), failed.error_message
+    assert warnings == [
+        "[WARN] [failed]: Unknown parameter 'mesage' ignored: this node does not read it (did you mean 'message'?)"
+    ]
 
 
 def test_unknown_unique_id_is_refused_with_rclcpp_wording(client: ContainerClient) -> None:

@@ -175,6 +175,7 @@ def _run_load(args: argparse.Namespace) -> int:
         response = await _call(client, request, timeout=args.timeout)
         if not response.success:
             return _fail(f"Failed to load component: {response.error_message}")
+        _warn(response.error_message, container=container)
         if args.quiet:
             print(f"{response.unique_id}  {response.full_node_name}")
         else:
@@ -251,6 +252,23 @@ def _run_types(args: argparse.Namespace) -> int:
 
 
 # -- talking to containers ------------------------------------------------------------
+def _warn(error_message: str, *, container: str) -> None:
+    """Log the warnings a successful load answer carries, one line each, under the logger that logged them.
+
+    Through ROS logging like any warning (stderr, as ``[WARN] [time]
+    [talker]: ...``, and this command's log file), so the person who typed
+    the load reads them without the container's log; the load still
+    succeeded. A container that leaves ``error_message`` empty on success
+    (rclcpp's) prints nothing here.
+    """
+    from rclpy.logging import get_logger
+
+    from .._warnings import decode
+
+    for warning in decode(error_message, default_logger=container.strip("/").replace("/", ".")):
+        get_logger(warning.logger).warning(warning.message)
+
+
 def _fail(message: str) -> int:
     print(message, file=sys.stderr)
     return 1

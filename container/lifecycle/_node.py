@@ -128,6 +128,8 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         self._unread_check: tuple[str, ...] | None = tuple(
             getattr(p, "name", "") for p in kwargs.get("parameter_overrides") or ()
         )
+        # What it was warned of about them, for whoever loaded it.
+        self._parameter_warnings: list[str] = []
         # rcl's own lifecycle services keep 10 requests and cannot be told
         # otherwise; the node serves its own (_services), while rcl keeps
         # publishing transition_event.
@@ -392,11 +394,38 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             self._follow_state(self.lifecycle_state)
         return outcome
 
+    @property
+    def parameter_warnings(self) -> tuple[str, ...]:
+        """The warnings about its parameter overrides logged so far (unread names, typos), in order.
+
+        The container hands them to whoever loaded the node: the LoadNode
+        answer, ``container run``'s summary at ready.
+        """
+        return tuple(self._parameter_warnings)
+
+    def warn_likely_typos(self) -> list[str]:
+        """Before the first configure: warn now of the overrides only a typo explains; return the warnings.
+
+        The full check waits for configure (nodes often declare what
+        configure reads), but an override next to a parameter the
+        constructor declared (``rat`` for ``rate``) is a typo already, and
+        whoever loads the node without autostart should hear of it in the
+        answer. Configure's check does not repeat it.
+        """
+        warnings = checks.unread_parameters(self, self._unread_check or (), likely_typos=True)
+        self._tell(warnings)
+        return warnings
+
     def _warn_unread_parameters(self) -> None:
         """Once, after the first configure: overrides no declared parameter takes (a typo)."""
         names, self._unread_check = self._unread_check, None
-        for warning in checks.unread_parameters(self, names or ()):
+        told = set(self._parameter_warnings)
+        self._tell([warning for warning in checks.unread_parameters(self, names or ()) if warning not in told])
+
+    def _tell(self, warnings: list[str]) -> None:
+        for warning in warnings:
             self.get_logger().warning(warning)
+        self._parameter_warnings.extend(warnings)
 
     def _fail_back(self) -> None:
         if self.lifecycle_state.state_id >= State.TRANSITION_STATE_CONFIGURING:

@@ -140,6 +140,34 @@ def test_refusals_print_the_reason_and_exit_1(run_container: Callable[..., Conta
     assert proc.process.poll() is None
 
 
+# A container process and two command-line processes.
+@pytest.mark.slow
+def test_load_prints_the_warnings_it_caused_and_still_succeeds(
+    run_container: Callable[..., ContainerProcess],
+) -> None:
+    proc = run_container(EMPTY)
+    result = container_cli("load", "/ComponentManager", "lifecycle_container", "Talker", "-n", "typo", "-p", "rat:=5.0")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == "Loaded component 1 into '/ComponentManager' container node as '/typo'\n"
+    # One ROS warning line on stderr, under the node's logger, as the container logged it.
+    [line] = result.stderr.splitlines()
+    assert line.startswith("[WARN] ["), line
+    assert line.endswith(
+        "[typo]: Unknown parameter 'rat' ignored: this node does not read it (did you mean 'rate'?)"
+    ), line
+    proc.wait_for_line("[typo]: Unknown parameter 'rat' ignored")
+
+    # -q keeps stdout to the id and the name; the warnings still reach stderr.
+    result = container_cli(
+        "load", "-q", "/ComponentManager", "lifecycle_container", "Talker", "-n", "e1", "-e", "enable_rosout:=false"
+    )
+    assert (result.returncode, result.stdout) == (0, "2  /e1\n"), result.stderr
+    assert result.stderr.rstrip("\n").endswith(
+        "[ComponentManager]: Extra component argument 'enable_rosout' is not used by this container: "
+        "ignored (as rclcpp's container does)"
+    ), result.stderr
+
+
 @pytest.mark.parametrize(
     "args",
     [

@@ -204,9 +204,12 @@ def rcutils_log(severity: int, name: str, message: str, *, function: str, file: 
     """Log ``message`` through rcutils: its console format, and once rcl has
     configured logging, the log file and ``/rosout`` (for a node's loggers).
 
-    Safe in a Python signal handler: rclpy holds its logging lock only within
-    this C call, never while Python code runs, so the interrupted code cannot
-    be holding it.
+    Safe in a Python signal handler: rclpy's logging lock (a recursive
+    mutex) is taken only inside its C calls (this one, a node's creation
+    and destruction), which hold the GIL throughout and run no Python code
+    but a warning when rcl fails to finalise a node. The code a signal
+    interrupts therefore holds it only in that case, and then in the same
+    thread, which may take it again.
     """
     _RCUTILS_LOG(severity, name, message, function, file, line)
 

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import logging
+import os
+import signal
+from collections.abc import Iterator
 
 import pytest
 from rclpy.context import Context
 from rclpy.impl.logging_severity import LoggingSeverity
 from rclpy.node import Node
 
-from container._roslog import ROOT_NAME, RosLogHandler, severity_of
+from container._roslog import ROOT_NAME, RosLogHandler, say_now, severity_of
 
 
 @pytest.mark.parametrize(
@@ -49,3 +52,48 @@ def test_a_node_attached_names_its_children_until_detached(context: Context) -> 
         handler.attach(None)
         node.destroy_node()
     assert handler.ros_name("container.executor._watchdog") == "container.executor"
+
+
+class _Interrupted(RosLogHandler):
+    """Sends the process SIGUSR1 in the middle of its own emit, with its lock held."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        os.kill(os.getpid(), signal.SIGUSR1)  # Python runs the handler at the next bytecode: here
+        super().emit(record)
+
+
+@pytest.fixture
+def interrupted_logger() -> Iterator[logging.Logger]:
+    logger = logging.getLogger("container.tests_roslog")
+    handler = _Interrupted()
+    logger.addHandler(handler)
+    logger.propagate = False
+    yield logger
+    logger.removeHandler(handler)
+    logger.propagate = True
+
+
+def test_a_signal_handler_says_its_line_while_the_code_it_interrupted_logs(
+    interrupted_logger: logging.Logger, capfd: pytest.CaptureFixture[str]
+) -> None:
+    said: list[int] = []
+
+    def on_signal(signum: int, frame: object) -> None:
+        say_now(logging.ERROR, "said from a signal handler")
+        said.append(signum)
+
+    previous = signal.signal(signal.SIGUSR1, on_signal)
+    try:
+        interrupted_logger.warning("the interrupted line")
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert said == [signal.SIGUSR1]
+    lines = capfd.readouterr().err.splitlines()
+
+    def index(ending: str) -> int:
+        return next(i for i, line in enumerate(lines) if line.endswith(ending))
+
+    handler_line = index("[container]: said from a signal handler")
+    interrupted = index("[container.tests_roslog]: the interrupted line")
+    assert lines[handler_line].startswith("[ERROR] [") and lines[interrupted].startswith("[WARN] [")
+    assert handler_line < interrupted, "said at once, inside the interrupted call"

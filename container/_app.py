@@ -24,6 +24,7 @@ from ._errors import ConfigError, ContainerError
 from ._load import LoadReporter
 from ._params import node_parameters
 from ._registry import PluginRegistry
+from ._roslog import route_to
 from ._services import ContainerServices
 from ._session import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, Session, run_session
 from .devices import set_device_policy
@@ -104,6 +105,9 @@ class ContainerApp:
         diagnostics = LoopDiagnostics(manager, executor, load=load)
         # The registry has logged each plugin it skipped, once.
         executor.add_node(manager)
+        # From here on the process's own lines (signals, the watchdog) are
+        # the container node's: on /rosout with its name.
+        route_to(manager)
         return cls(config, context, registry, executor, manager, services, diagnostics, load)
 
     async def serve(
@@ -199,6 +203,7 @@ class ContainerApp:
         if self.load is not None:
             self.load.close()
         self.executor.remove_node(self.manager)
+        route_to(None)  # before the node's /rosout publisher goes
         self.manager.destroy_node()
 
 
@@ -306,6 +311,7 @@ def run_manager(settings: ManagerSettings, *, ros_args: Sequence[str] = ()) -> i
             print(f"container manager: {' '.join(str(exc).split())}", file=sys.stderr)
             return EXIT_USAGE
         session.executor.add_node(manager)
+        route_to(manager)
         session.mark_ready()
         running = asyncio.ensure_future(manager.run())
         try:
@@ -314,6 +320,7 @@ def run_manager(settings: ManagerSettings, *, ros_args: Sequence[str] = ()) -> i
             running.cancel()
             await asyncio.gather(running, return_exceptions=True)
             session.executor.remove_node(manager)
+            route_to(None)
             manager.destroy_node()
         return EXIT_OK
 

@@ -62,6 +62,7 @@ __all__ = [
     "managed_entities",
     "mark_event_ready",
     "raise_client_not_matched",
+    "rcutils_log",
     "request_client",
     "running_loop",
     "runs_plain_callback",
@@ -84,6 +85,11 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("asyncio", "_get_running_loop", "CPython 3.7-3.14; get_running_loop() without the raise"),
     ("asyncio.tasks", "__sleep0", "CPython 3.7-3.14; what asyncio.sleep(0) yields from"),
     ("rclpy.impl.implementation_singleton", "rclpy_implementation", "rclpy 1.0-10.x: the C extension"),
+    (
+        "rclpy.impl.implementation_singleton.rclpy_implementation",
+        "rclpy_logging_rcutils_log",
+        "rclpy 2.0-10.x; what RcutilsLogger.log ends in",
+    ),
     ("rclpy.event_handler.EventHandler", "_EventHandler__event", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.event_handler.EventHandler", "_event_index", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.event_handler.EventHandler", "_ready_to_take_data", "rclpy 4.0-10.x (instance attribute)"),
@@ -186,6 +192,27 @@ UnknownROSArgsError: type[Exception] = rclpy_implementation.UnknownROSArgsError
 RCLError: type[Exception] = rclpy_implementation.RCLError
 #: A service request's id (``rmw_request_id_t``), which a service's answer is sent to.
 RequestId: type = rclpy_implementation.rmw_request_id_t
+
+#: rcutils' log call, the one rclpy's loggers end in: ``(severity, logger name,
+#: message, function, file, line)``. Called directly so that a Python log
+#: record keeps its own place in the code (``RcutilsLogger.log`` records its
+#: caller, and refuses one call site logging at two severities).
+_RCUTILS_LOG: Callable[[int, str, str, str, str, int], None] = rclpy_implementation.rclpy_logging_rcutils_log
+
+
+def rcutils_log(severity: int, name: str, message: str, *, function: str, file: str, line: int) -> None:
+    """Log ``message`` through rcutils: its console format, and once rcl has
+    configured logging, the log file and ``/rosout`` (for a node's loggers).
+
+    Safe in a Python signal handler: rclpy's logging lock (a recursive
+    mutex) is taken only inside its C calls (this one, a node's creation
+    and destruction), which hold the GIL throughout and run no Python code
+    but a warning when rcl fails to finalise a node. The code a signal
+    interrupts therefore holds it only in that case, and then in the same
+    thread, which may take it again.
+    """
+    _RCUTILS_LOG(severity, name, message, function, file, line)
+
 
 #: rclpy's words when rmw timed out waiting for a client's response reader.
 _CLIENT_NOT_MATCHED = "failed to send response (timeout)"

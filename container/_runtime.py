@@ -14,7 +14,6 @@ from pathlib import Path
 
 __all__ = [
     "DDS_PROFILE",
-    "LOG_FORMAT",
     "PROFILE_VARIABLES",
     "configure_logging",
     "configure_warnings",
@@ -30,9 +29,6 @@ DDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
 #: the second too but with a deprecation warning on every process start;
 #: 2.x (Jazzy's 2.14) reads only the second.
 PROFILE_VARIABLES = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE")
-
-#: How the container's Python-level log lines look: rcutils' console lines, without the time.
-LOG_FORMAT = "[%(levelname)s] [%(name)s]: %(message)s"
 
 #: Distributions whose Fast DDS is 2.x, for installs without the wheels' metadata.
 _FAST_DDS_2 = frozenset({"humble", "iron", "jazzy"})
@@ -69,16 +65,25 @@ def fast_dds_major() -> int:
 
 
 def configure_logging(*, verbose: bool = False) -> None:
-    """Send Python-level logs (plugin loading, dispatch failures) to stderr."""
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format=LOG_FORMAT)
+    """Send Python-level logs (plugin loading, dispatch failures, the watchdog) through ROS logging.
+
+    A server's lines (``container run``, ``container manager``) are ROS log
+    lines like its nodes' (:mod:`container._roslog`): time stamp, severity,
+    logger name, the log file and ``/rosout``.
+    """
+    from ._roslog import install
+
+    install(level=logging.INFO, verbose=verbose)
 
 
 def configure_warnings() -> None:
-    """Give Python-level warnings the container's format in a command that configured no logging.
+    """Send a client command's warnings and errors through ROS logging, if nothing configured logging.
 
     A client command (``container list``, ``container lifecycle get``, ...)
-    logs only warnings and errors, which Python would print bare, with no
-    level to tell a warning from an error. Where logging is configured
-    already (``container run``, pytest) this does nothing.
+    logs only warnings and errors; its results are its output, on stdout.
+    Where logging is configured already (``container run``, pytest) this
+    does nothing.
     """
-    logging.basicConfig(level=logging.WARNING, format=LOG_FORMAT)
+    from ._roslog import install
+
+    install(level=logging.WARNING)

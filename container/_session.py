@@ -59,6 +59,7 @@ from rclpy.utilities import try_shutdown
 
 from ._compat import RCLError
 from ._errors import SecurityError
+from ._roslog import say_now
 from ._runtime import configure_warnings, use_fast_discovery
 from ._security import NO_SECURITY_PLUGINS, check_security, clear_rcl_error
 from .executor import AsyncioExecutor, end_resender, end_spare_threads
@@ -218,7 +219,7 @@ def run_session(
     try:
         security = check_security(ros_args)
     except SecurityError as exc:
-        print(f"container: {exc}", file=sys.stderr, flush=True)
+        _log.error(str(exc))
         return EXIT_FAILURE
     if security.warning is not None:
         _log.warning(security.warning)
@@ -237,7 +238,7 @@ def run_session(
     except RCLError as exc:
         # What rcl refuses that nothing checked before (an invalid --enclave
         # name, a security failure check_security could not foresee).
-        print(f"container: {ros_failure(exc)}", file=sys.stderr, flush=True)
+        _log.error(ros_failure(exc))
         return EXIT_FAILURE
     if security.stale_rcl_error:
         clear_rcl_error()
@@ -292,10 +293,12 @@ class _Signals:
     Two handlers see each signal. Python's (:meth:`on_signal_now`) runs in
     the main thread between two bytecodes, even while the event loop is
     stuck in a callback, so it does only what is safe at any point of any
-    code: it records the signal, starts the hard stop, writes straight to
-    file descriptor 2 and ends the process. asyncio's (:meth:`on_signal`,
-    while the loop's handlers are installed) runs on the loop, after it, and
-    starts the orderly stop and logs.
+    code: it records the signal, starts the hard stop, says its line
+    straight to rcutils (:func:`container._roslog.say_now`: no Python
+    logging lock, which the interrupted code may hold) and ends the process.
+    asyncio's (:meth:`on_signal`, while the loop's handlers are installed)
+    runs on the loop, after it, as ordinary code: it starts the orderly stop
+    and logs through Python's logging like any other line.
     """
 
     def __init__(self, session: Session, *, server: bool) -> None:
@@ -350,10 +353,12 @@ class _Signals:
         if signum == first and not self.repeated:
             self.repeated = True
             if not self.on_loop:
-                _write_stderr(_absorbed(name))
+                say_now(logging.WARNING, _absorbed(name))
             return
         again = "a third time" if signum == first else f"after {signal.Signals(first).name}"
-        _write_stderr(f"{name} {again}: exiting at once")
+        # ERROR: the nodes are not taken down; and rcl's log file flushes an
+        # ERROR line at once, before the process is gone.
+        say_now(logging.ERROR, f"{name} {again}: exiting at once")
         exit_now(exit_code_for(signum))
 
     def on_signal(self, signum: int) -> None:
@@ -388,12 +393,6 @@ def _absorbed(name: str) -> str:
     return f"{name} again: already shutting down; a third signal exits at once"
 
 
-def _write_stderr(line: str) -> None:
-    """Write ``line`` from a signal handler: past the buffers the interrupted code may be using."""
-    with contextlib.suppress(OSError):
-        os.write(2, f"{line}\n".encode())
-
-
 async def _guarded(
     main: Callable[[Session], Awaitable[int]], session: Session, signals: _Signals, *, codes: list[int]
 ) -> None:
@@ -411,7 +410,7 @@ async def _guarded(
     except RCLError as exc:
         # ROS itself refused (a node could not be created, most often): a
         # user's environment problem, said in one line, not a traceback.
-        print(f"container: {ros_failure(exc)}", file=sys.stderr, flush=True)
+        _log.error(ros_failure(exc))
         code = EXIT_FAILURE
     else:
         if signals.server and session.signal is not None and not session.ready:

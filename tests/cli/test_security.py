@@ -13,6 +13,7 @@ tested in ``tests/test_security.py``.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -27,14 +28,21 @@ from tests.process_support import LoggedProcess
 
 #: The one line for a Fast DDS built without security that is handed an enclave.
 NO_PLUGINS = (
-    "container: ROS_SECURITY_ENABLE is true, but this Fast DDS is built without its security plugins "
+    "[ERROR] [container]: ROS_SECURITY_ENABLE is true, but this Fast DDS is built without its security plugins "
     "(the PyPI wheels' Fast DDS is): use a ROS 2 whose Fast DDS was built with -DSECURITY=ON, "
     "or unset ROS_SECURITY_ENABLE"
 )
 ENCLAVE = "/lifecycle_container"
 FILES = ("identity_ca.cert.pem", "cert.pem", "key.pem", "permissions_ca.cert.pem", "governance.p7s", "permissions.p7s")
-WARNING = "[WARNING] [container]: "
-ERROR = "container: "
+WARNING = "[WARN] [container]: "
+ERROR = "[ERROR] [container]: "
+#: The time stamp of rcutils' console lines, taken out before they are compared.
+STAMP = re.compile(r"^(\[[A-Z]+\]) \[\d+\.\d+\] ")
+
+
+def unstamped(line: str) -> str:
+    """``line`` without rcutils' time stamp: ``[ERROR] [container]: ...``."""
+    return STAMP.sub(r"\1 ", line)
 
 
 @dataclass(frozen=True)
@@ -165,6 +173,7 @@ def check(case: Case, keystore: Path, lines: list[str], code: int) -> None:
         assert said(lines) == [], output
         return
     (line,) = said(lines)
+    line = unstamped(line)
     assert line.startswith(case.said), output
     position = 0
     for part in case.holds:
@@ -258,7 +267,7 @@ def test_every_command_refuses_in_one_line(tmp_path: Path, name: str) -> None:
         cwd=REPO, env=environment(case, keystore), capture_output=True, text=True, timeout=60,
     )
 
-    assert (result.returncode, result.stdout, result.stderr) == (1, "", NO_PLUGINS + "\n")
+    assert (result.returncode, result.stdout, unstamped(result.stderr)) == (1, "", NO_PLUGINS + "\n")
 
 
 @pytest.mark.slow
@@ -274,6 +283,6 @@ def test_every_command_warns_in_one_line_and_runs_on(tmp_path: Path, name: str) 
     assert "Traceback" not in output
     assert returned == code, output
     warnings = [line for line in lines if "ROS_SECURITY" in line]
-    assert len(warnings) == 1 and warnings[0].startswith(WARNING), output
+    assert len(warnings) == 1 and unstamped(warnings[0]).startswith(WARNING), output
     if answer is not None:
         assert answer in output

@@ -67,6 +67,10 @@ catch, so exactly that warning is made an error for the whole process
 (``_compat.raise_client_not_matched``; ``_compat.client_not_matched``
 recognises it, and the Python engine's ``Server`` with it).
 
+Answers that waited in the resender leave it at most one per
+:data:`PACE_S` for each service: a client is given every answer of its
+service, and rclpy's default keeps only the last 10 it has not taken.
+
 The resender ends after :data:`IDLE_S` seconds with nothing to send, and
 :func:`end_resender` ends it at once (a session ending: the container's
 own thread is not a plugin's leak).
@@ -103,8 +107,16 @@ HOLDING_EVERY_S = 1.0
 GIVEN_UP_S = 30.0
 #: How long a service answered through rclpy sends its answers from the resender after an unmatched one.
 SUSPECT_S = 30.0
-#: Answers waiting in the resender at most; more are dropped.
-MAX_WAITING = 256
+#: Answers waiting in the resender at most; more are dropped. Clients not
+#: discovered yet are legitimate callers too: a burst of 500 requests from five
+#: new clients once waited here, and a bound of 256 dropped answers they awaited.
+MAX_WAITING = 4096
+#: Between two answers the resender sends for one service. DDS delivers every
+#: answer of a service to every client of it, and a client with rclpy's default
+#: QoS keeps only the last 10 it has not taken (rclcpp#2397): answers queued
+#: while their clients were being discovered, sent back to back, pushed most of
+#: them out (50 of 500 arrived). Paced, a client has 10 of these to take each.
+PACE_S = 0.01
 #: Clients remembered at most, matched ones and given-up ones each.
 MAX_CLIENTS = 1024
 #: The resender ends after this long with nothing to send.
@@ -258,6 +270,8 @@ class _Resender:
         self._ending = False
         #: Answers dropped, in all (tests and the curious read it).
         self.dropped = 0
+        #: When the resender may next send for a service (:data:`PACE_S`), by service.
+        self._paced: dict[weakref.ref[Any], float] = {}
 
     def knows(self, key: _Key) -> bool:
         """Whether answers to that client wait here, or it was given up on."""
@@ -353,7 +367,7 @@ class _Resender:
         for client in self._clients.values():
             if not client.answers:
                 continue
-            wait = client.next_try - now
+            wait = max(client.next_try, self._paced.get(client.key[0], 0.0)) - now
             if wait <= 0:
                 if due is None or client.next_try < due.next_try:
                     due = client
@@ -390,12 +404,21 @@ class _Resender:
                     continue
                 client.answers.popleft()
                 self._waiting -= 1
+                if outcome:
+                    self._pace(client.key[0], now)
                 if not client.answers:
                     client.let_go()
                 if outcome and client.guid is not None:
                     _remember_matched(client.key)
                     if not client.answers:
                         self._clients.pop(client.key, None)
+
+    def _pace(self, service: weakref.ref[Any], now: float) -> None:
+        """The next answer for ``service`` no sooner than :data:`PACE_S` from ``now``."""
+        self._paced[service] = now + PACE_S
+        if len(self._paced) > MAX_CLIENTS:
+            for key in [key for key, at in self._paced.items() if at <= now]:
+                del self._paced[key]
 
     def _expire(self, now: float) -> None:
         """Drop the answers past their deadline: a client with a GUID is given up on

@@ -85,6 +85,7 @@ _FROM_TREE = (
 def trial(code: Path | None, *, requests: int, seconds: float, service: str, workdir: Path) -> dict[str, Any]:
     """One container, one attack; the talker's figures and the container's end."""
     import rclpy
+    from rclpy.client import Client
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -120,7 +121,7 @@ def trial(code: Path | None, *, requests: int, seconds: float, service: str, wor
     node.create_subscription(String, "chatter", lambda message: heard.append(time.perf_counter()), 10)
     module, name, path = SERVICES[service]
     srv_type = getattr(importlib.import_module(module), name)
-    client = node.create_client(
+    client: Client[Any, Any] = node.create_client(
         srv_type, path,
         qos_profile=QoSProfile(
             history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,

@@ -17,7 +17,7 @@ import logging
 import threading
 import time
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -38,20 +38,6 @@ UNMATCHABLE = QoSProfile(
 )
 #: A 20 Hz timer's period, and the largest gap allowed beside such a client: two periods.
 PERIOD_S = 0.05
-
-
-@pytest.fixture
-def make_node(context: Context) -> Iterator[Callable[..., Any]]:
-    nodes: list[Node] = []
-
-    def make(name: str, cls: type[Node] = Node) -> Any:
-        node = cls(name, context=context)
-        nodes.append(node)
-        return node
-
-    yield make
-    for node in nodes:
-        node.destroy_node()
 
 
 def _heard(client: Client[Any, Any], request_type: Any, futures: list[Any]) -> None:
@@ -79,7 +65,7 @@ def _spin(executor: AsyncioExecutor) -> threading.Thread:
 def test_requests_from_a_client_that_never_matches_leave_a_20hz_timer_on_time(
     kind: str,
     executor: AsyncioExecutor,
-    make_node: Callable[..., Any],
+    host: Callable[..., Any],
     caplog: pytest.LogCaptureFixture,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -100,13 +86,13 @@ def test_requests_from_a_client_that_never_matches_leave_a_20hz_timer_on_time(
     async def answer_async(request: Any, response: Any) -> Any:
         return answer(request, response)
 
-    callers = make_node(f"unmatched_callers_{kind}")
+    callers = host(Node, f"unmatched_callers_{kind}")
     if kind == "lifecycle":
-        server = make_node(f"unmatched_server_{kind}", LifecycleNode)
+        server = host(LifecycleNode, f"unmatched_server_{kind}")
         service_type: Any = GetState
         service_name = f"/unmatched_server_{kind}/get_state"
     else:
-        server = make_node(f"unmatched_server_{kind}")
+        server = host(Node, f"unmatched_server_{kind}")
         service_type = Trigger
         service_name = f"unmatched_{kind}"
         # Keep-all, as the container's own services: every request is taken and answered.
@@ -118,8 +104,6 @@ def test_requests_from_a_client_that_never_matches_leave_a_20hz_timer_on_time(
     callers.create_timer(PERIOD_S, lambda: ticks.append(time.perf_counter()))
     unmatched: Client[Any, Any] = callers.create_client(service_type, service_name, qos_profile=UNMATCHABLE)
     good: Client[Any, Any] = callers.create_client(service_type, service_name)
-    executor.add_node(server)
-    executor.add_node(callers)
     thread = _spin(executor)
     try:
         # The unmatched client's wait_for_service never returns true: rmw asks for its reader too.
@@ -150,17 +134,15 @@ def test_requests_from_a_client_that_never_matches_leave_a_20hz_timer_on_time(
 
 
 def test_a_client_given_up_on_has_its_later_answers_dropped_at_once(
-    executor: AsyncioExecutor, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+    executor: AsyncioExecutor, host: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """After the deadline, the client's further answers wait nowhere (nothing held for it)."""
     monkeypatch.setattr(_answers, "RETRY_S", 0.3)
-    server, callers = make_node("given_up_server"), make_node("given_up_callers")
+    server, callers = host(Node, "given_up_server"), host(Node, "given_up_callers")
     server.create_service(
         Trigger, "given_up", lambda request, response: response, qos_profile=QoSProfile(history=HistoryPolicy.KEEP_ALL)
     )
     unmatched: Client[Any, Any] = callers.create_client(Trigger, "given_up", qos_profile=UNMATCHABLE)
-    executor.add_node(server)
-    executor.add_node(callers)
     thread = _spin(executor)
     resender = _answers._resender
     try:
@@ -177,17 +159,15 @@ def test_a_client_given_up_on_has_its_later_answers_dropped_at_once(
 
 
 def test_the_resender_ends_when_asked_and_when_idle(
-    executor: AsyncioExecutor, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+    executor: AsyncioExecutor, host: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The container's own thread: ended by ``end_resender`` (a session's end),
     or by itself after a while with nothing to send."""
     monkeypatch.setattr(_answers, "IDLE_S", 0.2)
     monkeypatch.setattr(_answers, "RETRY_S", 0.3)
-    server, callers = make_node("resender_end_server"), make_node("resender_end_callers")
+    server, callers = host(Node, "resender_end_server"), host(Node, "resender_end_callers")
     server.create_service(Trigger, "resender_end", lambda request, response: response)
     unmatched: Client[Any, Any] = callers.create_client(Trigger, "resender_end", qos_profile=UNMATCHABLE)
-    executor.add_node(server)
-    executor.add_node(callers)
     thread = _spin(executor)
 
     def resender() -> list[threading.Thread]:
@@ -207,7 +187,7 @@ def test_the_resender_ends_when_asked_and_when_idle(
 
 
 def test_a_well_formed_clients_first_answer_is_sent_inline(
-    executor: AsyncioExecutor, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+    executor: AsyncioExecutor, host: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The graph knows its response reader, with a QoS the service's writer offers:
     no hand-over to the resender, even for its first answer (an answer sent just
@@ -220,11 +200,9 @@ def test_a_well_formed_clients_first_answer_is_sent_inline(
         add(*args, **kwargs)
 
     monkeypatch.setattr(_answers._resender, "add", spy)
-    server, callers = make_node("inline_server"), make_node("inline_callers")
+    server, callers = host(Node, "inline_server"), host(Node, "inline_callers")
     server.create_service(Trigger, "inline", lambda request, response: response)
     client: Client[Any, Any] = callers.create_client(Trigger, "inline")
-    executor.add_node(server)
-    executor.add_node(callers)
     thread = _spin(executor)
     try:
         assert client.wait_for_service(timeout_sec=10.0)
@@ -237,7 +215,7 @@ def test_a_well_formed_clients_first_answer_is_sent_inline(
 
 
 def test_what_is_remembered_of_clients_keeps_no_service_or_node_alive(
-    executor: AsyncioExecutor, context: Context, make_node: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+    executor: AsyncioExecutor, context: Context, host: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A client answered (remembered as matched) and a client given up on (remembered
     for its later answers) hold their service weakly: an unloaded node goes, with its
@@ -254,11 +232,10 @@ def test_what_is_remembered_of_clients_keeps_no_service_or_node_alive(
             return response
 
     server = Served()
-    callers = make_node("remembered_callers")
+    callers = host(Node, "remembered_callers")
     client: Client[Any, Any] = callers.create_client(Trigger, "remembered")
     unmatched: Client[Any, Any] = callers.create_client(Trigger, "remembered", qos_profile=UNMATCHABLE)
     executor.add_node(server)
-    executor.add_node(callers)
     thread = _spin(executor)
     resender = _answers._resender
     try:

@@ -302,7 +302,7 @@ class _Reader:
             try:
                 decoded.append(Parameter(name, kind, _value(kind, self.field(item, "value", place))))
             except (TypeError, ValueError) as exc:
-                raise self.fail(f"{place}.value", f"not a {item['type']}: {exc}") from exc
+                raise self.fail(f"{place}.value", f"does not fit the type {item['type']!r}: {exc}") from exc
         return tuple(decoded)
 
 

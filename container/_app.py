@@ -34,6 +34,7 @@ from ._services import ContainerServices
 from ._session import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, Session, run_session
 from ._statefile import ContainerState, NodeRecord
 from ._statekeeper import StateKeeper, restore_of, restore_request
+from ._text import clip
 from .devices import set_device_policy
 from .executor import AsyncioExecutor
 from .lifecycle import LifecycleManager, ManagerSettings, contain_fault, is_lifecycle, state_of, transition
@@ -71,7 +72,8 @@ def _entries(config: ContainerConfig, restoring: ContainerState | None) -> list[
     return [
         _Entry(
             index,
-            f"'{record.full_name}' (unique_id {record.unique_id}, {record.type_label})",
+            # The file may have been edited by hand: its text is echoed clipped.
+            f"{clip(record.full_name, quote=True)} (unique_id {record.unique_id}, {clip(record.type_label)})",
             restore_request(record),
             None if record.state == "unconfigured" else record.state,
             record,

@@ -206,6 +206,27 @@ def test_a_node_whose_plugin_is_gone_is_reported_and_skipped_the_others_restored
     assert "Restored 2 of the 3 node(s) of the state file in " in err
 
 
+def test_a_container_files_nodes_give_way_to_what_the_state_file_recorded_of_them(
+    context: Context, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "state.json"
+    # The file's node, deactivated at runtime; one loaded later; one shut down for good.
+    path.write_bytes(encode(ContainerState("/ComponentManager", 4, (
+        record(1, "listed", state="inactive"),
+        record(2, "later", "lifecycle_container::Listener", state="active"),
+        record(3, "done", state="finalized"),
+    )), pid=4242))
+
+    async def body(app: ContainerApp) -> None:
+        assert held(app) == {"/listed": (1, "inactive"), "/later": (2, "active"), "/done": (3, "finalized")}
+
+    run(context, container_file(path, "[{package: lifecycle_container, plugin: Talker, name: listed, "
+                                      "autostart: true}]"), body)
+    err = capfd.readouterr().err
+    assert f"Restoring 3 node(s) from the state file '{path}' (written " in err
+    assert "by process 4242), in place of the 1 node(s) the file lists" in err
+
+
 def test_a_load_asking_for_a_restored_node_is_answered_with_it_and_one_asking_otherwise_replaces_it(
     context: Context, tmp_path: Path
 ) -> None:

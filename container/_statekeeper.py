@@ -263,9 +263,11 @@ class StateKeeper:
     async def _write(self) -> None:
         while self._dirty and self.mode == "recording":
             self._dirty = False
-            data = encode(self.snapshot())
+            # The snapshot on the loop, where the container's bookkeeping lives;
+            # its encoding and the disk on a thread.
+            state = self.snapshot()
             try:
-                await in_thread(functools.partial(write_atomically, self.path, data), name="state-file")
+                await in_thread(functools.partial(_encode_and_write, self.path, state), name="state-file")
             except OSError as exc:
                 self._write_errors(
                     "write",
@@ -357,6 +359,10 @@ class StateKeeper:
     def _expect(self, mode: str) -> None:
         if self.mode != mode:
             raise StateFileError(f"the keeper is {self.mode}, not {mode}", path=str(self.path))
+
+
+def _encode_and_write(path: Path, state: ContainerState) -> None:
+    write_atomically(path, encode(state))
 
 
 def _lock(path: Path) -> int:

@@ -57,7 +57,7 @@ def answer(client: Client[Any, Any], request: Any, executor: AsyncioExecutor, *,
     """Call until answered (a dead server may be the only one matched for a while), or fail at ``deadline``."""
     while True:
         future = client.call_async(request)
-        executor.spin_until_future_complete(future, timeout_sec=max(0.0, min(0.5, deadline - time.monotonic())))
+        executor.spin_until_future_complete(future, timeout_sec=max(0.0, min(0.25, deadline - time.monotonic())))
         if future.done():
             return future.result()
         client.remove_pending_request(future)
@@ -200,8 +200,13 @@ def test_a_container_killed_and_respawned_restores_its_nodes_in_their_states_wit
               f"seen back in their states through their services after {back:.2f} s")
         assert back < BACK_WITHIN_S, restored
         second.wait_for_line(f"Container '{CONTAINER}' ready with 2 node(s)")
-        # A new load after the respawn: no id collides.
         client = ContainerClient(client_node, executor, CONTAINER, process=second)
+        # The launch file's load again (a launch started anew after the whole launch died):
+        # answered with the restored node, which keeps its state and its parameters set since.
+        again = client.load(loads[0])
+        assert (again.success, again.unique_id, again.full_node_name) == (True, 1, "/demo/talker"), again.error_message
+        assert services.state("/demo/talker", deadline=time.monotonic() + 5.0) == "active"
+        # A new load after the respawn: no id collides.
         late = composable_node_request(
             package="lifecycle_container", plugin="lifecycle_container::Listener", name="late", namespace="demo"
         )

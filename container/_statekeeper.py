@@ -29,7 +29,7 @@ import fcntl
 import functools
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from lifecycle_msgs.msg import TransitionEvent
 from rcl_interfaces.msg import ParameterDescriptor, ParameterEvent
@@ -75,6 +75,9 @@ _TRANSITION_EVENT = "~/transition_event"
 #: How often a write that keeps failing is logged.
 _WRITE_ERROR_PERIOD_S = 30.0
 
+#: Where a keeper stands (see :class:`StateKeeper`).
+Mode = Literal["created", "held", "recording", "stopped", "closed", "off"]
+
 
 def restore_request(record: NodeRecord) -> LoadRequest:
     """The load that brings ``record``'s node back as it was loaded (its parameters as resolved then)."""
@@ -113,7 +116,7 @@ class StateKeeper:
     def __init__(self, manager: ComponentManager, path: Path) -> None:
         self.manager = manager
         self.path = Path(os.path.abspath(path))
-        self.mode = "created"
+        self.mode: Mode = "created"
         self._log = manager.get_logger()
         self._lock: int | None = None
         self._group = MutuallyExclusiveCallbackGroup()
@@ -241,15 +244,24 @@ class StateKeeper:
         self._schedule()
 
     async def _on_parameter_event(self, event: ParameterEvent) -> None:
+        """Note which parameters of a hosted node were set (or undeclared) since its load.
+
+        The values are read from the node itself, not from the event: any
+        participant may publish on ``/parameter_events``, and a forged event
+        can at most make the file pin a value the node really has.
+        """
         if not (event.changed_parameters or event.deleted_parameters):
             return  # declarations (new_parameters) are the node's own business
         for loaded in self.manager.loaded():
             if loaded.full_name == event.node:
+                node = loaded.node
                 changed = self._changed.setdefault(loaded.unique_id, {})
-                for message in event.changed_parameters:
-                    changed[message.name] = Parameter.from_parameter_msg(message)
+                for name in dict.fromkeys(message.name for message in event.changed_parameters):
+                    if node.has_parameter(name):
+                        changed[name] = node.get_parameter(name)
                 for message in event.deleted_parameters:
-                    changed.pop(message.name, None)
+                    if not node.has_parameter(message.name):
+                        changed.pop(message.name, None)
                 self._schedule()
                 return
 
@@ -356,7 +368,7 @@ class StateKeeper:
             os.close(self._lock)  # the lock goes with the descriptor
             self._lock = None
 
-    def _expect(self, mode: str) -> None:
+    def _expect(self, mode: Mode) -> None:
         if self.mode != mode:
             raise StateFileError(f"the keeper is {self.mode}, not {mode}", path=str(self.path))
 

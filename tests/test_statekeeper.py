@@ -19,9 +19,12 @@ from typing import Any
 
 import pytest
 import yaml
+from rcl_interfaces.msg import ParameterEvent
 from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterTypeException
+from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_parameter_events
 
 import container._statefile as statefile
 import container._statekeeper as statekeeper
@@ -146,6 +149,29 @@ def read_node(path: Path, full_name: str) -> NodeRecord:
     assert state is not None
     (found,) = [node for node in state.nodes if node.full_name == full_name]
     return found
+
+
+def test_a_forged_parameter_event_records_only_what_the_node_really_has(context: Context, tmp_path: Path) -> None:
+    path = tmp_path / "state.json"
+
+    async def body(app: ContainerApp) -> None:
+        await app.manager.load(talker(parameters=[Parameter("rate", value=5.0)]))
+        await wait_until_async(lambda: "/talker" in recorded(path), "the node recorded")
+        # Any participant may publish on /parameter_events.
+        forger = Node("forger", context=app.context)
+        try:
+            publisher = forger.create_publisher(ParameterEvent, "/parameter_events", qos_profile_parameter_events)
+            forged = ParameterEvent(node="/talker", changed_parameters=[
+                Parameter("rate", value=99.0).to_parameter_msg(), Parameter("made_up", value=1).to_parameter_msg()
+            ])
+            await wait_until_async(lambda: publisher.get_subscription_count() > 0, "the keeper's subscription")
+            publisher.publish(forged)
+            await wait_until_async(lambda: read_node(path, "/talker").changed_parameters, "the event handled")
+        finally:
+            forger.destroy_node()
+        assert [(p.name, p.value) for p in read_node(path, "/talker").changed_parameters] == [("rate", 5.0)]
+
+    run(context, container_file(path), body)
 
 
 BAD_FILES = [

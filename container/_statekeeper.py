@@ -155,6 +155,14 @@ class StateKeeper:
         :meth:`record`.
         """
         self._expect("created")
+        if self.path.is_dir():
+            # Never moved aside: it is a directory of the user's, not a state file.
+            self._log.error(
+                f"state file '{self.path}' is a directory: name a file in it; "
+                "this container neither restores nor records its nodes"
+            )
+            self.mode = "off"
+            return None
         try:
             self._lock = _lock(self.path)
         except StateFileError as exc:

@@ -343,3 +343,19 @@ def test_the_state_file_parameter_must_be_a_string(context: Context, executor: A
         ContainerApp.create(
             parse_config({"container": {"parameters": [{"state_file": 5}]}}), context=context, executor=executor
         )
+
+
+def test_a_directory_named_as_the_state_file_is_left_alone(
+    context: Context, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "kept").touch()
+
+    async def body(app: ContainerApp) -> None:
+        await app.manager.load(talker())
+
+    run(context, container_file(tmp_path), body)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["kept"], "nothing moved, written or locked"
+    assert (
+        f"state file '{tmp_path}' is a directory: name a file in it; this container neither restores nor records "
+        "its nodes"
+    ) in capfd.readouterr().err

@@ -296,13 +296,13 @@ class ComponentManager(Node):
             if _same_load(restored, node_type, request, loaded_with):
                 restored.restored = False
                 self.get_logger().info(
-                    f"Load of '{full_name}' answered with the node restored from the state file "
+                    f"Load of {clip(full_name, quote=True)} answered with the node restored from the state file "
                     f"(unique_id {restored.unique_id}), loaded with the same settings"
                 )
                 return restored
             self.get_logger().warning(
-                f"Load of '{full_name}' asks for other settings than the node restored from the state file "
-                f"(unique_id {restored.unique_id}): that node is unloaded, this one loaded"
+                f"Load of {clip(full_name, quote=True)} asks for other settings than the node restored from the "
+                f"state file (unique_id {restored.unique_id}): that node is unloaded, this one loaded"
             )
             await self.unload(restored.unique_id)
         self._refuse_duplicate(full_name)

@@ -30,6 +30,7 @@ from container import AsyncioExecutor  # noqa: E402
 from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E402
 from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
 from tests.install_support import make_ros_wheels_venv  # noqa: E402
+from tests.process_support import venv_ament_prefix_path  # noqa: E402
 
 
 @pytest.fixture
@@ -78,6 +79,15 @@ def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
     yield node
     executor.remove_node(node)
     node.destroy_node()
+
+
+@pytest.fixture
+def ament_prefix_path(monkeypatch: pytest.MonkeyPatch) -> str:
+    """AMENT_PREFIX_PATH as the virtualenv's activation sets it, for this process and its children
+    (launch_ros finds the container's executable through it)."""
+    path = venv_ament_prefix_path()
+    monkeypatch.setenv("AMENT_PREFIX_PATH", path)
+    return path
 
 
 @pytest.fixture

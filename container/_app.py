@@ -3,7 +3,10 @@
 ``run_container`` is what ``container run`` does, as a server session
 (:mod:`container._session`): on SIGINT or SIGTERM it unloads every node
 through its lifecycle and destroys the container node; the session then
-releases the executor and reports any thread left behind.
+releases the executor and reports any thread left behind. The plugins are
+discovered (imported) before the session starts ROS: a signal meanwhile
+finds nothing to take down, and ends the process at once
+(:mod:`container._entry`).
 """
 
 from __future__ import annotations
@@ -62,17 +65,24 @@ class ContainerApp:
 
     @classmethod
     def create(
-        cls, config: ContainerConfig, *, context: Context, executor: AsyncioExecutor | None = None
+        cls,
+        config: ContainerConfig,
+        *,
+        context: Context,
+        executor: AsyncioExecutor | None = None,
+        registry: PluginRegistry | None = None,
     ) -> ContainerApp:
         """Build the container on ``executor`` (by default a new one made for ``config``).
 
         Installs the file's device policy for the process (what port
         parameters of the plugins it loads may name).
+
+        :param registry: the plugins, discovered already (by default
+            discovered now, as ``config`` narrows them: :func:`discover`).
         """
         set_device_policy(config.devices)
-        registry = PluginRegistry(
-            allow=config.plugins_allow, block=config.plugins_block, trace=config.trace_hooks
-        )
+        if registry is None:
+            registry = discover(config)
         if executor is None:
             executor = AsyncioExecutor(
                 context=context,
@@ -115,6 +125,7 @@ class ContainerApp:
         *,
         extensions: tuple[Extension, ...] = (),
         stopping: asyncio.Event | None = None,
+        stop_asked: Callable[[], bool] | None = None,
         on_ready: Callable[[], None] | None = None,
         exit_on_failure: bool | None = None,
     ) -> list[str]:
@@ -123,6 +134,9 @@ class ContainerApp:
         A stop requested while the nodes load ends the loading: what loaded
         is unloaded, and ``on_ready`` is never called.
 
+        :param stop_asked: whether a stop was asked for that ``stopping`` does
+            not show yet (a signal the loop has not handled: the loop was busy
+            constructing a node); looked at before each node's load and start.
         :param on_ready: called once every listed node was tried.
         :param exit_on_failure: stop at once, right after ready, when a listed
             node failed (default: the file's ``on_failure``).
@@ -131,6 +145,10 @@ class ContainerApp:
         """
         if stopping is not None:
             self.stopping = stopping
+
+        def stop_now() -> bool:
+            return self.stopping.is_set() or (stop_asked is not None and stop_asked())
+
         if exit_on_failure is None:
             exit_on_failure = self.config.on_failure == "exit"
         log = self.manager.get_logger()
@@ -141,7 +159,7 @@ class ContainerApp:
         constructed: list[tuple[int, str, LoadedNode]] = []
         try:
             for index, request in enumerate(requests_from_specs(specs)):
-                if self.stopping.is_set():
+                if stop_now():
                     break
                 entry = entry_label(index, request)
                 try:
@@ -159,7 +177,7 @@ class ContainerApp:
         for until in ("inactive", "active"):
             for item in list(starting):
                 index, entry, node = item
-                if self.stopping.is_set():
+                if stop_now():
                     break
                 if not self.manager.holds(node):
                     continue
@@ -171,7 +189,7 @@ class ContainerApp:
                     starting.remove(item)
         failed.sort(key=lambda failure: failure[0])
         running: list[asyncio.Future[None]] = []
-        if not self.stopping.is_set():
+        if not stop_now():
             running = [asyncio.ensure_future(extension(self)) for extension in extensions]
             loaded = len(self.manager.loaded())
             log.info(f"Container '{self.manager.get_fully_qualified_name()}' ready with {loaded} node(s)")
@@ -207,6 +225,11 @@ class ContainerApp:
         self.manager.destroy_node()
 
 
+def discover(config: ContainerConfig) -> PluginRegistry:
+    """The installed plugins, as the container file narrows them (``container.plugins``)."""
+    return PluginRegistry(allow=config.plugins_allow, block=config.plugins_block, trace=config.trace_hooks)
+
+
 def _summarise_warnings(log: RcutilsLogger, constructed: Sequence[tuple[int, str, LoadedNode]]) -> None:
     """Repeat, at ready, the warnings the file's loads caused: one line each, after a count.
 
@@ -239,9 +262,13 @@ def run_container(
         default ``continue`` serves on and exits 0, as rclcpp's container).
     """
 
+    # Plugins import before ROS starts: nothing to take down if a signal
+    # comes meanwhile (the entry point's handler ends the process).
+    registry = discover(config)
+
     async def main(session: Session) -> int:
         try:
-            app = ContainerApp.create(config, context=session.context, executor=session.executor)
+            app = ContainerApp.create(config, context=session.context, executor=session.executor, registry=registry)
         except (ParameterException, ConfigError) as exc:
             # A container parameter of the wrong type or value (--params-file, -p, the file).
             print(f"container run: {' '.join(str(exc).split())}", file=sys.stderr)
@@ -251,6 +278,7 @@ def run_container(
             failures = await app.serve(
                 extensions=extensions,
                 stopping=session.stopping,
+                stop_asked=session.stop_asked,
                 on_ready=session.mark_ready,
                 exit_on_failure=exits,
             )

@@ -45,117 +45,39 @@ import signal
 import statistics
 import subprocess
 import sys
-import threading
-import time
 from collections import Counter
-from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))  # tests.benchmarks
+sys.path.insert(0, str(REPO))  # tests.benchmarks, tests.signal_support
 
 from tests.benchmarks import cpus  # noqa: E402
+from tests.signal_support import CONSOLE_SCRIPT, SignalTry, signal_at  # noqa: E402
 
 DEMO = REPO / "examples" / "demo.yaml"
-
-
-@dataclass
-class Try:
-    """One process, one signal."""
-
-    delay: float
-    signum: int
-    #: The exit status (``-N``: killed by signal N); ``None``: still running at the deadline.
-    status: int | None
-    #: From the signal to the exit, in seconds (``None``: still running).
-    to_exit: float | None
-    output: str
-
-    @property
-    def name(self) -> str:
-        return signal.Signals(self.signum).name
-
-    @property
-    def traceback(self) -> bool:
-        return any(mark in self.output for mark in ("Traceback", "KeyboardInterrupt", "Fatal Python error"))
-
-    @property
-    def ignored(self) -> bool:
-        return "Exception ignored" in self.output
-
-    @property
-    def deadline(self) -> bool:
-        """Ended by the start-up's deadline, not by its orderly stop."""
-        return "without a clean shutdown" in self.output
-
-    @property
-    def killed_before_python(self) -> bool:
-        return self.status == -self.signum and not self.output.strip()
-
-    @property
-    def signal_lines(self) -> int:
-        return sum(1 for line in self.output.splitlines() if self.name in line)
-
-    def problems(self) -> list[str]:
-        found = []
-        if self.traceback:
-            found.append("traceback")
-        if self.ignored:
-            found.append("ignored")
-        if self.status is None:
-            found.append("still running")
-        elif not self.killed_before_python:
-            if self.status != 128 + self.signum:
-                found.append(f"status {self.status}")
-            if self.signal_lines != 1:
-                found.append(f"{self.signal_lines} signal lines")
-        return found
-
-
-def run_once(command: list[str], delay: float, signum: int, deadline: float) -> Try:
-    process = subprocess.Popen(
-        command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
-    )
-    started = time.monotonic()
-    chunks: list[str] = []
-    assert process.stdout is not None
-    reader = threading.Thread(target=lambda: chunks.append(process.stdout.read()), daemon=True)  # type: ignore[union-attr]
-    reader.start()
-    # The stimulus: the signal's moment after the start.
-    time.sleep(max(0.0, started + delay - time.monotonic()))
-    process.send_signal(signum)
-    sent = time.monotonic()
-    status: int | None
-    try:
-        status = process.wait(deadline)
-        to_exit: float | None = time.monotonic() - sent
-    except subprocess.TimeoutExpired:
-        status, to_exit = None, None
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait()
-    reader.join(10.0)
-    process.stdout.close()
-    return Try(delay, signum, status, to_exit, "".join(chunks))
 
 
 def busy_loops(count: int) -> list[subprocess.Popen[bytes]]:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
 
 
-def report(tries: list[Try], examples: int) -> bool:
+def report(tries: list[SignalTry], examples: int) -> bool:
     by_signal = Counter(t.name for t in tries)
     print(f"tries: {len(tries)} ({', '.join(f'{n} {name}' for name, n in sorted(by_signal.items()))})")
     counts = {
         "tracebacks": sum(t.traceback for t in tries),
+        "  of which in the first interpreter's own start": sum(t.in_interpreter_start for t in tries),
         "ignored": sum(t.ignored for t in tries),
         "still running": sum(t.status is None for t in tries),
         "killed by the signal before Python ran our code": sum(t.killed_before_python for t in tries),
         "wrong status": sum(
-            t.status is not None and not t.killed_before_python and t.status != 128 + t.signum for t in tries
+            t.status is not None and not t.killed_before_python and not t.traceback and t.status != 128 + t.signum
+            for t in tries
         ),
         "ended by the start-up's deadline (not cleanly)": sum(t.deadline for t in tries),
         "not exactly one line naming the signal": sum(
-            t.status is not None and not t.killed_before_python and t.signal_lines != 1 for t in tries
+            t.status is not None and not t.killed_before_python and not t.traceback and t.signal_lines != 1
+            for t in tries
         ),
     }
     for what, n in counts.items():
@@ -188,7 +110,7 @@ def main() -> None:
     cpus.add_option(parser)
     args = parser.parse_args()
     cpus.pin(parser, args.cpus)
-    command = args.command or [str(Path(sys.executable).parent / "container"), "run", str(DEMO)]
+    command = args.command or [str(CONSOLE_SCRIPT), "run", str(DEMO)]
     # A domain of its own, on this host: other runs never see these containers.
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 200)))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -196,12 +118,12 @@ def main() -> None:
     print(f"command: {' '.join(command)}; busy loops: {args.busy}")
     steps = max(1, int(args.until // args.step))
     loads = busy_loops(args.busy)
-    tries: list[Try] = []
+    tries: list[SignalTry] = []
     try:
         for i in range(args.tries):
             lap, step = divmod(i, steps)
             signum = signal.SIGINT if lap % 2 == 0 else signal.SIGTERM
-            tries.append(run_once(command, step * args.step / 1000, signum, args.deadline))
+            tries.append(signal_at(command, step * args.step / 1000, signum, deadline=args.deadline))
     finally:
         for load in loads:
             load.kill()

@@ -9,13 +9,18 @@ wherever the interpreter is (a traceback from ``site``, "Fatal Python
 error" and status 1, or from the middle of an import), and where Python
 ignores exceptions (a weakref callback) it is printed as "Exception
 ignored" and the process carries on as if no signal had come; SIGTERM
-kills. So, for the ``container`` command only (:func:`is_container_command`):
+kills. So:
 
-* ``lifecycle_container.pth``, which site processes before the
-  bootstrapper's file, calls :func:`hold`: both signals are *blocked*. A
-  blocked signal waits, pending; the mask and what is pending survive the
-  bootstrapper's ``execve``, so the second interpreter starts, and imports,
-  with both held;
+* ``00_lifecycle_container.pth``, which site reads before any other
+  ``.pth`` file with code (the bootstrapper's among them), *blocks* both
+  signals in a ``container`` process: ``python -m container``, or the
+  console script beside the interpreter (``ros2 run`` and launch_ros
+  reach it through ``lib/lifecycle_container``). A blocked signal waits,
+  pending; the mask and what is pending survive the bootstrapper's
+  ``execve``, so the second interpreter starts, and imports, with both
+  held. The file does it in its one line, with builtin modules only, and
+  for no other process (one that blocked them and never took them could
+  not be interrupted);
 * the entry point's first act (:mod:`container.__main__`) is :func:`take`:
   the handler :func:`_exit_at_once` is installed, then the signals
   unblocked, and one that came meanwhile is delivered there and then;
@@ -25,15 +30,20 @@ kills. So, for the ``container`` command only (:func:`is_container_command`):
   until the command's session installs its own, and comes back after a
   session that no signal stopped.
 
-Left to Python and the kernel: the first interpreter's own start, before
-site reaches this project's file (the default action kills the process;
-shells report that as ``128 + signal`` too), a few milliseconds.
+Left to CPython and the kernel, the first interpreter's own start, before
+site reads that file: until CPython installs its SIGINT handler the
+default action kills the process, silently (shells report that as ``128 +
+signal`` too, launch as ``-2``/``-15``); in the few milliseconds from then
+to the ``.pth`` file, SIGINT is CPython's ``KeyboardInterrupt`` ("Fatal
+Python error: init_import_site", status 1). No code of a package runs
+earlier. Where site does not read the file (a colcon install, which puts
+the package on ``PYTHONPATH``), the signals are Python's until :func:`take`.
 
 The line: through ROS logging once the process has it
 (:func:`use_ros_logging`, by :func:`container._roslog.install`), a plain one
 on stderr before; only a server command (``run``, ``manager``) says it: a
 client command cut short is quiet, as in its session. This module imports
-only the standard library: it runs at interpreter start.
+only the standard library.
 """
 
 from __future__ import annotations
@@ -47,63 +57,21 @@ TYPE_CHECKING = False
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
 
-__all__ = ["SIGNALS", "hold", "is_container_command", "take", "use_ros_logging"]
+__all__ = ["SIGNALS", "take", "use_ros_logging"]
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-#: The module ``python -m`` runs for the command, and the console script's name.
+#: The command's name (its console script's).
 _COMMAND = "container"
 #: The commands that are servers: they say the line.
 _SERVERS = ("run", "manager")
-#: Python's options that take a value (``-X dev``, ``-W error``), and those that end its options.
-_VALUE_OPTIONS = frozenset("XW")
-_END_OPTIONS = frozenset("cm")
+#: ``logging.INFO``, without importing logging.
+_INFO = 20
 
 #: How the handler says its line: ``(severity, message)`` through ROS logging, once there.
 _say: Callable[[int, str], None] | None = None
 #: The server command's name, for the plain line (``container run``); ``None``: quiet.
 _server: str | None = None
-
-
-def is_container_command(argv: Sequence[str], executable: str) -> bool:
-    """Whether the interpreter ``argv`` (``sys.orig_argv``) runs the ``container`` command.
-
-    Either ``python [options] -m container ...``, or the console script
-    ``container`` beside ``executable`` (the environment's ``bin``), which
-    ``ros2 run`` and launch_ros reach through ``lib/lifecycle_container``.
-    Nothing else: a process that blocked these signals and never took them
-    could not be interrupted.
-    """
-    args = iter(argv[1:])
-    for arg in args:
-        if arg == "--check-hash-based-pycs":
-            next(args, None)
-            continue
-        if arg.startswith("--") or arg == "-":
-            return False  # --help, --version, or a script on stdin
-        if arg.startswith("-"):
-            for at, option in enumerate(arg[1:], start=2):
-                if option in _VALUE_OPTIONS or option in _END_OPTIONS:
-                    value = arg[at:] or next(args, "")
-                    if option == "c":
-                        return False
-                    if option == "m":
-                        return value == _COMMAND
-                    break
-            continue
-        # The script itself, reached through any symbolic link, against the
-        # directory of the interpreter (not the interpreter's own target).
-        script = os.path.realpath(arg)
-        return os.path.basename(script) == _COMMAND and os.path.dirname(script) == os.path.realpath(
-            os.path.dirname(os.path.abspath(executable))
-        )
-    return False
-
-
-def hold() -> None:
-    """Block SIGINT and SIGTERM in a ``container`` process (``lifecycle_container.pth``); else nothing."""
-    if is_container_command(sys.orig_argv, sys.executable):
-        signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
 
 
 def take(argv: Sequence[str]) -> None:
@@ -130,17 +98,19 @@ def use_ros_logging(say: Callable[[int, str], None]) -> None:
 
 
 def _exit_at_once(signum: int, frame: object) -> None:
-    # Runs between any two bytecodes of the main thread: no lock the
-    # interrupted code may hold (Python's logging's) is taken.
+    # Runs between any two bytecodes of the main thread: nothing the
+    # interrupted code may hold is needed (Python's logging's locks, a
+    # stream's buffer: the plain line goes to the descriptor).
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
     with contextlib.suppress(Exception):
         if _server is not None:
             message = f"{signal.Signals(signum).name} received: exiting"
             if _say is not None:
-                _say(20, message)  # logging.INFO, without importing logging
+                _say(_INFO, message)
             else:
-                sys.stderr.write(f"{_server}: {message}\n")
-        sys.stdout.flush()
-        sys.stderr.flush()
+                os.write(2, f"{_server}: {message}\n".encode())
     os._exit(128 + signum)
 
 

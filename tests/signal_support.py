@@ -18,11 +18,21 @@ from pathlib import Path
 
 from tests.container_support import REPO
 
-__all__ = ["CONSOLE_SCRIPT", "SignalTry", "signal_at"]
+__all__ = ["BOOTSTRAPPED", "CONSOLE_SCRIPT", "SignalTry", "as_from_a_shell", "signal_at"]
 
 #: The environment's ``container`` command, as a terminal and ``ros2 launch`` run it
 #: (through the ROS wheels' bootstrapper, which re-executes Python).
 CONSOLE_SCRIPT = Path(sys.executable).parent / "container"
+
+#: The ROS wheels' bootstrapper's guard: set in a process it re-executed
+#: (this one), inherited by its children, which then run without re-executing.
+BOOTSTRAPPED = "_ROS_WHEELS_BOOTSTRAP_COMPLETE"
+
+
+def as_from_a_shell() -> dict[str, str]:
+    """This process's environment without the bootstrapper's guard: a child re-executes Python,
+    as one started from a terminal or by ``ros2 launch`` does."""
+    return {name: value for name, value in os.environ.items() if name != BOOTSTRAPPED}
 
 
 @dataclass
@@ -97,11 +107,18 @@ class SignalTry:
 def signal_at(command: Sequence[str], delay: float, signum: int, *, deadline: float = 3.0) -> SignalTry:
     """Start ``command``, send it ``signum`` ``delay`` seconds later, wait up to ``deadline`` s for its end.
 
-    The delay is the stimulus, slept on purpose; the end is waited on. A
-    process still running at the deadline is killed (its group).
+    The process starts as from a shell (:func:`as_from_a_shell`). The delay
+    is the stimulus, slept on purpose; the end is waited on. A process still
+    running at the deadline is killed (its group).
     """
     process = subprocess.Popen(
-        list(command), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+        list(command),
+        cwd=REPO,
+        env=as_from_a_shell(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
     )
     started = time.monotonic()
     stdout = process.stdout

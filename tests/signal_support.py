@@ -80,11 +80,21 @@ class SignalTry:
         return "without a clean shutdown" in self.output
 
     @property
+    def after_ready(self) -> bool:
+        """The container said it was ready before the signal: the ordinary stop, status 0."""
+        return "ready with" in self.output
+
+    @property
+    def expected_status(self) -> int:
+        return 0 if self.after_ready else 128 + self.signum
+
+    @property
     def signal_lines(self) -> int:
         return sum(1 for line in self.output.splitlines() if self.name in line)
 
     def problems(self) -> list[str]:
-        """What went wrong: empty for exactly one line and ``128 + signal``, or a silent kill before Python."""
+        """What went wrong: empty for exactly one line and ``128 + signal`` (0 once the container
+        said it was ready), or a silent kill before Python."""
         found = []
         if self.traceback:
             found.append("traceback in the interpreter's start" if self.in_interpreter_start else "traceback")
@@ -93,7 +103,7 @@ class SignalTry:
         if self.status is None:
             found.append("still running")
         elif not self.killed_before_python and not self.traceback:
-            if self.status != 128 + self.signum:
+            if self.status != self.expected_status:
                 found.append(f"status {self.status}")
             if self.signal_lines != 1:
                 found.append(f"{self.signal_lines} lines naming {self.name}")

@@ -3,7 +3,10 @@
 ``run_container`` is what ``container run`` does, as a server session
 (:mod:`container._session`): on SIGINT or SIGTERM it unloads every node
 through its lifecycle and destroys the container node; the session then
-releases the executor and reports any thread left behind.
+releases the executor and reports any thread left behind. The plugins are
+discovered (imported) before the session starts ROS: a signal meanwhile
+finds nothing to take down, and ends the process at once
+(:mod:`container._entry`).
 
 A container given a state file (the ``state_file`` parameter,
 :mod:`container._statekeeper`) starts with the nodes it records, each
@@ -105,17 +108,24 @@ class ContainerApp:
 
     @classmethod
     def create(
-        cls, config: ContainerConfig, *, context: Context, executor: AsyncioExecutor | None = None
+        cls,
+        config: ContainerConfig,
+        *,
+        context: Context,
+        executor: AsyncioExecutor | None = None,
+        registry: PluginRegistry | None = None,
     ) -> ContainerApp:
         """Build the container on ``executor`` (by default a new one made for ``config``).
 
         Installs the file's device policy for the process (what port
         parameters of the plugins it loads may name).
+
+        :param registry: the plugins, discovered already (by default
+            discovered now, as ``config`` narrows them: :func:`discover`).
         """
         set_device_policy(config.devices)
-        registry = PluginRegistry(
-            allow=config.plugins_allow, block=config.plugins_block, trace=config.trace_hooks
-        )
+        if registry is None:
+            registry = discover(config)
         if executor is None:
             executor = AsyncioExecutor(
                 context=context,
@@ -159,6 +169,7 @@ class ContainerApp:
         *,
         extensions: tuple[Extension, ...] = (),
         stopping: asyncio.Event | None = None,
+        stop_asked: Callable[[], bool] | None = None,
         on_ready: Callable[[], None] | None = None,
         exit_on_failure: bool | None = None,
     ) -> list[str]:
@@ -170,6 +181,9 @@ class ContainerApp:
         its recorded state; one that cannot load is skipped (it never counts
         as a failure of the file's).
 
+        :param stop_asked: whether a stop was asked for that ``stopping`` does
+            not show yet (a signal the loop has not handled: the loop was busy
+            constructing a node); looked at before each node's load and start.
         :param on_ready: called once every listed node was tried.
         :param exit_on_failure: stop at once, right after ready, when a listed
             node failed (default: the file's ``on_failure``).
@@ -178,6 +192,10 @@ class ContainerApp:
         """
         if stopping is not None:
             self.stopping = stopping
+
+        def stop_now() -> bool:
+            return self.stopping.is_set() or (stop_asked is not None and stop_asked())
+
         if exit_on_failure is None:
             exit_on_failure = self.config.on_failure == "exit"
         log = self.manager.get_logger()
@@ -190,14 +208,14 @@ class ContainerApp:
             )
         began = asyncio.get_running_loop().time()
         entries = _entries(self.config, restoring)
-        failed, constructed = await self._bring_up(entries)
+        failed, constructed = await self._bring_up(entries, stop_now=stop_now)
         if restoring is not None:
             self._report_restore(restoring, constructed, asyncio.get_running_loop().time() - began)
-        if self.state is not None and not self.stopping.is_set():
+        if self.state is not None and not stop_now():
             self.state.record()
         failed.sort(key=lambda failure: failure[0])
         running: list[asyncio.Future[None]] = []
-        if not self.stopping.is_set():
+        if not stop_now():
             running = [asyncio.ensure_future(extension(self)) for extension in extensions]
             loaded = len(self.manager.loaded())
             log.info(f"Container '{self.manager.get_fully_qualified_name()}' ready with {loaded} node(s)")
@@ -226,7 +244,7 @@ class ContainerApp:
         return [f"{entry}: {exc}" for _, entry, exc in failed]
 
     async def _bring_up(
-        self, entries: Sequence[_Entry]
+        self, entries: Sequence[_Entry], *, stop_now: Callable[[], bool]
     ) -> tuple[list[tuple[int, str, ContainerError]], list[tuple[_Entry, LoadedNode]]]:
         """Load ``entries``: every one constructed first, in order, then served, then brought up.
 
@@ -235,6 +253,8 @@ class ContainerApp:
         others configured, and nothing publishes while the rest are still
         being configured (see ComponentManager.load's ``serve``).
 
+        :param stop_now: whether a stop was asked for (looked at before
+            each node's load and each transition).
         :return: the file's entries that failed (index, label, error), and
             every node constructed with its entry.
         """
@@ -254,7 +274,7 @@ class ContainerApp:
         constructed: list[tuple[_Entry, LoadedNode]] = []
         try:
             for entry in entries:
-                if self.stopping.is_set():
+                if stop_now():
                     break
                 restore = restore_of(entry.record) if entry.record is not None else None
                 try:
@@ -272,7 +292,7 @@ class ContainerApp:
         for until in ("inactive", "active"):
             for item in list(starting):
                 entry, node = item
-                if self.stopping.is_set():
+                if stop_now():
                     break
                 if not self.manager.holds(node) or (until == "active" and entry.goal != "active"):
                     continue
@@ -283,7 +303,7 @@ class ContainerApp:
                     starting.remove(item)
         for entry, node in constructed:
             # Only a state file's record asks for it: a node shut down for good.
-            if entry.goal == "finalized" and self.manager.holds(node) and not self.stopping.is_set():
+            if entry.goal == "finalized" and self.manager.holds(node) and not stop_now():
                 try:
                     await transition(self.executor, node.node, "shutdown", timeout=timeout)
                 except ContainerError as exc:
@@ -324,6 +344,11 @@ class ContainerApp:
         self.manager.destroy_node()
 
 
+def discover(config: ContainerConfig) -> PluginRegistry:
+    """The installed plugins, as the container file narrows them (``container.plugins``)."""
+    return PluginRegistry(allow=config.plugins_allow, block=config.plugins_block, trace=config.trace_hooks)
+
+
 def _summarise_warnings(log: RcutilsLogger, constructed: Sequence[tuple[str, LoadedNode]]) -> None:
     """Repeat, at ready, the warnings the file's loads caused: one line each, after a count.
 
@@ -356,9 +381,13 @@ def run_container(
         default ``continue`` serves on and exits 0, as rclcpp's container).
     """
 
+    # Plugins import before ROS starts: nothing to take down if a signal
+    # comes meanwhile (the entry point's handler ends the process).
+    registry = discover(config)
+
     async def main(session: Session) -> int:
         try:
-            app = ContainerApp.create(config, context=session.context, executor=session.executor)
+            app = ContainerApp.create(config, context=session.context, executor=session.executor, registry=registry)
         except (ParameterException, ConfigError) as exc:
             # A container parameter of the wrong type or value (--params-file, -p, the file).
             print(f"container run: {' '.join(str(exc).split())}", file=sys.stderr)
@@ -368,6 +397,7 @@ def run_container(
             failures = await app.serve(
                 extensions=extensions,
                 stopping=session.stopping,
+                stop_asked=session.stop_asked,
                 on_ready=session.mark_ready,
                 exit_on_failure=exits,
             )

@@ -28,6 +28,9 @@ from tests.container_support import REPO
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 INDEX = Path("share") / "ament_index" / "resource_index"
+SITE = Path("lib") / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
+#: Holds the command's signals from site's first .pth file on (container/_entry.py).
+PTH = REPO / "container" / "interfaces" / "00_lifecycle_container.pth"
 
 
 def _run(*args: str | Path, env: dict[str, str] | None = None, timeout: float = 600) -> str:
@@ -110,6 +113,9 @@ def test_the_wheels_carry_the_ament_index_and_executables(venv: Path) -> None:
         assert (venv / INDEX / "packages" / package).is_file()
     for name in EXECUTABLES:
         assert os.access(venv / "lib" / "lifecycle_container" / name, os.X_OK)
+    # Where site reads it, before the ROS wheels' bootstrapper's.
+    assert (venv / SITE / PTH.name).read_text() == PTH.read_text()
+    assert sorted(path.name for path in (venv / SITE).glob("*.pth"))[0] == PTH.name
     found = _run(
         venv / "bin" / "python", "-c",
         "from ament_index_python import get_resources; import json;"
@@ -168,7 +174,7 @@ def test_a_plugin_with_its_own_interfaces_installs_and_uninstalls_them(wheels: d
         env=_plain_env(),
     )
     assert made.split() == ["x", "3"]
-    site = venv / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
+    site = venv / SITE
     generated = [venv / "share" / "beacon_interfaces", site]
     assert (generated[0] / "msg" / "Beacon.msg").is_file()
 
@@ -195,3 +201,4 @@ def test_pip_uninstall_takes_everything_the_wheels_installed(wheels: dict[str, P
     for leftover in ("share/composition_interfaces", "share/lifecycle_container", "lib/lifecycle_container"):
         assert not any(path.is_file() for path in (venv / leftover).rglob("*")), leftover
     assert not (venv / "bin" / "container").exists()
+    assert not (venv / SITE / PTH.name).exists()

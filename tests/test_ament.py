@@ -412,7 +412,11 @@ def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
         parameters={"rate": 20.0, "message": "From launch", "unused": {"nested": 1}},
         extra_arguments={"use_intra_process_comms": True, "autostart": True},
     ))
-    assert (talker.success, talker.error_message, talker.full_node_name) == (True, "", "/demo/talker")
+    # A successful answer carries its load's warnings (cli.md, Warnings): the nested parameter no node reads.
+    assert (talker.success, talker.error_message, talker.full_node_name) == (
+        True, "[WARN] [demo.talker]: Unknown parameter 'unused.nested' ignored: this node does not read it",
+        "/demo/talker",
+    )
     # A ComposableLifecycleNode(autostart=True) of launch_ros 0.26.7+: loaded, then
     # LifecycleTransition calls change_state (configure, activate).
     listener = client.load(composable_node_request(

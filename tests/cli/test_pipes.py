@@ -146,9 +146,13 @@ def test_a_reading_command_ends_quietly_when_its_output_is_closed_from_the_start
     clean(tmp_path / "stderr")
 
 
-@pytest.mark.parametrize(
-    "args", [("top", "--json"), ("top", "--json", "--once"), ("top", "--json", "/ComponentManager")], ids=" ".join
-)
+#: Every command line with ``--json`` output (tests/cli/test_json.py keeps the list whole).
+JSON_OUTPUT: list[tuple[str, ...]] = [
+    ("top", "--json"), ("top", "--json", "--once"), ("top", "--json", "/ComponentManager"),
+]
+
+
+@pytest.mark.parametrize("args", JSON_OUTPUT, ids=" ".join)
 def test_json_output_is_one_document(container: ContainerProcess, args: tuple[str, ...]) -> None:
     (load,) = json.loads(output(args))
     assert load["container"] == "/ComponentManager"

@@ -26,6 +26,13 @@ plugin whose import fails at build time still gets its marker; the failure
 is printed and the build goes on (the container reports the same failure
 when it loads).
 
+``build-backend = "scikit_build_core.build"`` would build such a plugin's
+wheel without these entries, silently; ``find_package(lifecycle_container)``
+refuses that (it sees ``LIFECYCLE_CONTAINER_BUILD_BACKEND``, which this
+backend sets while scikit-build-core builds). colcon builds of a plugin get
+the same entries from :mod:`container.colcon` (``ament_python``) or from
+``find_package(lifecycle_container)`` (CMake).
+
 Standard library only at import (plus the chosen backend): it runs inside
 pip's build, before anything of ROS needs to load.
 """

@@ -36,7 +36,9 @@
 #   by) and, at the end of the install, its ament index entries (the package
 #   marker and rclcpp_components, written by `container index`). Its
 #   project() must then be named as its ROS package (the distribution's name,
-#   - and . as _), which colcon names the package by.
+#   - and . as _), and a package.xml of that <name> beside it makes it an
+#   ament_cmake package to colcon (ament_package() is called for it), which
+#   puts its prefix on AMENT_PREFIX_PATH.
 #
 # Needs CMake 3.21 and, in the build environment, the ROS build tools
 # (ament_cmake, rosidl_default_generators and the message packages used):
@@ -173,8 +175,8 @@ function(_lifecycle_container_plugin_project)
   if(NOT CMAKE_PROJECT_NAME STREQUAL package)
     message(FATAL_ERROR
       "lifecycle_container: the plugin ${distribution} registers its node types as ${package}::<Type>, so its "
-      "project must be named ${package} (colcon names the package, and puts its prefix on AMENT_PREFIX_PATH, "
-      "by the project's name): project(${package} ...), not project(${CMAKE_PROJECT_NAME} ...).")
+      "project must be named ${package} (the ROS package colcon builds, by its package.xml or else by the "
+      "project's name): project(${package} ...), not project(${CMAKE_PROJECT_NAME} ...).")
   endif()
   set(site_packages "lib/python${Python3_VERSION_MAJOR}.${Python3_VERSION_MINOR}/site-packages")
   foreach(directory IN LISTS plugin)
@@ -208,7 +210,7 @@ function(_lifecycle_container_plugin_project)
       "lifecycle_container: the plugin ${distribution} has no package.xml beside its pyproject.toml, so colcon "
       "builds it as a plain CMake package and leaves its prefix off AMENT_PREFIX_PATH: ros2 pkg list, "
       "ros2 component types and launch_ros would not find ${package}. Add one whose <name> is ${package} and "
-      "whose build_type is ament_cmake (see the container's docs/guide/install.md, In a colcon workspace); "
+      "whose build_type is ament_cmake (see the container's docs/guide/colcon.md); "
       "this package then calls ament_package() for it.")
   endif()
   # The rest at the end of the top directory, once everything the plugin

@@ -14,10 +14,13 @@ the ament resource index of every prefix on ``AMENT_PREFIX_PATH``:
   Python class (``module:qualname``); nothing loads it from there.
 
 :func:`write_index` writes these for every package of registered node types,
-and for this project's own package the container executables. What it wrote
-is recorded in a resource type of its own (:data:`RECORD_TYPE`), so that a
-later run removes the entries of a distribution that went away, and never
-touches a package some other installation registered.
+and for this project's own package the container executables, each into the
+prefix its distribution is installed in (a package's prefix is where ROS
+tools look for all of it: ``get_package_prefix``). What it wrote is recorded
+in a resource type of its own (:data:`RECORD_TYPE`), so that a later run
+removes the entries of a distribution that went away, and never touches a
+package some other installation registered; a marker colcon's build of the
+distribution installed in the same prefix is the package's own, kept.
 """
 
 from __future__ import annotations
@@ -101,7 +104,11 @@ class IndexReport:
 
 @dataclass(frozen=True)
 class _Record:
-    """One package's entry in :data:`RECORD_TYPE`: what was written for it."""
+    """One package's entry in :data:`RECORD_TYPE`: what was written for it.
+
+    :ivar marker: whether the package marker was written here (not when the
+        package's own build installed it): only then is it removed with the rest.
+    """
 
     distribution: str
     marker: bool

@@ -3,8 +3,9 @@
 The public API is what this module exports, plus the public subpackages
 :mod:`container.executor`, :mod:`container.lifecycle`, the value checks
 :mod:`container.checks`, the device policy :mod:`container.devices`, the
-pytest plugin :mod:`container.testing` and the plugins' build backend
-:mod:`container.build_backend`; everything in an underscored module is
+pytest plugin :mod:`container.testing`, the plugins' build backend
+:mod:`container.build_backend` and their colcon commands
+:mod:`container.colcon`; everything in an underscored module is
 private and may change. Plugin authors need :data:`hookimpl`, :class:`LifecycleNode` and
 :class:`RegisterNodeType`; embedders need :class:`AsyncioExecutor`,
 :class:`ComponentManager` and :class:`LifecycleManager`.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -45,3 +46,22 @@ def make_ros_wheels_venv(prefix: Path) -> Path:
     )
     assert result.returncode == 0, result.stdout + result.stderr
     return prefix
+
+
+def greeter_package(destination: Path) -> Path:
+    """A colcon plugin without messages of its own at ``destination``: examples/colcon/radar_nodes' files
+    without its interface package, around the third-party example's module (docs/guide/colcon.md)."""
+    radar = REPO / "examples" / "colcon" / "radar_nodes"
+    for name in ("package.xml", "setup.cfg", "setup.py"):
+        text = (radar / name).read_text(encoding="utf-8")
+        text = text.replace("  <depend>radar_interfaces</depend>\n", "").replace("radar_nodes", "greeter_nodes")
+        assert "radar" not in text.replace("radar_nodes", ""), name
+        (destination / name).parent.mkdir(parents=True, exist_ok=True)
+        (destination / name).write_text(text, encoding="utf-8")
+    (destination / "resource").mkdir()
+    (destination / "resource" / "greeter_nodes").touch()
+    shutil.copytree(
+        REPO / "examples" / "thirdparty_plugin" / "greeter_nodes", destination / "greeter_nodes",
+        ignore=shutil.ignore_patterns("__pycache__"),
+    )
+    return destination

@@ -37,8 +37,8 @@ from rclpy.client import Client
 from rclpy.node import Node
 
 from container import AsyncioExecutor
-from container._ament import EXECUTABLES, PROJECT_PACKAGE, write_index
-from container._registry import PluginRegistry
+from container._ament import EXECUTABLES, PROJECT_PACKAGE, RECORD_TYPE, installed_prefix, write_index
+from container._registry import NodeType, PluginRegistry
 from tests.component_support import IMPORT_ROOT, ContainerClient, install_test_plugin
 from tests.container_support import REPO
 from tests.process_support import (
@@ -143,44 +143,174 @@ def test_index_adds_a_new_plugin_and_removes_it_when_it_is_gone(tmp_path: Path) 
     assert "up to date" in index(env)
 
     gone = index(dict(os.environ))  # the plugin uninstalled
-    assert "test_nodes: removed (no longer installed)" in gone
+    assert "test_nodes: removed (no longer installed in this prefix)" in gone
     index_dir = prefix / "share" / "ament_index" / "resource_index"
     assert not (index_dir / "packages" / "test_nodes").exists()
     assert not (index_dir / "rclcpp_components" / "test_nodes").exists()
     assert foreign.exists()
-    assert (prefix / "lib" / PROJECT_PACKAGE / "component_container").exists()
+    # The container's own package is the prefix it is installed in's, never this one's.
+    assert not (prefix / "lib" / PROJECT_PACKAGE).exists()
+    assert not (index_dir / "packages" / PROJECT_PACKAGE).exists()
+
+
+def installed_plugin(prefix: Path, monkeypatch: pytest.MonkeyPatch, distribution: str) -> list[NodeType]:
+    """``distribution`` installed into ``prefix`` as colcon installs a plugin (its metadata in the
+    prefix's site-packages, on ``sys.path``): its node types."""
+    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+    install_test_plugin(site, distribution=distribution)
+    monkeypatch.syspath_prepend(str(site))
+    return [t for t in PluginRegistry().types.values() if t.distribution == distribution]
+
+
+def files_under(root: Path) -> dict[str, bytes]:
+    return {str(path.relative_to(root)): path.read_bytes() for path in root.rglob("*") if path.is_file()}
 
 
 def test_an_existing_ros_package_of_the_same_name_is_left_alone(tmp_path: Path) -> None:
     index_dir = tmp_path / "share" / "ament_index" / "resource_index"
     (index_dir / "packages").mkdir(parents=True)
-    (index_dir / "packages" / "ldlidar").touch()
-    report = write_index(tmp_path, PluginRegistry().types.values())
-    assert [package for package, _ in report.skipped] == ["ldlidar"]
-    assert not (index_dir / "rclcpp_components" / "ldlidar").exists()
-    assert PROJECT_PACKAGE in report.registered
+    (index_dir / "packages" / "test_nodes").touch()  # some other installation's package
+    site = install_test_plugin(tmp_path / "elsewhere", distribution="test-nodes")
+    sys.path.insert(0, str(site))
+    try:
+        report = write_index(tmp_path, PluginRegistry().types.values(), project=None)
+    finally:
+        sys.path.remove(str(site))
+    assert ("test_nodes", f"a ROS package named 'test_nodes' is already installed in {tmp_path}") in report.skipped
+    assert not (index_dir / "rclcpp_components" / "test_nodes").exists()
 
 
-# Indexes and ROS tools in child processes.
+def test_a_named_plugin_is_registered_in_its_prefix_beside_the_package_marker_colcon_wrote(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `container index --prefix install/my_robot --distribution my_robot` after
+    # `colcon build` of an ament_python plugin: the marker is the package's own.
+    prefix = tmp_path / "install" / "my_robot"
+    index_dir = prefix / "share" / "ament_index" / "resource_index"
+    (index_dir / "packages").mkdir(parents=True)
+    (index_dir / "packages" / "my_robot").touch()
+    types = installed_plugin(prefix, monkeypatch, "my-robot")
+    assert installed_prefix("my-robot") == prefix.resolve()
+
+    report = write_index(prefix, types, project=None, prune=False, strict=True)
+
+    assert (report.skipped, list(report.registered)) == ([], ["my_robot"])
+    assert (index_dir / "rclcpp_components" / "my_robot").read_text().splitlines()[0] == (
+        "my_robot::Burner;tests.component_support:Burner"
+    )
+    # Nothing of the container's own package: its prefix is the one it is installed in.
+    assert sorted(path.name for path in index_dir.iterdir()) == ["lifecycle_container_plugins", "packages",
+                                                                 "rclcpp_components"]
+    assert [path.name for path in (index_dir / "packages").iterdir()] == ["my_robot"]
+    assert not (prefix / "lib" / PROJECT_PACKAGE).exists()
+    # The marker was there before: never removed with the entries written here.
+    assert "marker no" in (index_dir / RECORD_TYPE / "my_robot").read_text()
+    monkeypatch.undo()
+    write_index(prefix, [], project=None)
+    assert (index_dir / "packages" / "my_robot").exists()
+    assert not (index_dir / "rclcpp_components" / "my_robot").exists()
+
+
+def test_the_containers_own_package_goes_only_into_the_prefix_it_is_installed_in(tmp_path: Path) -> None:
+    home = installed_prefix("lifecycle-container")
+    assert home == Path(sys.prefix).resolve()
+    # What an earlier version wrote into a plugin's prefix goes again.
+    index_dir = tmp_path / "share" / "ament_index" / "resource_index"
+    (index_dir / RECORD_TYPE).mkdir(parents=True)
+    (index_dir / RECORD_TYPE / PROJECT_PACKAGE).write_text(
+        "distribution lifecycle-container\nmarker yes\nexecutables component_container\n"
+    )
+    for path in (index_dir / "packages" / PROJECT_PACKAGE, tmp_path / "lib" / PROJECT_PACKAGE / "component_container"):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch()
+
+    refused = write_index(tmp_path, [], strict=True)
+    assert refused.skipped == [(PROJECT_PACKAGE, f"lifecycle-container is installed in {home}, not in {tmp_path} "
+                                                 f"(container index --prefix {home})")]
+    assert refused.changed == []
+
+    report = write_index(tmp_path, [])
+    assert (report.registered, report.removed) == ({}, [PROJECT_PACKAGE])
+    assert files_under(tmp_path) == {}
+
+
+def test_a_refused_name_leaves_the_prefix_untouched(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    types = installed_plugin(tmp_path, monkeypatch, "my-robot")
+    foreign = tmp_path / "share" / "ament_index" / "resource_index" / "packages" / "test_nodes"
+    foreign.parent.mkdir(parents=True)
+    foreign.touch()
+    site = install_test_plugin(tmp_path / "elsewhere", distribution="test-nodes", module="tests.fault_plugin")
+    monkeypatch.syspath_prepend(str(site))
+    types += [t for t in PluginRegistry().types.values() if t.distribution == "test-nodes"]
+    assert types and {t.package for t in types} == {"my_robot", "test_nodes"}
+    before = files_under(tmp_path)
+
+    report = write_index(tmp_path, types, project=None, prune=False, strict=True)
+
+    assert [package for package, _ in report.skipped] == ["test_nodes"]
+    assert (report.registered, report.changed, files_under(tmp_path)) == ({}, [], before)
+
+
+# Indexes in child processes.
 @pytest.mark.slow
-def test_index_of_named_distributions_registers_only_them_and_keeps_the_rest(tmp_path: Path) -> None:
-    # What a colcon install of the repository runs for its own two distributions.
-    site = install_test_plugin(tmp_path / "site", distribution="test-nodes")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(IMPORT_ROOT)]))
-    index_dir = tmp_path / "prefix" / "share" / "ament_index" / "resource_index"
+def test_index_of_named_distributions_registers_only_them_in_their_prefix(tmp_path: Path) -> None:
+    # Issue 45: `container index --prefix install/my_robot --distribution my_robot`
+    # after colcon built an ament_python plugin (its marker and metadata in its
+    # prefix) refused my_robot and wrote lifecycle_container's entries and four
+    # executables there instead.
+    prefix = tmp_path / "install" / "my_robot"
+    index_dir = prefix / "share" / "ament_index" / "resource_index"
+    (index_dir / "packages").mkdir(parents=True)
+    (index_dir / "packages" / "my_robot").touch()
+    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+    install_test_plugin(site, distribution="my_robot")
+    elsewhere = install_test_plugin(tmp_path / "site", distribution="test-nodes", module="tests.fault_plugin")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(elsewhere), str(IMPORT_ROOT)]))
 
     def index(*names: str) -> subprocess.CompletedProcess[str]:
         options = [option for name in names for option in ("--distribution", name)]
         return subprocess.run(
-            [sys.executable, "-m", "container", "index", "--prefix", str(tmp_path / "prefix"), *options],
+            [sys.executable, "-m", "container", "index", "--prefix", str(prefix), *options],
             capture_output=True, text=True, timeout=60, env=env, cwd=REPO,
         )
 
-    assert index("test-nodes").returncode == 0
-    assert index("lifecycle-container").returncode == 0
-    assert sorted(p.name for p in (index_dir / "rclcpp_components").iterdir()) == ["lifecycle_container", "test_nodes"]
-    refused = index("no-such-plugin")
-    assert (refused.returncode, refused.stderr) == (1, "container index: no node types from no_such_plugin\n")
+    done = index("my_robot")
+    assert (done.returncode, done.stderr) == (0, ""), done.stderr
+    assert done.stdout == f"ament index of {prefix}: 2 file(s) changed\n  my_robot: 4 node type(s)\n"
+    assert sorted(files_under(prefix / "share")) == [
+        "ament_index/resource_index/lifecycle_container_plugins/my_robot",
+        "ament_index/resource_index/packages/my_robot",
+        "ament_index/resource_index/rclcpp_components/my_robot",
+    ]
+    assert sorted(path.name for path in prefix.iterdir()) == ["lib", "share"]
+    assert [path.name for path in (prefix / "lib").iterdir()] == [site.parent.name]
+    env_prefix = dict(os.environ, AMENT_PREFIX_PATH=str(prefix))
+    found = subprocess.run(
+        [sys.executable, "-c", "from ament_index_python import get_package_prefix as p, get_resource as r;"
+         "print(p('my_robot')); print(r('rclcpp_components', 'my_robot')[0], end='')"],
+        capture_output=True, text=True, env=env_prefix, timeout=60,
+    )
+    assert found.stdout.splitlines()[0] == str(prefix), found.stderr
+    assert "my_robot::Busy;tests.component_support:Busy" in found.stdout.splitlines()
+
+    # Refused before anything is written: the container's own package (installed
+    # in the test environment), a plugin with another's marker, an unknown name.
+    before = files_under(prefix)
+    refused = index("my_robot", "lifecycle-container")
+    home = installed_prefix("lifecycle-container")
+    assert (refused.returncode, refused.stderr) == (1, (
+        f"container index: lifecycle_container not registered: lifecycle-container is installed in {home}, "
+        f"not in {prefix} (container index --prefix {home})\n"
+        f"container index: nothing written in {prefix}\n"
+    ))
+    (index_dir / "packages" / "test_nodes").touch()
+    before = files_under(prefix)
+    refused = index("test-nodes")
+    assert refused.returncode == 1
+    assert f"a ROS package named 'test_nodes' is already installed in {prefix}" in refused.stderr
+    assert files_under(prefix) == before
+    unknown = index("no-such-plugin")
+    assert (unknown.returncode, unknown.stderr) == (1, "container index: no node types from no_such_plugin\n")
 
 
 # -- a launch file's ComposableNodeContainer, as launch_ros runs it ---------------------------------

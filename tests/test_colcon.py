@@ -8,6 +8,7 @@ result must be a ROS prefix ROS tools read, and a working container.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -21,11 +22,13 @@ from pathlib import Path
 import pytest
 
 from tests.container_support import REPO
-from tests.install_support import installed_ros_distro
+from tests.install_support import greeter_package, installed_ros_distro
 
 # Builds: a virtualenv of the ROS wheels and colcon (about 2 minutes, the first
-# test's set-up), then the workspace.
+# test's set-up), then the workspace, then the plugins in it.
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+
+INDEX = Path("share") / "ament_index" / "resource_index"
 
 
 def _snapshot(root: Path) -> dict[str, float]:
@@ -51,6 +54,18 @@ def _environment(underlay: Path) -> dict[str, str]:
     return env
 
 
+def _copy_tracked(directory: Path, destination: Path) -> None:
+    """The repository's files under ``directory`` (tracked, or new and not ignored), into ``destination``."""
+    tracked = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard", "--", "."],
+        cwd=directory, check=True, capture_output=True,
+    ).stdout.decode().split("\0")
+    for name in filter(None, tracked):
+        if (directory / name).is_file():
+            (destination / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(directory / name, destination / name)
+
+
 def _in_workspace(workspace: Path, env: dict[str, str], script: str, *, timeout: float = 120) -> str:
     """Run ``script`` in bash after ``source install/setup.bash``; return its output."""
     result = subprocess.run(
@@ -70,14 +85,7 @@ def workspace(underlay: Path, tmp_path_factory: pytest.TempPathFactory) -> Itera
     """``colcon build`` of the repository (its tracked files) in a fresh workspace."""
     workspace = tmp_path_factory.mktemp("colcon_ws")
     source = workspace / "src" / "lifecycle_container"
-    tracked = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO, check=True, capture_output=True,
-    ).stdout.decode().split("\0")
-    for name in filter(None, tracked):
-        if (REPO / name).is_file():
-            (source / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(REPO / name, source / name)
+    _copy_tracked(REPO, source)
     env = _environment(underlay)
     before = {"src": _snapshot(source), "underlay": _snapshot(underlay)}
     result = subprocess.run(
@@ -132,28 +140,111 @@ def test_the_install_is_a_ros_prefix_with_the_packages_types_and_executables(
     assert "lifecycle_container\n  lifecycle_container::Counter\n" in types
 
 
-def test_the_installed_container_executable_serves_load_requests(workspace: tuple[Path, dict[str, str]]) -> None:
-    root, env = workspace
-    env = {**env, "PYTHONUNBUFFERED": "1"}
+@contextlib.contextmanager
+def _container(root: Path, env: dict[str, str], name: str) -> Iterator[list[str]]:
+    """The workspace's installed ``component_container`` as ``/name``, ready; SIGINT at the end, which it
+    must exit 0 on. Yields its output lines so far; the rest is appended when it has exited."""
     proc = subprocess.Popen(
         ["bash", "-c", "source install/setup.bash && exec install/lifecycle_container/lib/lifecycle_container/"
-         "component_container --ros-args -r __node:=colcon_container"],
-        cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+         f"component_container --ros-args -r __node:={name}"],
+        cwd=root, env={**env, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
+    lines: list[str] = []
     try:
         assert proc.stdout is not None
-        lines: list[str] = []
         deadline = time.monotonic() + 60
         while not any("ready with" in line for line in lines):
             assert time.monotonic() < deadline and proc.poll() is None, "".join(lines)
             lines.append(proc.stdout.readline())
-        loaded = _in_workspace(root, env, "container load /colcon_container lifecycle_container Talker")
-        assert loaded == "Loaded component 1 into '/colcon_container' container node as '/talker'\n"
+        yield lines
     finally:
         proc.send_signal(signal.SIGINT)
         rest, _ = proc.communicate(timeout=60)
-    assert proc.returncode == 0, rest
-    assert "Unloaded '/talker'" in rest
+        lines += rest.splitlines(keepends=True)
+    assert proc.returncode == 0, "".join(lines)
+
+
+def test_the_installed_container_executable_serves_load_requests(workspace: tuple[Path, dict[str, str]]) -> None:
+    root, env = workspace
+    with _container(root, env, "colcon_container") as output:
+        loaded = _in_workspace(root, env, "container load /colcon_container lifecycle_container Talker")
+        assert loaded == "Loaded component 1 into '/colcon_container' container node as '/talker'\n"
+    assert "Unloaded '/talker'" in "".join(output)
+
+
+# -- third-party plugins in the workspace, as docs/guide/install.md lays them out ---------------------
+
+#: What ``ros2 component types`` lists for each plugin package the workspace builds.
+PLUGIN_TYPES = {
+    "beacon_nodes": ["beacon_nodes::Beacon;beacon_nodes:Beacon"],
+    "greeter_nodes": ["greeter_nodes::Greeter;greeter_nodes:Greeter"],
+    "radar_nodes": ["radar_nodes::Radar;radar_nodes:Radar"],
+}
+
+
+@pytest.fixture(scope="module")
+def plugins(workspace: tuple[Path, dict[str, str]]) -> tuple[Path, dict[str, str]]:
+    """Three plugins built by colcon beside the container: radar_nodes (ament_python) with its interface
+    package radar_interfaces, greeter_nodes (ament_python, no messages) and beacon_nodes (the pip layout:
+    pyproject.toml and CMakeLists.txt, plus a package.xml)."""
+    root, env = workspace
+    src = root / "src"
+    _copy_tracked(REPO / "examples" / "colcon", src)
+    _copy_tracked(REPO / "examples" / "beacon_plugin", src / "beacon_plugin")
+    greeter_package(src / "greeter_nodes")
+    before = _snapshot(src)
+    fix = src / "lifecycle_container" / "container" / "cmake" / "ros_wheels.cmake"
+    result = subprocess.run(
+        ["colcon", "build", "--event-handlers", "console_cohesion-", "--packages-skip", "lifecycle_container",
+         "--cmake-args", f"-DCMAKE_PROJECT_INCLUDE={fix}"],
+        cwd=root, env=env, capture_output=True, text=True, timeout=900,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert _snapshot(src) == before  # builds in build/, installs in install/, nothing in the sources
+    return root, env
+
+
+def test_plugins_built_by_colcon_are_ros_packages_with_their_component_types(
+    plugins: tuple[Path, dict[str, str]],
+) -> None:
+    root, env = plugins
+    out = _in_workspace(
+        root,
+        env,
+        'python -c "'
+        "import json;"
+        "from ament_index_python import get_packages_with_prefixes, get_resource, get_resources;"
+        "print(json.dumps({'packages': get_packages_with_prefixes(), "
+        "'components': {p: get_resource('rclcpp_components', p)[0] for p in get_resources('rclcpp_components')}}))\"",
+    )
+    found = json.loads(out.splitlines()[-1])
+    install = root / "install"
+    # ros2 pkg list: each plugin is the package of its own prefix, and so is the container.
+    for package in [*PLUGIN_TYPES, "radar_interfaces", "lifecycle_container"]:
+        assert found["packages"][package] == str(install / package), package
+    # ros2 component types
+    assert {p: c.splitlines() for p, c in found["components"].items() if p in PLUGIN_TYPES} == PLUGIN_TYPES
+    # Nothing of the container's own package in a plugin's prefix.
+    for package in PLUGIN_TYPES:
+        assert not (install / package / "lib" / "lifecycle_container").exists()
+        assert not (install / package / INDEX / "packages" / "lifecycle_container").exists()
+    types = _in_workspace(root, env, "container types")
+    for package, lines in PLUGIN_TYPES.items():
+        assert f"{package}\n  {lines[0].split(';')[0]}\n" in types
+
+
+def test_the_container_loads_the_plugins_colcon_built(plugins: tuple[Path, dict[str, str]]) -> None:
+    root, env = plugins
+    with _container(root, env, "plugin_container") as output:
+        for number, (package, lines) in enumerate(sorted(PLUGIN_TYPES.items()), start=1):
+            plugin = lines[0].split(";")[0]
+            loaded = _in_workspace(root, env, f"container load /plugin_container {package} {plugin} "
+                                              "-e autostart:=true")
+            name = plugin.split("::")[1].lower()
+            assert loaded == f"Loaded component {number} into '/plugin_container' container node as '/{name}'\n"
+    text = "".join(output)
+    for name in ("beacon", "greeter", "radar"):
+        assert f"Unloaded '/{name}'" in text, text
 
 
 def test_an_interface_package_built_by_colcon_hashes_as_the_one_pip_built(

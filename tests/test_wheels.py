@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -23,6 +24,7 @@ import pytest
 from container._ament import EXECUTABLES
 from container._registry import PluginRegistry
 from tests.container_support import REPO
+from tests.install_support import greeter_package, installed_ros_distro
 
 # Builds: the wheels (over a minute, the first test's set-up), a virtualenv to install them into.
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
@@ -184,6 +186,44 @@ def test_a_plugin_with_its_own_interfaces_installs_and_uninstalls_them(wheels: d
     assert not any(path.is_file() for path in generated[0].rglob("*"))
     assert not any((venv / "lib").glob("libbeacon_interfaces__*.so"))
     assert not any(path.is_file() for path in (site / "beacon_interfaces").rglob("*"))
+
+
+def test_colcon_builds_a_plugin_against_the_containers_wheel(venv: Path, tmp_path: Path) -> None:
+    # docs/guide/colcon.md over a plain virtualenv: the ROS wheels, colcon and
+    # the container's wheel, with AMENT_PREFIX_PATH and ROS_DISTRO exported.
+    workspace = tmp_path / "ws"
+    greeter_package(workspace / "src" / "greeter_nodes")
+    env = {
+        **_plain_env(), "PATH": f"{venv / 'bin'}{os.pathsep}{os.environ['PATH']}",
+        "AMENT_PREFIX_PATH": str(venv), "ROS_DISTRO": installed_ros_distro(),
+    }
+    built = subprocess.run(
+        ["colcon", "build", "--event-handlers", "console_cohesion-"],
+        cwd=workspace, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert built.returncode == 0, built.stdout + built.stderr
+    prefix = workspace / "install" / "greeter_nodes"
+    assert (prefix / INDEX / "rclcpp_components" / "greeter_nodes").read_text() == (
+        "greeter_nodes::Greeter;greeter_nodes:Greeter\n"
+    )
+    listed = subprocess.run(
+        ["bash", "-c", "source install/setup.bash && container types && python -c "
+         "'from ament_index_python import get_package_prefix as p; print(p(\"greeter_nodes\"))'"],
+        cwd=workspace, env=env, capture_output=True, text=True, timeout=120,
+    )
+    assert "greeter_nodes\n  greeter_nodes::Greeter\n" in listed.stdout, listed.stdout + listed.stderr
+    assert listed.stdout.splitlines()[-1] == str(prefix)
+    # The pip layout finds the CMake files the container's wheel installed (configured only).
+    shutil.copytree(REPO / "examples" / "beacon_plugin", tmp_path / "beacon", ignore=shutil.ignore_patterns("tests"))
+    configured = subprocess.run(
+        ["cmake", "-S", tmp_path / "beacon", "-B", tmp_path / "beacon-build", f"-DCMAKE_INSTALL_PREFIX={tmp_path}"],
+        env=env, capture_output=True, text=True, timeout=120,
+    )
+    assert configured.returncode == 0, configured.stdout + configured.stderr
+    found = "lifecycle_container: plugin beacon-nodes (ROS package beacon_nodes; Python: beacon_nodes)"
+    assert found in configured.stdout
+    cache = (tmp_path / "beacon-build" / "CMakeCache.txt").read_text()
+    assert f"lifecycle_container_DIR:PATH={venv / 'share' / 'lifecycle_container' / 'cmake'}\n" in cache
 
 
 def test_pip_uninstall_takes_everything_the_wheels_installed(wheels: dict[str, Path], venv: Path) -> None:

@@ -1,4 +1,4 @@
-"""``python -m container`` and the ``container`` console script.
+"""``python -m container`` and the ``container`` command (Python on ``bin/container``, a sh launcher).
 
 The entry point's first act is to take SIGINT and SIGTERM
 (:func:`container._entry.take`): a signal before the command's session

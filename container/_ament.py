@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
+import shlex
 import sys
 import tempfile
 from collections.abc import Iterable, Mapping
@@ -64,9 +65,21 @@ RECORD_TYPE = "lifecycle_container_plugins"
 _PACKAGES = "packages"
 _COMPONENTS = "rclcpp_components"
 
-_SCRIPT = """#!{python}
+#: An executable: a sh script that is also Python, as the ``container`` command is
+#: (``container/interfaces/container.in``): sh starts Python on this same file
+#: with SIGINT and SIGTERM blocked where env can, held until the command's entry
+#: point takes them (:mod:`container._entry`).
+_SCRIPT = """#!/bin/sh
+'''':
 # Written by `container index` (lifecycle-container): `container {command}`, run
-# by ros2 run and launch_ros as {package}'s {executable}.
+# by ros2 run and launch_ros as {package}'s {executable}. Python on this same
+# file, started with SIGINT and SIGTERM blocked where env can (coreutils 8.31
+# or later), held until the command's entry point takes them.
+if env --block-signal=INT --version >/dev/null 2>&1; then
+    exec env --block-signal=INT,TERM {python} "$0" "$@"
+fi
+exec {python} "$0" "$@"
+'''
 import sys
 
 from container.__main__ import main
@@ -212,7 +225,9 @@ def write_index(
             _remove(report, components)
         executables = sorted(EXECUTABLES) if package == PROJECT_PACKAGE else []
         for name in executables:
-            script = _SCRIPT.format(python=python, command=EXECUTABLES[name], package=package, executable=name)
+            script = _SCRIPT.format(
+                python=shlex.quote(python), command=EXECUTABLES[name], package=package, executable=name
+            )
             _write(report, prefix / "lib" / package / name, script, executable=True)
         if record is not None:
             for name in set(record.executables) - set(executables):

@@ -18,11 +18,13 @@ from pathlib import Path
 
 from tests.container_support import REPO
 
-__all__ = ["BOOTSTRAPPED", "CONSOLE_SCRIPT", "SignalTry", "as_from_a_shell", "signal_at"]
+__all__ = ["BOOTSTRAPPED", "COMMAND", "SignalTry", "as_from_a_shell", "signal_at"]
 
-#: The environment's ``container`` command, as a terminal and ``ros2 launch`` run it
-#: (through the ROS wheels' bootstrapper, which re-executes Python).
-CONSOLE_SCRIPT = Path(sys.executable).parent / "container"
+#: The environment's ``container`` command, as a terminal and ``ros2 launch`` run it:
+#: a sh script that starts Python on itself with SIGINT and SIGTERM blocked
+#: (``container/interfaces/container.in``), through the ROS wheels' bootstrapper,
+#: which re-executes Python.
+COMMAND = Path(sys.executable).parent / "container"
 
 #: The ROS wheels' bootstrapper's guard: set in a process it re-executed
 #: (this one), inherited by its children, which then run without re-executing.
@@ -60,8 +62,9 @@ class SignalTry:
         """A traceback from the first interpreter's own start, before site reads any ``.pth`` file of ours.
 
         CPython installs its SIGINT handler (``KeyboardInterrupt``) a few
-        milliseconds before site processes the first ``.pth`` file; nothing
-        of the project can run earlier (``container/_entry.py``).
+        milliseconds before site processes the first ``.pth`` file; only a
+        Python started with the signals blocked (the command's launcher,
+        where env can block them) is safe there (``container/_entry.py``).
         """
         return "Fatal Python error: init_" in self.output and str(REPO) not in self.output
 
@@ -71,7 +74,8 @@ class SignalTry:
 
     @property
     def killed_before_python(self) -> bool:
-        """Ended by the signal's default action, silently, before Python ran any code of ours."""
+        """Ended by the signal's default action, silently, before Python ran any code of ours
+        (in the launcher's shell, before its ``exec``)."""
         return self.status == -self.signum and not self.output.strip()
 
     @property

@@ -135,6 +135,10 @@ def test_the_install_is_a_ros_prefix_with_the_packages_types_and_executables(
     for executable in ("component_container", "component_container_mt", "component_container_isolated",
                        "lifecycle_manager"):
         assert os.access(prefix / "lib" / "lifecycle_container" / executable, os.X_OK)
+    # The command and the executables: sh, which starts Python with the signals held (container/_entry.py).
+    for script in (prefix / "bin" / "container", prefix / "lib" / "lifecycle_container" / "component_container"):
+        text = script.read_text()
+        assert text.startswith("#!/bin/sh\n") and "exec env --block-signal=INT,TERM" in text, text
     types = _in_workspace(root, env, "container types")
     assert "ldlidar\n  ldlidar::LdLidarNode\n" in types
     assert "lifecycle_container\n  lifecycle_container::Counter\n" in types

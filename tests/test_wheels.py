@@ -115,6 +115,11 @@ def test_the_wheels_carry_the_ament_index_and_executables(venv: Path) -> None:
         assert (venv / INDEX / "packages" / package).is_file()
     for name in EXECUTABLES:
         assert os.access(venv / "lib" / "lifecycle_container" / name, os.X_OK)
+    # The command: the wheel's launcher (sh, which starts the virtualenv's Python with the
+    # signals held; container/_entry.py), not a console script of pip's, which the kernel starts.
+    command = (venv / "bin" / "container").read_text()
+    assert command.startswith("#!/bin/sh\n") and "exec env --block-signal=INT,TERM" in command, command
+    assert os.access(venv / "bin" / "container", os.X_OK)
     # Where site reads it, before the ROS wheels' bootstrapper's.
     assert (venv / SITE / PTH.name).read_text() == PTH.read_text()
     assert sorted(path.name for path in (venv / SITE).glob("*.pth"))[0] == PTH.name

@@ -5,9 +5,10 @@ Run from the repository root::
     .venv/bin/python tests/benchmarks/sweep_early_signals.py [--tries 200] [--busy 2] [--cpus N]
 
 Each try starts ``container run examples/demo.yaml`` through the
-environment's console script, as from a shell (what a terminal and ``ros2
-launch`` run: the ROS wheels' bootstrapper re-executes Python on the way;
-``tests/signal_support.py``), sends it
+environment's ``container`` command, as from a shell (what a terminal and
+``ros2 launch`` run: a sh launcher that starts Python with the signals
+blocked where env can, and the ROS wheels' bootstrapper re-executes Python
+on the way; ``tests/signal_support.py``), sends it
 SIGINT or SIGTERM a set time after the start (0 to 490 ms in 10 ms steps,
 round after round; the rounds alternate SIGINT and SIGTERM), and waits up
 to ``--deadline`` seconds for it to end. The delay is the stimulus, slept
@@ -17,14 +18,15 @@ became of the signal:
 * ``traceback``: a Python traceback (``KeyboardInterrupt``, "Fatal Python
   error"); those from the first interpreter's own start, before site reads
   the project's ``.pth`` file (CPython's SIGINT handler is installed a few
-  milliseconds earlier; no code of the project can run there), are counted
-  apart too;
+  milliseconds earlier; only a launcher that blocks the signals before
+  Python starts covers it), are counted apart too;
 * ``ignored``: Python printed "Exception ignored" (a ``KeyboardInterrupt``
   raised in a weakref callback is swallowed there);
 * ``still running``: alive ``--deadline`` seconds after the signal (then
   killed);
 * ``killed by the signal``: ended by the signal's default action, before
-  Python ran any code of the project (the interpreter's own start):
+  Python ran any code of the project (the launcher's shell before its
+  ``exec``; without env's blocking, the interpreter's own start too):
   silent, and what shells report as 130/143 too; counted apart;
 * ``status``: anything but 130 (SIGINT) / 143 (SIGTERM) otherwise (0 for
   a signal after the container said it was ready: its ordinary stop, which
@@ -58,7 +60,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))  # tests.benchmarks, tests.signal_support
 
 from tests.benchmarks import cpus  # noqa: E402
-from tests.signal_support import CONSOLE_SCRIPT, SignalTry, signal_at  # noqa: E402
+from tests.signal_support import COMMAND, SignalTry, signal_at  # noqa: E402
 
 DEMO = REPO / "examples" / "demo.yaml"
 
@@ -117,7 +119,7 @@ def main() -> None:
     cpus.add_option(parser)
     args = parser.parse_args()
     cpus.pin(parser, args.cpus)
-    command = args.command or [str(CONSOLE_SCRIPT), "run", str(DEMO)]
+    command = args.command or [str(COMMAND), "run", str(DEMO)]
     # A domain of its own, on this host: other runs never see these containers.
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 200)))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

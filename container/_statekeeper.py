@@ -138,7 +138,7 @@ class StateKeeper:
 
         ``~`` is expanded; a relative path is taken from the working directory.
         """
-        value = manager.declare_parameter(
+        value: object = manager.declare_parameter(
             STATE_FILE_PARAMETER, "", ParameterDescriptor(description=_DESCRIPTION, read_only=True)
         ).value
         if not value:

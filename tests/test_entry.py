@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pytest
 
+from container import _ament
 from container._ament import EXECUTABLES, PROJECT_PACKAGE, write_index
 from container._entry import _command_word
 from tests.container_support import REPO
@@ -199,10 +200,16 @@ def test_the_ament_executables_start_python_on_the_command_with_the_signals_held
     )
 
 
-def test_the_executables_container_index_writes_start_python_with_the_signals_held(tmp_path: Path) -> None:
+def test_the_executables_container_index_writes_start_python_with_the_signals_held(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A colcon install's (``container index``, with the interpreter it runs under written in)."""
     python = _executable(tmp_path / "with space" / "python", FAKE_PYTHON)
-    write_index(tmp_path / "prefix", [], python=str(python))
+    prefix = (tmp_path / "prefix").resolve()
+    # As in a colcon install prefix: the container's own distribution installed there.
+    monkeypatch.setattr(_ament, "installed_prefix", lambda distribution: prefix)
+    report = write_index(prefix, [], python=str(python))
+    assert PROJECT_PACKAGE in report.registered, report
     for executable in EXECUTABLES:
         launcher = tmp_path / "prefix" / "lib" / PROJECT_PACKAGE / executable
         assert started(launcher, "--ros-args") == (HELD, [str(launcher), "--ros-args"])

@@ -31,6 +31,7 @@ from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E4
 from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
 from tests.install_support import make_ros_wheels_venv  # noqa: E402
 from tests.process_support import venv_ament_prefix_path  # noqa: E402
+from tests.signal_support import signals_as_from_a_terminal  # noqa: E402
 
 
 @pytest.fixture
@@ -148,6 +149,9 @@ def run_container(tmp_path: Path) -> Iterator[Callable[..., ContainerProcess]]:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "shared: reads ../shared (skipped when absent)")
+    # Started in the background by a script, the suite would hand an ignored
+    # SIGINT to every process it starts.
+    signals_as_from_a_terminal()
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:

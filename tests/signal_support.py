@@ -18,7 +18,7 @@ from pathlib import Path
 
 from tests.container_support import REPO
 
-__all__ = ["BOOTSTRAPPED", "COMMAND", "SignalTry", "as_from_a_shell", "signal_at"]
+__all__ = ["BOOTSTRAPPED", "COMMAND", "SignalTry", "as_from_a_shell", "signal_at", "signals_as_from_a_terminal"]
 
 #: The environment's ``container`` command, as a terminal and ``ros2 launch`` run it:
 #: a sh script that starts Python on itself with SIGINT and SIGTERM blocked
@@ -29,6 +29,24 @@ COMMAND = Path(sys.executable).parent / "container"
 #: The ROS wheels' bootstrapper's guard: set in a process it re-executed
 #: (this one), inherited by its children, which then run without re-executing.
 BOOTSTRAPPED = "_ROS_WHEELS_BOOTSTRAP_COMPLETE"
+
+
+def signals_as_from_a_terminal() -> None:
+    """Let this process's children start with SIGINT and SIGTERM at their default action, as a
+    terminal starts a command.
+
+    A non-interactive shell starts a command it puts in the background
+    (``cmd &``, as a CI runner or ``.ci/run`` may start the suite) with SIGINT
+    ignored; an ignored signal stays ignored across ``exec``, so every child
+    of the suite would inherit it, and a SIGINT reaching the launcher's shell
+    before Python runs would be thrown away: not what a terminal or
+    ``ros2 launch`` does. A signal this process handles in Python is reset to
+    its default action in a child. Main thread only (:func:`signal.signal`).
+    """
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def as_from_a_shell() -> dict[str, str]:

@@ -60,7 +60,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))  # tests.benchmarks, tests.signal_support
 
 from tests.benchmarks import cpus  # noqa: E402
-from tests.signal_support import COMMAND, SignalTry, signal_at  # noqa: E402
+from tests.signal_support import COMMAND, SignalTry, signal_at, signals_as_from_a_terminal  # noqa: E402
 
 DEMO = REPO / "examples" / "demo.yaml"
 
@@ -120,6 +120,7 @@ def main() -> None:
     args = parser.parse_args()
     cpus.pin(parser, args.cpus)
     command = args.command or [str(COMMAND), "run", str(DEMO)]
+    signals_as_from_a_terminal()
     # A domain of its own, on this host: other runs never see these containers.
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 200)))
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

@@ -36,7 +36,7 @@ def signals_as_from_a_terminal() -> None:
     terminal starts a command.
 
     A non-interactive shell starts a command it puts in the background
-    (``cmd &``, as a CI runner or ``.ci/run`` may start the suite) with SIGINT
+    (``cmd &``: ``.ci/test`` starts pytest so, for its hang guard) with SIGINT
     ignored; an ignored signal stays ignored across ``exec``, so every child
     of the suite would inherit it, and a SIGINT reaching the launcher's shell
     before Python runs would be thrown away: not what a terminal or

@@ -253,6 +253,10 @@ class Work:
 class Meter:
     """What one entity's callbacks cost, per window (see ``fastpath/meter.c``)."""
 
+    def call(self, arrived: int, call: Callable[..., Any], /, *args: Any) -> Any:
+        """``call(*args)`` as one run of this meter, begun (its lateness from ``arrived``,
+        monotonic ns; 0 unknown) and ended when it returns or raises."""
+
     def take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
         """``(runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50,
         duration_p99, duration_max, dropped, stuck, running_ns)``: this window's, then a new one."""

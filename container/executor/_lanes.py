@@ -59,6 +59,7 @@ from .._compat import enter_task, leave_task
 from ._bridge import drive
 from ._engine import Handoff, Lock, Runner, Slots, Work, first_step, mark_carrier
 from ._hooks import LaneHooks
+from ._owners import OWNER, Owner, executor_work
 
 __all__: list[str] = []
 
@@ -128,6 +129,7 @@ class Lane:
         limit: int,
         loop: asyncio.AbstractEventLoop,
         hooks: LaneHooks,
+        owner: Owner | None = None,
     ) -> None:
         self.name = name
         self._hooks = hooks
@@ -141,6 +143,10 @@ class Lane:
         #: context they are created in. What one callback sets in a
         #: ContextVar is not the next one's.
         self._context = contextvars.copy_context()
+        if owner is not None:
+            # Everything its callbacks start (tasks, loop callbacks, readers,
+            # threads) carries the node along: see ``_owners``.
+            self._context.run(OWNER.set, owner)
         self._carries = hooks.carries
         self._post = hooks.post
         self._progress = hooks.progress
@@ -266,7 +272,8 @@ class Lane:
             handed = True
         self._inbox.put((work, handed))
         if spawn:
-            thread.start()
+            with executor_work():  # started in a node's callback maybe, but the executor's thread
+                thread.start()
 
     def _worker(self) -> None:
         if self._carries:

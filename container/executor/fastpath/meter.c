@@ -209,7 +209,35 @@ static PyObject * Meter_take(MeterObject * self, PyObject * Py_UNUSED(ignored))
   return figures;
 }
 
+/* call(arrived, call, *args) -> object: call(*args) as one run of this meter, begun
+ * (its lateness from arrived; 0: unknown) and ended when it returns or raises.
+ *
+ * Why here: the event loop's own callbacks (a reader, a call_later handle)
+ * that a node scheduled are timed as its callbacks are, with the same two
+ * clock reads and without a Work per call (see container/executor/_loop.py). */
+static PyObject * Meter_call(MeterObject * self, PyObject * const * args, Py_ssize_t nargs)
+{
+  long long arrived, start;
+  PyObject * result;
+  if (nargs < 2) {
+    PyErr_SetString(PyExc_TypeError, "call(arrived, call, *args)");
+    return NULL;
+  }
+  arrived = PyLong_AsLongLong(args[0]);
+  if (arrived == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  start = meter_begin(self, arrived);
+  Py_INCREF(self); /* the call may drop the last other reference to this meter */
+  result = PyObject_Vectorcall(args[1], args + 2, (size_t)(nargs - 2), NULL);
+  meter_end(self, start, start);
+  Py_DECREF(self);
+  return result;
+}
+
 static PyMethodDef Meter_methods[] = {
+  {"call", (PyCFunction)(void (*)(void))Meter_call, METH_FASTCALL,
+   "call(arrived, call, *args) -> object: call(*args) as one run of this meter (arrived: monotonic ns, 0 unknown)"},
   {"take", (PyCFunction)Meter_take, METH_NOARGS,
    "take() -> (runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50, duration_p99, "
    "duration_max, dropped, stuck, running_ns): this window's figures (ns), then a new window"},

@@ -182,8 +182,8 @@ _UNATTRIBUTED_LOOP = {
     "fd": "file descriptors",
     "thread_call": "calls on threads",
 }
-#: Kinds of a node's work that run on the executor's threads (its threads' CPU is read apart).
-_ON_EXECUTOR_THREADS = frozenset(KINDS) - {"thread"}
+#: Kinds of a node's work that are handles on the loop.
+_LOOP_HANDLES = frozenset({"loop_callback", "loop_timer", "fd"})
 
 
 class Accounting:
@@ -253,6 +253,17 @@ class Accounting:
             yield
         finally:
             OWNER.reset(reset)
+
+    def running_on_loop(self) -> Account | None:
+        """The account whose loop handle (a reader, a loop callback or timer) runs now, if one does:
+        for the watchdog, which asks while that handle holds the loop."""
+        with self._lock:
+            owners = [*self._owners.values(), self.unattributed]
+        for owner in owners:
+            for account in owner.accounts():
+                if account.kind in _LOOP_HANDLES and account.meter.running > 0:
+                    return account
+        return None
 
     def loop_started(self) -> None:
         """The calling thread runs the loop from now on (its CPU is the executor's)."""

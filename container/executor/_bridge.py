@@ -252,7 +252,7 @@ async def in_thread(call: Callable[[], T], *, name: str) -> T:
     owner = OWNER.get()
     run: Callable[[], object]
     if isinstance(owner, Owner):
-        run = functools.partial(context.run, owner.account("thread_call").meter.call, 0, call)
+        run = functools.partial(context.run, owner.account("thread_call").call, 0, call)
     else:
         run = functools.partial(context.run, call)
 

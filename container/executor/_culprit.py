@@ -148,13 +148,12 @@ class TaskOrigins:
         return Culprit(f"{node}: {what}" if node else what, plugin=plugin, key=(node, callback, code))
 
 
-def handle_culprit(node: str, plugin: bool, kind: str, callback: object) -> Culprit:
-    """Name a loop handle a node scheduled (``kind``: how the accounting names its kind)."""
-    code = str(getattr(callback, "__qualname__", None) or repr(callback))
-    what = f"{kind}: {code}"
+def handle_culprit(node: str, plugin: bool, kind: str) -> Culprit:
+    """Name a loop handle a node scheduled (``kind``: how the accounting names its kind of work;
+    the report's stack shows which of its callbacks)."""
     if not node:
-        return Culprit(what, plugin=False, key=("platform", kind, code))
-    return Culprit(f"{node}: {what}", plugin=plugin, key=(node, kind, code))
+        return Culprit(f"{kind} of no node", plugin=False, key=("platform", kind))
+    return Culprit(f"{node}: {kind}", plugin=plugin, key=(node, kind))
 
 
 def _declared(task: asyncio.Task[object]) -> _Origin | None:

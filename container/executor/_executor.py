@@ -423,7 +423,7 @@ class AsyncioExecutor(Executor):
                     settle_from(result, lambda: drive_in_thread(function(*args, **kwargs)))
                     return
                 OWNER.set(account.owner)  # in this call's own context: what it starts is the owner's
-                account.meter.call(0, settle_from, result, lambda: drive_in_thread(function(*args, **kwargs)))
+                account.call(0, settle_from, result, lambda: drive_in_thread(function(*args, **kwargs)))
 
             begin = functools.partial(self._tasks_lane().submit, plain_work(drive_here, self._task_done))
         elif inspect.iscoroutine(callback) or inspect.iscoroutinefunction(callback):
@@ -436,8 +436,8 @@ class AsyncioExecutor(Executor):
                 if result.cancelled():
                     self._dispatcher.gate.refund()
                     return
-                if loop_account is not None and isinstance(self._loop, AccountedLoop):
-                    self._loop.run_as(loop_account, 0, settle_from, result, lambda: plain(*args, **kwargs))
+                if loop_account is not None:
+                    loop_account.call(0, settle_from, result, lambda: plain(*args, **kwargs))
                 else:
                     settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
@@ -790,11 +790,10 @@ class AsyncioExecutor(Executor):
     def _describe_loop_work(self) -> Culprit:
         """What the loop thread runs now: which node's which callback, and whether a plugin's."""
         task = asyncio.current_task(self._loop)
-        if task is None and isinstance(self._loop, AccountedLoop):
-            running = self._loop.running  # a handle a node scheduled (a reader, a call_later)
-            if running is not None:
-                account, callback = running
-                return handle_culprit(account.owner.name, account.owner.plugin, account.name, callback)
+        if task is None and self._accounting is not None:
+            account = self._accounting.running_on_loop()  # a handle a node scheduled (a reader, a call_later)
+            if account is not None:
+                return handle_culprit(account.owner.name, account.owner.plugin, account.name)
         return self._origins.culprit(task)
 
     def _runner_work(self, task: asyncio.Task[Any]) -> Work | None:

@@ -8,19 +8,20 @@ socket or serial transport's reads). asyncio copies the current context
 into every handle when it is scheduled and runs the handle in it, so the
 node it was scheduled by is known then (``_owners.OWNER``); here the
 callback is wrapped, at that moment, in a call of the node's meter for
-that kind of work (:meth:`Meter.call`: two clock reads, as a callback's
-step), which runs it and marks it as what the loop runs now, for the
-watchdog. A timer handle is late from its due time; a soon one from when
-it was scheduled.
+that kind of work (``Meter.call``: two clock reads, as a callback's step,
+and no Python frame of its own). A timer handle is late from its due
+time; a soon one from when it was scheduled. Which node's handle holds
+the loop, the watchdog learns from the meter in step (``Meter.running``,
+see ``Accounting.running_on_loop``).
 
 Public methods only, but for one: transports register their readers
 through the loop's private ``_add_reader`` (``_compat.FdCallbackLoop``).
 
-Not wrapped: the steps of asyncio tasks (a task's own handles: the task
-factory meters each step of a node's task, and a lane's runner task
-carries callbacks that are metered already), and everything scheduled in
-the executor's own context (:data:`~._owners.EXECUTOR`), which costs one
-``ContextVar`` read a handle. Handles of nobody's (scheduled from a
+Not wrapped: the steps of asyncio tasks (a task's own handles, told by
+their ``__self__``: the task factory meters each step of a node's task,
+and a lane's runner task carries callbacks that are metered already), and
+everything scheduled in the executor's own context
+(:data:`~._owners.EXECUTOR`), which costs one ``ContextVar`` read a handle. Handles of nobody's (scheduled from a
 thread no node started) are metered as unattributed.
 """
 
@@ -35,6 +36,7 @@ from contextvars import Context
 from typing import Any, TypeVar, TypeVarTuple
 
 from .._compat import FdCallbackLoop
+from ._engine import HandleMeter
 from ._owners import EXECUTOR, OWNER, Account, Owner, executor_work
 
 __all__ = ["AccountedLoop"]
@@ -52,13 +54,11 @@ _call_at: Callable[..., asyncio.TimerHandle] = asyncio.SelectorEventLoop.call_at
 _run_in_executor: Callable[..., asyncio.Future[Any]] = asyncio.SelectorEventLoop.run_in_executor
 
 
-def _steps_a_task(callback: object) -> bool:
-    """Whether ``callback`` is a step or wake-up of an asyncio task (its ``__self__`` is the task)."""
-    return isinstance(getattr(callback, "__self__", None), _Task)
-
-
-class AccountedLoop(FdCallbackLoop):
+class AccountedLoop(HandleMeter, FdCallbackLoop):
     """A selector event loop that credits each handle to the node that scheduled it.
+
+    ``call_soon``, the hottest, is the engine's (``HandleMeter``: in C on the
+    compiled engine); the others are here.
 
     :param unattributed: the owner of work nobody's context names.
     """
@@ -66,42 +66,24 @@ class AccountedLoop(FdCallbackLoop):
     def __init__(self, selector: Any, *, unattributed: Owner) -> None:
         #: Set before the loop's own set-up registers its self-pipe's reader.
         self._unattributed = unattributed
-        #: The handle of a node's running now (its account and callback), for the watchdog.
-        self.running: tuple[Account, object] | None = None
-        #: Bound once: every wrapped handle calls it.
-        self._run_as = self.run_as
+        HandleMeter.__init__(self, OWNER, EXECUTOR, _Task, _call_soon, unattributed)
         # The loop's self-pipe reader is the executor's own.
         with executor_work():
-            super().__init__(selector)
+            FdCallbackLoop.__init__(self, selector)
 
     def _account(self, owner: Owner | None, kind: str) -> Account:
         return (owner if owner is not None else self._unattributed).account(kind)
 
-    def run_as(self, account: Account, arrived: int, callback: Callable[..., Any], *args: Any) -> Any:
-        """``callback(*args)`` metered on ``account`` (``arrived``: when it was due, 0 unknown)."""
-        self.running = (account, callback)
-        try:
-            return account.meter.call(arrived, callback, *args)
-        finally:
-            self.running = None
-
-    def call_soon(
-        self, callback: Callable[[*_Ts], object], *args: *_Ts, context: Context | None = None
-    ) -> asyncio.Handle:
-        owner = OWNER.get() if context is None else context.get(OWNER)
-        if owner is EXECUTOR or _steps_a_task(callback):
-            return _call_soon(self, callback, *args, context=context)
-        account = self._account(owner, "loop_callback")  # type: ignore[arg-type]
-        return _call_soon(self, self._run_as, account, _monotonic_ns(), callback, *args, context=context)
-
+    # Each check below is written out, not a helper's call: they run for every
+    # handle of the loop, and a Python call costs as much as the check.
     def call_soon_threadsafe(
         self, callback: Callable[[*_Ts], object], *args: *_Ts, context: Context | None = None
     ) -> asyncio.Handle:
         owner = OWNER.get() if context is None else context.get(OWNER)
-        if owner is EXECUTOR or _steps_a_task(callback):
+        if owner is EXECUTOR or isinstance(getattr(callback, "__self__", None), _Task):
             return _call_soon_threadsafe(self, callback, *args, context=context)
-        account = self._account(owner, "loop_callback")  # type: ignore[arg-type]
-        return _call_soon_threadsafe(self, self._run_as, account, _monotonic_ns(), callback, *args, context=context)
+        call = self._account(owner, "loop_callback").call  # type: ignore[arg-type]
+        return _call_soon_threadsafe(self, call, _monotonic_ns(), callback, *args, context=context)
 
     def call_at(
         self, when: float, callback: Callable[[*_Ts], object], *args: *_Ts, context: Context | None = None
@@ -109,9 +91,9 @@ class AccountedLoop(FdCallbackLoop):
         owner = OWNER.get() if context is None else context.get(OWNER)
         if owner is EXECUTOR:
             return _call_at(self, when, callback, *args, context=context)
-        account = self._account(owner, "loop_timer")  # type: ignore[arg-type]
+        call = self._account(owner, "loop_timer").call  # type: ignore[arg-type]
         # The loop's clock is time.monotonic(): its due time, in monotonic ns.
-        return _call_at(self, when, self._run_as, account, int(when * 1e9), callback, *args, context=context)
+        return _call_at(self, when, call, int(when * 1e9), callback, *args, context=context)
 
     def fd_callback(
         self, callback: Callable[..., Any], args: tuple[Any, ...]
@@ -119,7 +101,7 @@ class AccountedLoop(FdCallbackLoop):
         owner = OWNER.get()
         if owner is EXECUTOR:
             return callback, args
-        return self._run_as, (self._account(owner, "fd"), 0, callback, *args)  # type: ignore[arg-type]
+        return self._account(owner, "fd").call, (0, callback, *args)  # type: ignore[arg-type]
 
     def run_in_executor(
         self, executor: Executor | None, func: Callable[[*_Ts], _T], *args: *_Ts
@@ -132,8 +114,7 @@ class AccountedLoop(FdCallbackLoop):
         owner = OWNER.get()
         job: Callable[..., _T] = func
         if owner is not EXECUTOR:
-            account = self._account(owner, "thread_call")  # type: ignore[arg-type]
-            job = functools.partial(account.meter.call, 0, func)
+            job = functools.partial(self._account(owner, "thread_call").call, 0, func)  # type: ignore[arg-type]
         with executor_work():  # the pool's threads, if this starts one
             future: asyncio.Future[_T] = _run_in_executor(self, None, job, *args)
         return future

@@ -94,13 +94,16 @@ def executor_work() -> Iterator[None]:
 class Account:
     """One kind of work of one owner: its meter, and its totals across windows."""
 
-    __slots__ = ("cpu_ns_total", "kind", "meter", "owner", "runs_total")
+    __slots__ = ("call", "cpu_ns_total", "kind", "meter", "owner", "runs_total")
 
     def __init__(self, owner: Owner, kind: str, meter: Any) -> None:
         self.owner = owner
         self.kind = kind
         #: The engine's ``Meter``: timed where the work runs.
         self.meter = meter
+        #: ``call(arrived, callback, *args)``: ``callback(*args)`` as one run of it
+        #: (``Meter.call``, bound once: handles call it).
+        self.call: Callable[..., Any] = meter.call
         self.runs_total = 0
         self.cpu_ns_total = 0
 

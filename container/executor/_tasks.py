@@ -178,7 +178,7 @@ class DoneCallbacks:
             return self._executor.create_task(callback, *args, **kwargs)
         owner = OWNER.get()
         if isinstance(owner, Owner):  # the client's node (``_takes.take_response``)
-            self._post(owner.account("loop_callback").meter.call, 0, _run_done_callback, callback, args)
+            self._post(owner.account("loop_callback").call, 0, _run_done_callback, callback, args)
         else:
             self._post(_run_done_callback, callback, args)
         return None

@@ -137,6 +137,12 @@ class Meter:
         self._late = [0] * METER_BUCKETS
         self._dur = [0] * METER_BUCKETS
 
+    @property
+    def running(self) -> int:
+        """How long the step running now has run (ns; 0: none runs)."""
+        with self._lock:
+            return _monotonic_ns() - self._step_since if self._in_step > 0 else 0
+
     def call(self, *args: Any) -> Any:
         """``call(arrived, call, *args)``: ``call(*args)`` as one run of this meter, begun (its
         lateness from ``arrived``, monotonic ns; 0 unknown) and ended when it returns or raises."""

@@ -244,6 +244,18 @@ static PyMethodDef Meter_methods[] = {
   {NULL, NULL, 0, NULL},
 };
 
+/* running -> int: how long the step running now has run (ns; 0: none runs). Read by the
+ * watchdog's thread to name which node's loop work holds the loop (container/executor/_loop.py). */
+static PyObject * Meter_get_running(MeterObject * self, void * Py_UNUSED(closure))
+{
+  return PyLong_FromLongLong(self->in_step > 0 ? monotonic_ns() - self->step_since : 0);
+}
+
+static PyGetSetDef Meter_getset[] = {
+  {"running", (getter)Meter_get_running, NULL, "How long the step running now has run (ns; 0: none runs).", NULL},
+  {NULL, NULL, NULL, NULL, NULL},
+};
+
 PyTypeObject MeterType = {
   PyVarObject_HEAD_INIT(NULL, 0)
   .tp_name = "container.executor._fastpath.Meter",
@@ -252,6 +264,7 @@ PyTypeObject MeterType = {
   .tp_flags = Py_TPFLAGS_DEFAULT,
   .tp_new = PyType_GenericNew,
   .tp_methods = Meter_methods,
+  .tp_getset = Meter_getset,
 };
 
 /* stuck_after(ns) -> None: how long a step runs before it counts as stuck (all meters). */

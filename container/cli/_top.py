@@ -243,19 +243,30 @@ def short_name(name: str, *, width: int = NAME_WIDTH) -> str:
     (``eventhandler callback PublisherEventCallbacks.create_event_handlers.<locals>.<lambda>``):
     the word ``callback`` goes, the kinds of entity are said in words, a
     function's ``<locals>`` steps go (``Node.__init__.<locals>.tick`` reads
-    ``Node.__init__.tick``), a lambda is ``λ``, and what is still too long
-    is cut in the middle, its start and its end kept.
+    ``Node.__init__.tick``) and a lambda is ``λ``. Still too long: the
+    function keeps its first and last parts (``PublisherEventCallbacks…λ``);
+    then a topic's or service's callback is its topic or service alone; and
+    what is left too long is cut in the middle, its start and end kept.
     """
     head, sep, code = name.partition(" callback ")
-    if sep:
-        first, _, rest = head.partition(" ")
-        head = " ".join(filter(None, (_ENTITY_WORDS.get(first, first), rest)))
-        code = code.replace(".<locals>", "").replace("<lambda>", "λ")
-        name = f"{head} {code}"
-    if len(name) <= width:
-        return name
+    if not sep:
+        return _cut(name, width)
+    first, _, rest = head.partition(" ")
+    head = " ".join(filter(None, (_ENTITY_WORDS.get(first, first), rest)))
+    code = code.replace(".<locals>", "").replace("<lambda>", "λ")
+    parts = code.split(".")
+    if len(head) + 1 + len(code) > width and len(parts) > 2:
+        code = f"{parts[0]}…{parts[-1]}"
+    if len(head) + 1 + len(code) > width and "'" in head:
+        return _cut(head, width)
+    return _cut(f"{head} {code}", width)
+
+
+def _cut(text: str, width: int) -> str:
+    if len(text) <= width:
+        return text
     keep = width - 1
-    return f"{name[: (keep + 1) // 2]}…{name[len(name) - keep // 2 :]}"
+    return f"{text[: (keep + 1) // 2]}…{text[len(text) - keep // 2 :]}"
 
 
 def _stuck(item: NodeLoad | CallbackLoad) -> str:
@@ -380,7 +391,11 @@ class _View:
                 return _sorted(node.callbacks, self.sort)
         return []
 
-    def render(self, loads: list[ContainerLoad], history: History | None = None) -> RenderableType:
+    def render(
+        self, loads: list[ContainerLoad], history: History | None = None, *, now: float | None = None
+    ) -> RenderableType:
+        """The screen: a container's heading and its nodes (or a node's callbacks), with each
+        node's last minute from ``history`` (as of ``now``, monotonic seconds)."""
         from rich.console import Group
         from rich.table import Table
         from rich.text import Text
@@ -401,7 +416,7 @@ class _View:
         sparks = history is not None and self.opened is None
         if sparks:
             columns = (*columns, "CPU_LAST_MIN")
-        now = time.monotonic()
+        now = time.monotonic() if now is None else now
         scale = history.peak(load.container) if history is not None else 0.0
         table = Table(title=title, expand=True)
         sorted_by = _SORTS[self.sort][0] or columns[0]

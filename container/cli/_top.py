@@ -239,14 +239,16 @@ _ENTITY_WORDS = {"eventhandler": "QoS event", "guardcondition": "guard condition
 def short_name(name: str, *, width: int = NAME_WIDTH) -> str:
     """A callback's name as a person reads it, in at most ``width`` characters.
 
-    rclpy's own callbacks have long generated names
-    (``eventhandler callback PublisherEventCallbacks.create_event_handlers.<locals>.<lambda>``):
+    rclpy's own callbacks have long generated names (``eventhandler callback
+    PublisherEventCallbacks.create_event_handlers.<locals>._default_incompatible_qos_callback``):
     the word ``callback`` goes, the kinds of entity are said in words, a
     function's ``<locals>`` steps go (``Node.__init__.<locals>.tick`` reads
-    ``Node.__init__.tick``) and a lambda is ``λ``. Still too long: the
-    function keeps its first and last parts (``PublisherEventCallbacks…λ``);
-    then a topic's or service's callback is its topic or service alone; and
-    what is left too long is cut in the middle, its start and end kept.
+    ``Node.__init__.tick``) and a lambda is ``λ``. Still too long, step by
+    step: the function keeps its first and last parts
+    (``PublisherEventCallbacks…_on_matched``); a topic's or service's callback
+    is its topic or service alone; the function is its own name alone, without
+    a leading underscore or a ``_callback`` ending (``QoS event
+    default_incompatible_qos``); what is left too long is cut in the middle.
     """
     head, sep, code = name.partition(" callback ")
     if not sep:
@@ -255,10 +257,16 @@ def short_name(name: str, *, width: int = NAME_WIDTH) -> str:
     head = " ".join(filter(None, (_ENTITY_WORDS.get(first, first), rest)))
     code = code.replace(".<locals>", "").replace("<lambda>", "λ")
     parts = code.split(".")
-    if len(head) + 1 + len(code) > width and len(parts) > 2:
+
+    def fits(candidate: str) -> bool:
+        return len(head) + 1 + len(candidate) <= width
+
+    if not fits(code) and len(parts) > 2:
         code = f"{parts[0]}…{parts[-1]}"
-    if len(head) + 1 + len(code) > width and "'" in head:
+    if not fits(code) and "'" in head:
         return _cut(head, width)
+    if not fits(code):
+        code = parts[-1].lstrip("_").removesuffix("_callback") or parts[-1]
     return _cut(f"{head} {code}", width)
 
 
@@ -331,6 +339,17 @@ def _columns(header: Sequence[str], rows: list[list[str]]) -> Iterator[str]:
         yield "  ".join(cells).rstrip()
 
 
+#: Below a node's callbacks: those left out.
+_NEVER_RAN = "and {} callback(s) that never ran (--json lists every one)"
+
+
+def _ran(callbacks: Sequence[CallbackLoad]) -> tuple[list[CallbackLoad], int]:
+    """The callbacks that ever ran, took CPU or are stuck (a lifecycle node has some twenty of
+    rclpy's own that an operator would scroll past), and how many others there are."""
+    shown = [c for c in callbacks if c.runs_total or c.cpu_seconds_total or c.cpu or c.stuck_for]
+    return shown, len(callbacks) - len(shown)
+
+
 def _sorted(items: Sequence[Any], sort: str) -> list[Any]:
     return sorted(items, key=lambda item: (_SORTS[sort][1](item), item.name))
 
@@ -349,7 +368,10 @@ def plain_table(load: ContainerLoad, *, sort: str = "c", node: str | None = None
             lines.append(f"no node {node} in container {load.container}")
         else:
             lines.append(f"callbacks of {node} (times in ms)")
-            lines += _columns(_CALLBACK_COLUMNS, [_callback_row(c) for c in _sorted(chosen[0].callbacks, sort)])
+            shown, idle = _ran(chosen[0].callbacks)
+            lines += _columns(_CALLBACK_COLUMNS, [_callback_row(c) for c in _sorted(shown, sort)])
+            if idle:
+                lines.append(_NEVER_RAN.format(idle))
     return "\n".join(lines)
 
 
@@ -388,7 +410,7 @@ class _View:
             return _sorted(load.nodes, self.sort)
         for node in load.nodes:
             if node.name == self.opened:
-                return _sorted(node.callbacks, self.sort)
+                return _sorted(_ran(node.callbacks)[0], self.sort)
         return []
 
     def render(
@@ -435,6 +457,10 @@ class _View:
                 cells.append(history.spark(load.container, item.name, now, scale=scale))
             style = "reverse" if index == self.selected else ("bold red" if item.stuck_for > 0 else None)
             table.add_row(*cells, style=style)
+        if self.opened is not None:
+            idle = sum(_ran(node.callbacks)[1] for node in load.nodes if node.name == self.opened)
+            if idle:
+                table.caption = _NEVER_RAN.format(idle)
         heading = _heading(load) + (f"   [{self.container + 1}/{len(loads)}]" if len(loads) > 1 else "")
         unattributed = _unattributed(load)
         if unattributed is not None:

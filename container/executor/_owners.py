@@ -62,10 +62,10 @@ OWNER: contextvars.ContextVar[Whose] = contextvars.ContextVar("container_owner",
 #: Each kind of work beside callbacks: (the group it is shown in, how it is named).
 KINDS: Final[dict[str, tuple[str, str]]] = {
     "task": ("asyncio", "asyncio tasks"),
-    "loop_callback": ("asyncio", "loop callbacks (call_soon, done-callbacks)"),
+    "loop_callback": ("asyncio", "loop callbacks (call_soon, futures)"),
     "loop_timer": ("asyncio", "loop timers (call_later, sleeps)"),
     "fd": ("asyncio", "file descriptors (readers, transports)"),
-    "thread_call": ("threads", "calls on threads (to_thread, run_in_executor)"),
+    "thread_call": ("threads", "calls on threads (to_thread, pools)"),
     "thread": ("threads", "threads it started"),
 }
 

@@ -195,7 +195,7 @@ def _window(**nodes: list[dict[str, Any]]) -> Any:
         rows = [
             CallbackLoad(node=f"/{name}", group=row.get("group", "default"), kind=row["kind"], name=row["name"],
                          cpu=row.get("cpu", 0.0), rate=10.0, lateness_p99=0.0012, lateness_max=0.25,
-                         duration_p99=0.0207, duration_max=1234.5)
+                         duration_p99=0.0207, duration_max=1234.5, runs_total=row.get("runs", 10))
             for row in callbacks
         ]  # fmt: skip
         built.append(NodeLoad(name=f"/{name}", cpu=sum(row.cpu for row in rows), rate=10.0, callbacks=rows))
@@ -224,6 +224,11 @@ def test_long_callback_names_are_shortened_for_a_person_and_whole_in_json() -> N
     from container.cli._top import NAME_WIDTH, as_dict, short_name
 
     assert short_name(_RCLPY_NAMED[0]["name"]) == "QoS event PublisherEventCallbacks…λ"
+    rclpy_default = (
+        "eventhandler callback PublisherEventCallbacks.create_event_handlers.<locals>."
+        "_default_incompatible_qos_callback"
+    )
+    assert short_name(rclpy_default) == "QoS event default_incompatible_qos"
     assert short_name("timer callback Fast.__init__.<locals>.tick") == "timer Fast.__init__.tick"
     assert short_name("subscription '/scan' callback Node._on_scan") == "subscription '/scan' Node._on_scan"
     long_service = "service '/fast/describe_parameters' callback ParameterService._describe_parameters_callback"
@@ -252,6 +257,15 @@ def test_the_callbacks_view_fits_120_columns() -> None:
     assert row.split()[-8:] == ["20.0", "10.0", "1.200", "250.0", "20.70", "1234500", "0", "-"], row
     thread = next(line for line in callbacks if line.startswith("threads it started"))
     assert thread.split().count("-") == 5, "a thread's row has CPU only: no times, nothing stuck"
+
+
+def test_the_callbacks_view_leaves_out_those_that_never_ran() -> None:
+    from container.cli._top import plain_table
+
+    never = [{"kind": "service", "name": f"service '/fast/s{index}' callback S.s", "runs": 0} for index in range(20)]
+    lines = plain_table(_window(fast=_RCLPY_NAMED + never), node="/fast").splitlines()
+    assert not [line for line in lines if line.startswith("service '/fast/s")]
+    assert lines[-1] == "and 20 callback(s) that never ran (--json lists every one)"
 
 
 def test_service_names_are_written_one_way(executor: Any, host: Callable[..., Any]) -> None:

@@ -268,8 +268,8 @@ class Meter:
         duration_p99, duration_max, dropped, stuck, running_ns)``: this window's, then a new one."""
 
 class HandleMeter:
-    """The first base of an event loop whose ``call_soon`` meters each handle a node's code
-    schedules as that node's (see ``fastpath/handles.c`` and ``_loop.py``)."""
+    """The first base of an event loop whose ``call_soon`` and ``call_at`` meter each handle a
+    node's code schedules as that node's (see ``fastpath/handles.c`` and ``_loop.py``)."""
 
     def __init__(
         self,
@@ -277,12 +277,17 @@ class HandleMeter:
         executor: object,
         task_type: type,
         call_soon: Callable[..., Any],
+        call_at: Callable[..., Any],
         unattributed: Any,
     ) -> None: ...
     def call_soon(
         self, callback: Callable[[*_Ts], object], *args: *_Ts, context: contextvars.Context | None = None
     ) -> asyncio.Handle:
         """The loop's own ``call_soon``; a node's handle is scheduled metered as its."""
+    def call_at(
+        self, when: float, callback: Callable[[*_Ts], object], *args: *_Ts, context: contextvars.Context | None = None
+    ) -> asyncio.TimerHandle:
+        """The loop's own ``call_at``; a node's timer is scheduled metered as its, late from ``when``."""
 
 def stuck_after(ns: int, /) -> None:
     """How long one step of a callback runs before its meter counts it stuck (every meter)."""

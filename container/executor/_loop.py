@@ -57,8 +57,9 @@ _run_in_executor: Callable[..., asyncio.Future[Any]] = asyncio.SelectorEventLoop
 class AccountedLoop(HandleMeter, FdCallbackLoop):
     """A selector event loop that credits each handle to the node that scheduled it.
 
-    ``call_soon``, the hottest, is the engine's (``HandleMeter``: in C on the
-    compiled engine); the others are here.
+    ``call_soon`` and ``call_at``, the hottest (every task's wake-up, every
+    sleep), are the engine's (``HandleMeter``: in C on the compiled engine);
+    the others are here.
 
     :param unattributed: the owner of work nobody's context names.
     """
@@ -66,7 +67,7 @@ class AccountedLoop(HandleMeter, FdCallbackLoop):
     def __init__(self, selector: Any, *, unattributed: Owner) -> None:
         #: Set before the loop's own set-up registers its self-pipe's reader.
         self._unattributed = unattributed
-        HandleMeter.__init__(self, OWNER, EXECUTOR, _Task, _call_soon, unattributed)
+        HandleMeter.__init__(self, OWNER, EXECUTOR, _Task, _call_soon, _call_at, unattributed)
         # The loop's self-pipe reader is the executor's own.
         with executor_work():
             FdCallbackLoop.__init__(self, selector)
@@ -84,16 +85,6 @@ class AccountedLoop(HandleMeter, FdCallbackLoop):
             return _call_soon_threadsafe(self, callback, *args, context=context)
         call = self._account(owner, "loop_callback").call  # type: ignore[arg-type]
         return _call_soon_threadsafe(self, call, _monotonic_ns(), callback, *args, context=context)
-
-    def call_at(
-        self, when: float, callback: Callable[[*_Ts], object], *args: *_Ts, context: Context | None = None
-    ) -> asyncio.TimerHandle:
-        owner = OWNER.get() if context is None else context.get(OWNER)
-        if owner is EXECUTOR:
-            return _call_at(self, when, callback, *args, context=context)
-        call = self._account(owner, "loop_timer").call  # type: ignore[arg-type]
-        # The loop's clock is time.monotonic(): its due time, in monotonic ns.
-        return _call_at(self, when, call, int(when * 1e9), callback, *args, context=context)
 
     def fd_callback(
         self, callback: Callable[..., Any], args: tuple[Any, ...]

@@ -311,8 +311,8 @@ def _handle_meters(engine: ModuleType) -> Trace:
 
     class Loop(engine.HandleMeter, asyncio.SelectorEventLoop):  # type: ignore[misc, name-defined]
         def __init__(self) -> None:
-            own = asyncio.SelectorEventLoop.call_soon
-            engine.HandleMeter.__init__(self, owner_var, executor, asyncio.Task, own, nobody)
+            soon, at = asyncio.SelectorEventLoop.call_soon, asyncio.SelectorEventLoop.call_at
+            engine.HandleMeter.__init__(self, owner_var, executor, asyncio.Task, soon, at, nobody)
             asyncio.SelectorEventLoop.__init__(self)
 
     ran: list[object] = []
@@ -334,12 +334,18 @@ def _handle_meters(engine: ModuleType) -> Trace:
         ran.append("a task's step")
 
     theirs.run(loop.create_task, step())
+    due = loop.time() - 0.005  # due 5 ms ago: that late, at least
+    loop.call_at(due, ran.append, "the node's timer", context=theirs)
+    theirs.run(loop.call_later, 0, ran.append, "the node's call_later")
+    ours.run(loop.call_at, due, ran.append, "the executor's timer")
     trace += [node.asked, nobody.asked]
     loop.call_soon(loop.stop, context=ours)
     loop.run_forever()
-    trace += [sorted(str(item) for item in ran), node.meter.take()[:2], nobody.meter.take()[:2]]
-    trace += [_raised(lambda: loop.call_soon()), _raised(lambda: engine.HandleMeter(1, 2, 3, 4, 5))]  # type: ignore[call-arg]
-    trace += [_raised(lambda: engine.HandleMeter(owner_var, executor, asyncio.Task, len))]
+    figures = node.meter.take()
+    trace += [sorted(str(item) for item in ran), figures[:2], figures[6] >= 5_000_000, nobody.meter.take()[:2]]
+    trace += [_raised(lambda: loop.call_soon()), _raised(lambda: loop.call_at(1.0))]  # type: ignore[call-arg]
+    trace += [_raised(lambda: engine.HandleMeter(1, 2, 3, 4, 5, 6))]
+    trace += [_raised(lambda: engine.HandleMeter(owner_var, executor, asyncio.Task, len, len))]
     loop.close()
 
     class Uninitialised(engine.HandleMeter, asyncio.SelectorEventLoop):  # type: ignore[misc, name-defined]
@@ -354,20 +360,21 @@ def _handle_meters(engine: ModuleType) -> Trace:
 
 def test_a_loops_handles_are_metered_as_whose_alike_on_both_engines() -> None:
     trace = _same_on_both(_handle_meters)
-    assert trace[:2] == [
-        ["node loop_callback", "node loop_callback"], ["nobody loop_callback", "nobody loop_callback"]
-    ]
+    # Asked once per owner and kind: the last owner's account is kept.
+    assert trace[:2] == [["node loop_callback", "node loop_timer"], ["nobody loop_callback"]]
     assert trace[2] == sorted(
         [
             "the executor's", "the node's", "the node's, scheduled in its context", "nobody's", "a task's step",
+            "the node's timer", "the node's call_later", "the executor's timer",
             "failed: AttributeError",  # a context that is none: in asyncio, as it would unmetered
         ]
     )  # fmt: skip
-    assert trace[3:5] == [(2, 2), (1, 1)]
-    assert trace[5][0] == "TypeError"  # the loop's own call_soon says what is missing
-    assert trace[6:] == [
-        ["TypeError", "HandleMeter(owner: ContextVar, executor, task_type: type, call_soon: callable, unattributed)"],
-        ["TypeError", "HandleMeter() takes exactly 5 arguments (4 given)"],
+    assert trace[3:6] == [(4, 4), True, (1, 1)], "the node's two soon and two timers; one late 5 ms at least"
+    assert [error[0] for error in trace[6:8]] == ["TypeError", "TypeError"]  # the loop's own methods say
+    usage = "HandleMeter(owner: ContextVar, executor, task_type: type, call_soon: callable, call_at: callable, "
+    assert trace[8:] == [
+        ["TypeError", usage + "unattributed)"],
+        ["TypeError", "HandleMeter() takes exactly 6 arguments (5 given)"],
         ["TypeError", "HandleMeter.__init__ was not called"],
     ]
 

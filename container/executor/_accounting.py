@@ -384,8 +384,8 @@ class Accounting:
         """Drop the owners of nodes gone: nothing of theirs ran, runs or lives, and no callback of
         their node is metered any more (a node unloaded, its threads ended)."""
         busy = {row.node for row in rows if row.rate > 0 or row.cpu > 0 or row.stuck_for > 0}
-        named = {item.node for item in self._metered.values()}
         with self._lock:
+            named = {item.node for item in self._metered.values()}
             for owner in owners:
                 idle = owner.name not in busy and owner.name not in named and not threads.running.get(owner)
                 if idle and self._owners.get(owner.name) is owner:

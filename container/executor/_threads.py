@@ -105,6 +105,8 @@ def _run_as(owner: Owner, run: Callable[[], object]) -> Callable[[], None]:
             run()
         finally:
             owner.thread_ended(owner, threading.get_native_id(), time.thread_time_ns())
+            # The thread held itself through this wrapper (its bound run): let go, for refcounting.
+            threading.current_thread().__dict__.pop("run", None)
 
     return run_as_owner
 

@@ -15,8 +15,10 @@ for ``async def`` and plain callbacks:
 * ``streams``: a byte bounced between two nodes' asyncio tasks over a socket
   pair (asyncio streams): each round trip two transports' reads (readers a
   node registered, metered by the loop) and two task steps (metered by the
-  task factory), the tasks started from the nodes' callbacks; round trips
-  per second.
+  task factory), the tasks started from the nodes' callbacks; the process's
+  CPU per round trip (us: what the work costs, where the round trips per
+  second, printed beside it, move by 20% from turn to turn with the wake-up
+  latencies of a shared machine).
 
 The rest are measured in one process per round: a load's CPU differs by up
 to 2x from one process to the next on this VM (where the threads land, how
@@ -62,7 +64,7 @@ from tests.benchmarks.bench_executor import ACCOUNTING_VARIABLE, _run_child, loa
 MEASURES = {
     "pingpong": ("round trips/s", True),
     "services": ("service calls/s", True),
-    "streams": ("stream round trips/s", True),
+    "streams": ("streams CPU us/trip", False),
     "load": ("load CPU %", False),
     "taskload": ("task load CPU %", False),
     "threadload": ("thread load CPU %", False),
@@ -181,7 +183,7 @@ def _source_nodes(kind: str, variant: str, stop: threading.Event) -> tuple[list[
 def _in_one_process(kind: str, seconds: float, variant: str) -> list[tuple[float, float]]:
     """Under executors with the accounting on and off, taking turns in this process, ``(on, off)``
     pairs of: a ten-node load's CPU % (``load``: bench_executor's; ``taskload``, ``threadload``: see
-    :func:`_source_nodes`), or the round trips per second of ``streams`` (:func:`_stream_nodes`)."""
+    :func:`_source_nodes`), or the CPU per round trip of ``streams`` (us, :func:`_stream_nodes`)."""
     import rclpy
 
     from container import AsyncioExecutor
@@ -211,8 +213,12 @@ def _in_one_process(kind: str, seconds: float, variant: str) -> list[tuple[float
             time.sleep(0.05)
         cpu0, wall0, count0 = time.process_time(), time.perf_counter(), received[0]
         time.sleep(seconds)
-        wall = time.perf_counter() - wall0
-        value = (received[0] - count0) / wall if variant == "streams" else 100.0 * (time.process_time() - cpu0) / wall
+        wall, cpu, count = time.perf_counter() - wall0, time.process_time() - cpu0, received[0] - count0
+        if variant == "streams":
+            sys.stderr.write(f"streams accounting {'on' if accounting else 'off'}: {count / wall:.0f} round trips/s\n")
+            value = 1e6 * cpu / max(count, 1)
+        else:
+            value = 100.0 * cpu / wall
         stop.set()  # the turn's tasks and threads end (the tasks with the executor, at the latest)
         executor.shutdown(timeout_sec=2.0)
         spinner.join(5.0)
@@ -238,6 +244,14 @@ def _one_process_round(kind: str, seconds: float, variant: str) -> tuple[float, 
         [sys.executable, __file__, "--load-child", kind, str(seconds), variant],
         env=env, capture_output=True, text=True, timeout=LOAD_TURNS * 2 * (seconds + 35) + 60, check=False,
     )
+    rates: dict[str, list[float]] = {"on": [], "off": []}
+    for line in out.stderr.splitlines():  # streams: the round trips per second of each turn
+        if line.startswith("streams accounting "):
+            state, _, rate = line.removeprefix("streams accounting ").partition(": ")
+            rates[state].append(float(rate.split()[0]))
+    if rates["on"] and rates["off"]:
+        on_rate, off_rate = statistics.median(rates["on"]), statistics.median(rates["off"])
+        print(f"  {kind} streams round trips/s: on {on_rate:.0f} off {off_rate:.0f}", flush=True)
     for line in out.stdout.splitlines():
         if line.startswith("["):
             pairs = json.loads(line)

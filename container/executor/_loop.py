@@ -21,8 +21,9 @@ Not wrapped: the steps of asyncio tasks (a task's own handles, told by
 their ``__self__``: the task factory meters each step of a node's task,
 and a lane's runner task carries callbacks that are metered already), and
 everything scheduled in the executor's own context
-(:data:`~._owners.EXECUTOR`), which costs one ``ContextVar`` read a handle. Handles of nobody's (scheduled from a
-thread no node started) are metered as unattributed.
+(:data:`~._owners.EXECUTOR`), which costs one ``ContextVar`` read a
+handle. Handles of nobody's (scheduled from a thread no node started) are
+metered as unattributed.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ _Ts = TypeVarTuple("_Ts")
 _monotonic_ns = time.monotonic_ns
 _Task = asyncio.Task
 
-# asyncio's own, called with the wrapper in the callback's place (typed loosely for that).
+# asyncio's own methods, called with the meter's call in the callback's place (typed loosely for that).
 _call_soon: Callable[..., asyncio.Handle] = asyncio.SelectorEventLoop.call_soon
 _call_soon_threadsafe: Callable[..., asyncio.Handle] = asyncio.SelectorEventLoop.call_soon_threadsafe
 _call_at: Callable[..., asyncio.TimerHandle] = asyncio.SelectorEventLoop.call_at
@@ -75,8 +76,7 @@ class AccountedLoop(HandleMeter, FdCallbackLoop):
     def _account(self, owner: Owner | None, kind: str) -> Account:
         return (owner if owner is not None else self._unattributed).account(kind)
 
-    # Each check below is written out, not a helper's call: they run for every
-    # handle of the loop, and a Python call costs as much as the check.
+    # The check is written out, not a helper's call: a Python call costs as much as the check.
     def call_soon_threadsafe(
         self, callback: Callable[[*_Ts], object], *args: *_Ts, context: Context | None = None
     ) -> asyncio.Handle:

@@ -165,6 +165,8 @@ class ThreadLedger:
         self._ended: dict[Owner, int] = {}
         #: Names of threads Python does not know, by id.
         self._names: dict[int, str] = {}
+        #: Threads first seen in the last window: their names are read once more.
+        self._recheck: set[int] = set()
         self.sample(loop_threads=frozenset())  # the first window starts now
 
     def ended(self, owner: Owner, tid: int, cpu_ns: int) -> None:
@@ -186,6 +188,7 @@ class ThreadLedger:
             tids = []
         with self._lock:
             last, self._last = self._last, {}
+            recheck, self._recheck = self._recheck, set()
             shares.owners, self._ended = self._ended, {}
             for tid in tids:
                 cpu = _thread_cpu_ns(tid)
@@ -208,12 +211,12 @@ class ThreadLedger:
                     shares.executor += spent
                     continue
                 name = self._names.get(tid)
-                if name is None:
-                    name = _name_of(tid)
-                    if name == _WATCHER_NAME or name.startswith(_MIDDLEWARE_PREFIX):
-                        # Kept: named once, as they start. Others are read again (one
-                        # that names itself may not have done so by this window).
-                        self._names[tid] = name
+                if name is None or tid in recheck:
+                    # Read as a thread first shows up, and once more the window after (one
+                    # that names itself as it starts may not have done so by the first read).
+                    name = self._names[tid] = _name_of(tid)
+                    if tid not in recheck:
+                        self._recheck.add(tid)
                 if name == _WATCHER_NAME:
                     shares.executor += spent
                 elif name.startswith(_MIDDLEWARE_PREFIX):

@@ -108,8 +108,10 @@ class HandleMeter:
         schedule: Callable[..., Any] = state.call_soon
         if not args:
             return schedule(self, *args, **kwargs)  # the loop's own call_soon says what is missing
+        if isinstance(getattr(args[0], "__self__", None), state.task_type):
+            return schedule(self, *args, **kwargs)  # a task's step: the commonest, told first
         owner = _owner_in(state, kwargs.get("context"))
-        if owner is state.executor or isinstance(getattr(args[0], "__self__", None), state.task_type):
+        if owner is state.executor:
             return schedule(self, *args, **kwargs)
         return schedule(self, self._call(state, "loop_callback", owner), _monotonic_ns(), *args, **kwargs)
 

@@ -261,6 +261,11 @@ static PyObject * HandleMeter_call_soon(HandleMeterObject * self, PyObject * con
     /* the loop's own call_soon says what is missing */
     return schedule(self, self->call_soon, NULL, args, nargs, kwnames, NULL, 0);
   }
+  /* A task's step first: the commonest handle, told without a look at the context. */
+  is_task = steps_a_task(self, args[0]);
+  if (is_task != 0) {
+    return is_task < 0 ? NULL : schedule(self, self->call_soon, NULL, args, nargs, kwnames, NULL, 0);
+  }
   owner = owner_in(self, context_of(args, nargs, kwnames));
   if (owner == NULL) {
     return NULL;
@@ -268,11 +273,6 @@ static PyObject * HandleMeter_call_soon(HandleMeterObject * self, PyObject * con
   if (owner == self->executor) {
     Py_DECREF(owner);
     return schedule(self, self->call_soon, NULL, args, nargs, kwnames, NULL, 0);
-  }
-  is_task = steps_a_task(self, args[0]);
-  if (is_task != 0) {
-    Py_DECREF(owner);
-    return is_task < 0 ? NULL : schedule(self, self->call_soon, NULL, args, nargs, kwnames, NULL, 0);
   }
   call = account_call(self, &self->soon, owner);
   Py_DECREF(owner);

@@ -1,31 +1,26 @@
-"""``python -m container`` and the ``container`` console script.
+"""``python -m container`` and the ``container`` command (Python on ``bin/container``, a sh launcher).
 
-A signal before the command's session handles signals itself (while Python
-imports the command line, rclpy and the plugins, while rcl starts) ends the
-process quietly with ``128 + signal``, as a shell reports a process a signal
-killed: Ctrl-C in the first half second must not print a
-``KeyboardInterrupt`` traceback from the middle of an import. This module
-imports nothing but the standard library until that is in place; what
-``container/__init__.py`` imports runs before it, and stays small.
+The entry point's first act is to take SIGINT and SIGTERM
+(:func:`container._entry.take`): a signal before the command's session
+handles signals itself (while Python imports the command line, rclpy and
+the plugins, while rcl starts), or one held since the interpreter started,
+ends the process with ``128 + signal``, as a shell reports a process a
+signal killed, and one line, never a ``KeyboardInterrupt`` traceback from
+the middle of an import. This module imports nothing but the standard
+library until that is in place, and the package's ``__init__`` imports
+nothing at all.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
-import signal
 import sys
-import threading
+
+from ._entry import SIGNALS, take
 
 __all__ = ["main"]
 
-
-def _exit_quietly(signum: int, frame: object) -> None:
-    # Runs between any two bytecodes: only what is safe there.
-    with contextlib.suppress(Exception):
-        sys.stdout.flush()
-        sys.stderr.flush()
-    os._exit(128 + signum)
+#: The exit codes of a command a signal cut short (SIGINT, SIGTERM).
+_CUT_SHORT = frozenset(128 + signum for signum in SIGNALS)
 
 
 def main() -> int:
@@ -45,8 +40,9 @@ def main() -> int:
     why SIGPIPE stays ignored); the last flush happens here, inside that
     rule, not in the interpreter's exit.
     """
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, _exit_quietly)
+    take(sys.argv[1:])
+    import threading
+
     from ._output import closed_early, guard_output
 
     guard_output()
@@ -63,6 +59,14 @@ def main() -> int:
     except BrokenPipeError:
         if not closed_early():
             raise
+    if code in _CUT_SHORT:
+        # A signal cut the command short, its session is over: Python's own
+        # exit would take 0.2-0.3 s more (the interpreter's teardown, and
+        # Fast DDS's factory sleeps 100 ms in its destructor), past the
+        # second a stopped start-up may take.
+        from ._session import exit_now
+
+        exit_now(code)
     if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
         from ._session import exit_now  # rclpy only loads when a session ran
 

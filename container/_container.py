@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import os
 import re
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import (
@@ -34,6 +33,7 @@ from ._compat import InvalidROSArgsError, is_built, state_machine, state_machine
 from ._errors import ConfigError, LoadError, TransitionError
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
+from ._statefile import same_parameters
 from ._text import clip
 from ._warnings import LoadWarning
 from .executor import Escaped, format_plugin_frames, in_thread
@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 
     from .executor import AsyncioExecutor
 
-__all__ = ["ComponentManager", "LoadRequest", "LoadedNode", "entry_label", "type_label"]
+__all__ = ["ComponentManager", "LoadRequest", "LoadWatcher", "LoadedNode", "Restore", "entry_label", "type_label"]
 
 #: The rclpy parameter that starts a node's ~/get_type_description service.
 TYPE_DESCRIPTION_SERVICE = "start_type_description_service"
@@ -112,6 +112,20 @@ class LoadRequest:
         return default if value is None else value is True
 
 
+@dataclass(frozen=True, slots=True)
+class Restore:
+    """What a node restored from a state file keeps of its previous life (:mod:`container._statekeeper`).
+
+    :param unique_id: the id it had, so ``ros2 component list`` shows the same.
+    :param changed_parameters: parameters set on it after it was loaded; they
+        override the request's for its construction, and are not part of
+        what it was loaded with.
+    """
+
+    unique_id: int
+    changed_parameters: Sequence[Parameter[Any]] = ()
+
+
 @dataclass(eq=False, slots=True)
 class LoadedNode:
     """A node living in the container."""
@@ -126,6 +140,22 @@ class LoadedNode:
     #: What its load (and autostart) warned of, in order, for whoever asked
     #: for it: the LoadNode answer, ``container run``'s summary. Logged too.
     warnings: list[LoadWarning] = field(default_factory=list)
+    #: The parameter overrides its request resolved to (parameter files read),
+    #: in order: what it was loaded with.
+    parameters: tuple[Parameter[Any], ...] = ()
+    #: Restored from a state file, and no load has asked for it since (see
+    #: ``ComponentManager.load``).
+    restored: bool = False
+
+
+class LoadWatcher(Protocol):
+    """Told of every node that enters or leaves the container (the state file's keeper)."""
+
+    def loaded(self, loaded: LoadedNode) -> None:
+        """Handle a node just loaded (not necessarily served yet)."""
+
+    def unloaded(self, loaded: LoadedNode) -> None:
+        """Handle a node just taken off the container's list, before it goes down its lifecycle."""
 
 
 class ComponentManager(Node):
@@ -173,9 +203,11 @@ class ComponentManager(Node):
         self.load_timeout = load_timeout
         self.use_intra_process_comms = use_intra_process_comms
         self._background: set[asyncio.Task[None]] = set()
-        self._ids = itertools.count(1)
+        self._next_id = 1
         self._loaded: dict[int, LoadedNode] = {}
         self._ignored_arguments: set[str] = set()
+        #: Told of every load and unload, if set.
+        self.watcher: LoadWatcher | None = None
 
     # -- queries ------------------------------------------------------------------
     def loaded(self) -> list[LoadedNode]:
@@ -192,8 +224,17 @@ class ComponentManager(Node):
         except KeyError:
             raise LoadError(f"No node found with unique_id: {unique_id}") from None
 
+    @property
+    def next_unique_id(self) -> int:
+        """The unique id the next load gets: ids count from 1 and are never reused, as rclcpp's."""
+        return self._next_id
+
+    def reserve_unique_ids(self, next_id: int) -> None:
+        """Never hand out an id below ``next_id`` (those a previous life of the container used)."""
+        self._next_id = max(self._next_id, next_id)
+
     # -- load -------------------------------------------------------------------
-    async def load(self, request: LoadRequest, *, serve: bool = True) -> LoadedNode:
+    async def load(self, request: LoadRequest, *, serve: bool = True, restore: Restore | None = None) -> LoadedNode:
         """Construct a registered node type and start running it.
 
         The constructor runs on a thread of its own, bounded by
@@ -211,8 +252,17 @@ class ComponentManager(Node):
             slow (measured with plain rclpy and a spinning executor too).
             rclcpp's container never overlaps the two either: its executor
             runs the constructor.
+        :param restore: the node comes back from a state file, with its unique
+            id and the parameters set on it since. Until a load asks for it,
+            a load of the same full name is answered with it when it asks
+            for the same (type, remap rules, parameters, extra arguments,
+            log level), as a launch file started again would; a load that
+            asks for something else replaces it. Any other node of the same
+            name is a duplicate, refused.
         :raises LoadError: with a message fit for a LoadNode response.
         """
+        if restore is not None and restore.unique_id in self._loaded:
+            raise LoadError(f"unique_id {restore.unique_id} is in use")
         node_type = self.registry.resolve(request.package, request.plugin)
         forward_global_arguments = _check_extra_arguments(request.extra_arguments)
         own = self.get_logger().name
@@ -237,6 +287,24 @@ class ComponentManager(Node):
         # The name the node will have: rcl applies the request's remap rules
         # (__node:=, __ns:=) over the name it is constructed with.
         full_name = _remapped_name(name, namespace, remaps)
+        try:
+            loaded_with = _overrides(request, full_name)
+        except ConfigError as exc:
+            raise LoadError(f"Invalid parameters: {exc}") from exc
+        restored = self._restored_as(full_name)
+        if restored is not None:
+            if _same_load(restored, node_type, request, loaded_with):
+                restored.restored = False
+                self.get_logger().info(
+                    f"Load of {clip(full_name, quote=True)} answered with the node restored from the state file "
+                    f"(unique_id {restored.unique_id}), loaded with the same settings"
+                )
+                return restored
+            self.get_logger().warning(
+                f"Load of {clip(full_name, quote=True)} asks for other settings than the node restored from the "
+                f"state file (unique_id {restored.unique_id}): that node is unloaded, this one loaded"
+            )
+            await self.unload(restored.unique_id)
         self._refuse_duplicate(full_name)
         if forward_global_arguments:
             forwarded = (
@@ -245,10 +313,10 @@ class ComponentManager(Node):
             )
             self.get_logger().warning(forwarded)
             warnings.append(LoadWarning(own, forwarded))
-        try:
-            overrides = _overrides(request, full_name)
-        except ConfigError as exc:
-            raise LoadError(f"Invalid parameters: {exc}") from exc
+        overrides = [*loaded_with]
+        if restore is not None and restore.changed_parameters:
+            changed = {parameter.name: parameter for parameter in restore.changed_parameters}
+            overrides = [*(p for p in overrides if p.name not in changed), *changed.values()]
         if not any(parameter.name == TYPE_DESCRIPTION_SERVICE for parameter in overrides):
             # rclpy 7.1 (Jazzy) never releases what starting a node's
             # ~/get_type_description service allocates: about 100 kB per node
@@ -317,9 +385,11 @@ class ComponentManager(Node):
                 f"{_one_line(error)}\n{format_plugin_frames(error.__traceback__, innermost_first=False)}"
             )
             raise LoadError(f"Component constructor threw an exception: {_one_line(error)}") from exc
+        unique_id = self._next_id if restore is None else restore.unique_id
+        self._next_id = max(self._next_id, unique_id + 1)
         loaded = LoadedNode(
-            next(self._ids), node, node_type, request, node.get_fully_qualified_name(), served=serve,
-            warnings=warnings,
+            unique_id, node, node_type, request, node.get_fully_qualified_name(), served=serve,
+            warnings=warnings, parameters=tuple(loaded_with), restored=restore is not None,
         )
         self._loaded[loaded.unique_id] = loaded
         if serve:
@@ -337,6 +407,8 @@ class ComponentManager(Node):
             for warning in parameter_warnings:
                 logger.warning(warning)
         warnings.extend(LoadWarning(logger.name, warning) for warning in parameter_warnings)
+        if self.watcher is not None:
+            self.watcher.loaded(loaded)
         return loaded
 
     def serve_loaded(self, nodes: Iterable[LoadedNode]) -> None:
@@ -345,6 +417,13 @@ class ComponentManager(Node):
             if not loaded.served and self.holds(loaded):
                 loaded.served = True
                 self._host.add_node(loaded.node)
+
+    def _restored_as(self, full_name: str) -> LoadedNode | None:
+        """The node restored from a state file under ``full_name`` that no load has asked for yet."""
+        for other in self._loaded.values():
+            if other.restored and other.full_name == full_name:
+                return other
+        return None
 
     def _refuse_duplicate(self, full_name: str) -> None:
         if full_name == self.get_fully_qualified_name():
@@ -413,6 +492,8 @@ class ComponentManager(Node):
         # unloaded while the file still loads was not served yet).
         self.serve_loaded([loaded])
         del self._loaded[unique_id]
+        if self.watcher is not None:
+            self.watcher.unloaded(loaded)
         node = loaded.node
         notes: list[str] = []
         if isinstance(node, LifecycleNode):
@@ -456,6 +537,19 @@ class ComponentManager(Node):
             await self.unload(unique_id)
         for task in list(self._background):
             task.cancel()
+
+
+def _same_load(
+    loaded: LoadedNode, node_type: NodeType, request: LoadRequest, parameters: Sequence[Parameter[Any]]
+) -> bool:
+    """Whether ``request`` (resolving to ``parameters``) asks for what ``loaded`` was loaded with."""
+    return (
+        node_type.full_name == loaded.node_type.full_name
+        and tuple(request.remap_rules) == tuple(loaded.request.remap_rules)
+        and same_parameters(parameters, loaded.parameters)
+        and dict(request.extra_arguments) == dict(loaded.request.extra_arguments)
+        and request.log_level == loaded.request.log_level
+    )
 
 
 def _discard(built: list[Node]) -> None:

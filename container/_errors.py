@@ -9,7 +9,8 @@
     ├── LoadError                  a node could not be loaded into the container
     ├── TransitionError            a lifecycle transition could not be carried out
     ├── DeviceError                a device (serial port, capture file) failed
-    └── SecurityError              DDS security was asked for and cannot be had
+    ├── SecurityError              DDS security was asked for and cannot be had
+    └── StateFileError             a container's state file cannot be read, used or written
 
 Each keeps what it is about as attributes (``source``, ``node``, ``device``,
 ...) and the bare ``reason``, so callers never take the message apart. The
@@ -32,6 +33,7 @@ __all__ = [
     "LoadError",
     "PluginError",
     "SecurityError",
+    "StateFileError",
     "TransitionError",
 ]
 
@@ -133,3 +135,14 @@ class SecurityError(ContainerError):
     def __init__(self, message: str, *, enclave: str) -> None:
         super().__init__(message)
         self.enclave = enclave
+
+
+class StateFileError(ContainerError):
+    """A container's state file (``state_file``) cannot be read, used or written.
+
+    :param path: the state file.
+    """
+
+    def __init__(self, message: str, *, path: str) -> None:
+        super().__init__(f"state file {clip(path, quote=True)}: {message}", reason=message)
+        self.path = path

@@ -209,6 +209,8 @@ class PluginRegistry:
         self._sources: dict[str, tuple[importlib.metadata.Distribution, str]] = {}
         # Distributions dropped because their files changed, with the reason.
         self._stale: dict[str, str] = {}
+        # Those of them whose metadata was gone (uninstalled), not replaced.
+        self._uninstalled: set[str] = set()
         env_block = _names_from_env(_BLOCK_ENV) or set()
         self._block = {ros_package_name(name) for name in (*block, *env_block)}
         self._allow: list[set[str]] = [
@@ -250,7 +252,7 @@ class PluginRegistry:
         :raises LoadError: with rclcpp's messages, for an unknown package or an
             unknown type in a known package; with the plugin's own failure when
             the package is that of a plugin that could not be loaded; and when
-            the type's distribution was uninstalled or replaced since start.
+            the type's distribution was uninstalled or replaced since it was imported.
         """
         if "::" not in plugin_name:
             plugin_name = f"{package_name}::{plugin_name}"
@@ -264,7 +266,7 @@ class PluginRegistry:
             return node_type
         for distribution, reason in self._stale.items():
             if ros_package_name(distribution) == package_name:
-                raise LoadError(f"Cannot load {clip(plugin_name)}: {reason}")
+                raise LoadError(f"Cannot load {clip(plugin_name)}: {self._refusal(distribution, reason)}")
         for failure in reversed(self._failures):
             if failure.distribution and ros_package_name(failure.distribution) == package_name:
                 raise LoadError(f"Plugin failed to load: {failure}")
@@ -315,15 +317,36 @@ class PluginRegistry:
         try:
             now = importlib.metadata.distribution(distribution).version
         except importlib.metadata.PackageNotFoundError:
-            reason = f"distribution {distribution!r} was uninstalled since the container started"
+            # Said of when the container imported it, not of when it started:
+            # a plugin installed after start may be uninstalled again.
+            reason = f"distribution {distribution!r} is no longer installed"
+            self._uninstalled.add(distribution)
         else:
             reason = (
-                f"distribution {distribution!r} was replaced since the container started "
+                f"distribution {distribution!r} was replaced after the container imported it "
                 f"(version {source[1]} was imported, {now} is installed): restart the "
                 "container to load the new code"
             )
         self._forget(distribution, reason)
         return reason
+
+    def _refusal(self, distribution: str, reason: str) -> str:
+        """Why a forgotten distribution's types are refused, as things stand now.
+
+        One that was uninstalled may have been installed again since:
+        Python keeps the modules it imported first, so only a restart loads it.
+        """
+        if distribution not in self._uninstalled:
+            return reason
+        importlib.invalidate_caches()
+        try:
+            importlib.metadata.distribution(distribution)
+        except importlib.metadata.PackageNotFoundError:
+            return reason
+        return (
+            f"distribution {distribution!r} was uninstalled after the container imported it, and installed "
+            "again since: restart the container to load it"
+        )
 
     def _forget(self, distribution: str, reason: str) -> None:
         """Drop a distribution's types and hook implementations for good."""

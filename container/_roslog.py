@@ -24,11 +24,16 @@ A signal handler says its line with :func:`say_now`, straight to rcutils:
 Python's logging takes locks (the handler's, the module's) that the code the
 signal interrupted may hold, and a stream it may be writing. rclpy's logging
 lock is held only inside its C call, which a Python signal handler never
-interrupts, so that path cannot deadlock.
+interrupts, so that path cannot deadlock. Such a line may be the process's
+last: :func:`say_now` flushes C's standard I/O buffers after it, where rcl's
+log file waits (it writes through by itself only an ERROR line). Once
+:func:`install` ran, the ``container`` command's own handler for a signal
+before its session (:mod:`container._entry`) says its line this way too.
 """
 
 from __future__ import annotations
 
+import ctypes
 import inspect
 import logging
 
@@ -37,12 +42,16 @@ from rclpy.impl.logging_severity import LoggingSeverity
 from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.node import Node
 
+from . import _entry
 from ._compat import rcutils_log
 
 __all__ = ["ROOT_NAME", "RosLogHandler", "install", "route_to", "say_now", "severity_of"]
 
 #: The Python logger of the container's own lines, and their ROS name while no node is attached.
 ROOT_NAME = "container"
+
+#: The C library, for ``fflush(NULL)`` (:func:`say_now`).
+_LIBC = ctypes.CDLL(None)
 
 
 def severity_of(levelno: int) -> LoggingSeverity:
@@ -151,6 +160,7 @@ def install(*, level: int = logging.INFO, verbose: bool = False) -> None:
     root.addHandler(handler)
     root.setLevel(logging.DEBUG if verbose else level)
     _installed = handler
+    _entry.use_ros_logging(say_now)
 
 
 def route_to(node: Node | None) -> None:
@@ -163,8 +173,10 @@ def say_now(levelno: int, message: str) -> None:
     """Log ``message`` from a signal handler: straight to rcutils, under the container's name.
 
     No Python logging lock is taken (see the module's docstring). rcutils
-    writes the console line unbuffered, and an ERROR line flushes the log
-    file at once: what the process may not live long enough to do later.
+    writes the console line unbuffered; the log file's buffer is flushed here
+    (all of C's ``FILE`` streams: rcl's file sink is one), as only an ERROR
+    line would flush it by itself: the process may not live long enough to
+    do it later.
     """
     handler = _installed
     name = ROOT_NAME if handler is None else handler.root_name
@@ -179,3 +191,4 @@ def say_now(levelno: int, message: str) -> None:
         file=code.co_filename if code is not None else __file__,
         line=caller.f_lineno if caller is not None else 0,
     )
+    _LIBC.fflush(None)

@@ -20,7 +20,9 @@ of them start ROS and end alike:
   container, a manager) treats the first signal as the request to stop and
   exits with what its orderly shutdown returns once it has said it is ready
   (:meth:`Session.mark_ready`); a signal before that stops the start-up and
-  the process exits ``128 + signal``;
+  the process exits ``128 + signal``, within :data:`START_UP_STOP_S` of the
+  signal: what has not stopped by then is left to the process's end (a
+  client command cut short likewise);
 * repeated signals, as ``ros2 launch`` and rclcpp's container expect: Ctrl-C
   in a terminal reaches every process of the group and launch forwards one
   more SIGINT, so a repetition of the *first* signal is absorbed (one line
@@ -28,6 +30,10 @@ of them start ROS and end alike:
   ``sigterm_timeout``) or a third one ends the process at once with ``128 +
   signal``, without a traceback, and so does an event loop still stuck
   ``shutdown_timeout`` after the first signal;
+* one line per signal, for a server: said from Python's signal handler
+  (:func:`container._roslog.say_now`), when the signal comes, even while the
+  loop is busy (constructing a node, importing a plugin); a client command
+  stays quiet;
 * the executor shut down and the context with it, whatever happened.
 
 Before the session's handlers are installed, and after a session that no
@@ -85,6 +91,10 @@ _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 #: How often the hard stop looks whether the loop is still stuck.
 _HARD_STOP_POLL_S = 0.1
 
+#: Seconds from the first signal to the end of a session that was not a
+#: ready server (a start-up, a client command): an orderly stop takes 0.1-0.5 s.
+START_UP_STOP_S = 0.8
+
 _log = logging.getLogger("container")
 
 
@@ -117,15 +127,44 @@ def _hard_stop(session: Session, signum: int) -> None:
                 f"in {stall.what}; exiting without a clean shutdown"
             )
             exit_now(exit_code_for(signum))
-        time.sleep(_HARD_STOP_POLL_S)
+        if session.spun.wait(_HARD_STOP_POLL_S):
+            return
+
+
+def _arm_deadline(session: Session, signum: int, *, say: bool) -> None:
+    """End the process if the session is not over :data:`START_UP_STOP_S` after ``signum``.
+
+    For a start-up or a client command a signal cut short: what stops in
+    order does so well within it; a node's constructor or transition that
+    holds on, a plugin's import, a teardown slowed by a loaded machine does
+    not hold the process past it.
+    """
+    if session.deadline is None:
+        session.deadline = threading.Thread(
+            target=_deadline, args=(session, signum, say), name="start-up-deadline", daemon=True
+        )
+        session.deadline.start()
+
+
+def _deadline(session: Session, signum: int, say: bool) -> None:
+    if session.over.wait(START_UP_STOP_S):
+        return
+    if say:
+        name = signal.Signals(signum).name
+        say_now(
+            logging.WARNING,
+            f"start-up still stopping {START_UP_STOP_S:g} s after {name}: exiting without a clean shutdown",
+        )
+    exit_now(exit_code_for(signum))
 
 
 def exit_now(code: int) -> NoReturn:
     """End the process at once with ``code``, whatever threads still run.
 
     For what an orderly exit cannot do: a stuck loop, a signal that
-    escalates, threads a plugin left behind (Python's exit would join them). Logs and
-    standard streams are flushed first.
+    escalates, threads a plugin left behind (Python's exit would join them),
+    a start-up a signal cut short. Logs and standard streams are flushed
+    first.
     """
     with contextlib.suppress(Exception):
         logging.shutdown()
@@ -167,8 +206,22 @@ class Session:
     signal: int | None = None
     #: Started by the first signal: ends the process if the loop stays stuck.
     hard_stop: threading.Thread | None = None
+    #: Started by the first signal to a session that is not a ready server.
+    deadline: threading.Thread | None = None
+    #: Set once the executor stopped spinning (the hard stop ends).
+    spun: threading.Event = field(default_factory=threading.Event)
+    #: Set once the session is over, all shut down (the deadline ends).
+    over: threading.Event = field(default_factory=threading.Event)
     #: Set by :meth:`mark_ready`.
     ready: bool = False
+
+    def stop_asked(self) -> bool:
+        """Whether a signal asked the session to stop, if the loop has not handled it yet.
+
+        Python's handler records the signal when it comes; :attr:`stopping`
+        is set on the loop, once the loop has control again.
+        """
+        return self.signal is not None
 
     def mark_ready(self) -> None:
         """Say the server has started: a signal from now on is the ordinary way to stop it.
@@ -244,6 +297,7 @@ def run_session(
         clear_rcl_error()
     code = EXIT_FAILURE
     clean = False
+    session: Session | None = None
     try:
         # A client command's output is read by scripts: its own loop
         # stalls (an import, the first log call) are never reported there.
@@ -260,6 +314,7 @@ def run_session(
                 code = exit_code_for(session.signal)
         finally:
             clean = executor.shutdown()
+            session.spun.set()
             # The container's own thread, not a plugin's: ended before the
             # context, its answers to clients that never matched dropped.
             end_resender(timeout=1.0)
@@ -279,6 +334,10 @@ def run_session(
     finally:
         try_shutdown(context=context)
     end_spare_threads(timeout=1.0)  # idle, not left behind
+    if session is not None:
+        session.over.set()
+        if session.deadline is not None:
+            session.deadline.join(1.0)
     leftover = [t.name for t in threading.enumerate() if t not in before]
     if leftover or not clean:
         # Daemon threads would die silently with the process; say so instead.
@@ -344,8 +403,10 @@ class _Signals:
             signal.signal(signum, signal.SIG_IGN if absorb else signal.SIG_DFL)
 
     def on_signal_now(self, signum: int, frame: object) -> None:
-        """Python's handler: record the first signal; absorb its repetition; escalate."""
+        """Python's handler: record and announce the first signal; absorb its repetition; escalate."""
         if self._record(signum):
+            if self.server:
+                say_now(logging.INFO, f"{signal.Signals(signum).name} received: shutting down")
             return
         first = self.session.signal
         assert first is not None
@@ -356,21 +417,21 @@ class _Signals:
                 say_now(logging.WARNING, _absorbed(name))
             return
         again = "a third time" if signum == first else f"after {signal.Signals(first).name}"
-        # ERROR: the nodes are not taken down; and rcl's log file flushes an
-        # ERROR line at once, before the process is gone.
-        say_now(logging.ERROR, f"{name} {again}: exiting at once")
+        # WARN: what the operator asked for, if not how it ends (the nodes are
+        # not taken down); say_now writes it through to rcl's log file.
+        say_now(logging.WARNING, f"{name} {again}: exiting at once")
         exit_now(exit_code_for(signum))
 
     def on_signal(self, signum: int) -> None:
         """asyncio's handler, on the loop: start the orderly stop, or log the repetition."""
-        self._record(signum)  # normally done: Python's handler runs first
+        if self._record(signum) and self.server:  # normally done: Python's handler runs first
+            _log.info(f"{signal.Signals(signum).name} received: shutting down")
         first = self.session.signal
         assert first is not None
         name = signal.Signals(first).name
         if not self._stop_started:
             self._stop_started = True
             if self.server:
-                _log.info(f"{name} received: shutting down")
                 self.session.stopping.set()
             elif self._task is not None:
                 self._task.cancel()
@@ -386,6 +447,8 @@ class _Signals:
         session.signal = signum
         if self.on_loop:
             _arm_hard_stop(session, signum)
+        if not (self.server and session.ready):
+            _arm_deadline(session, signum, say=self.server)
         return True
 
 

@@ -26,6 +26,13 @@ plugin whose import fails at build time still gets its marker; the failure
 is printed and the build goes on (the container reports the same failure
 when it loads).
 
+``build-backend = "scikit_build_core.build"`` would build such a plugin's
+wheel without these entries, silently; ``find_package(lifecycle_container)``
+refuses that (it sees ``LIFECYCLE_CONTAINER_BUILD_BACKEND``, which this
+backend sets while scikit-build-core builds). colcon builds of a plugin get
+the same entries from :mod:`container.colcon` (``ament_python``) or from
+``find_package(lifecycle_container)`` (CMake).
+
 Standard library only at import (plus the chosen backend): it runs inside
 pip's build, before anything of ROS needs to load.
 """
@@ -33,21 +40,23 @@ pip's build, before anything of ROS needs to load.
 from __future__ import annotations
 
 import base64
+import contextlib
 import csv
 import hashlib
 import importlib
 import io
-import json
 import os
-import subprocess
 import sys
 import tempfile
 import tomllib
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from ._errors import PluginError
 from ._hookspecs import ros_package_name
+from ._plugin_types import list_node_types, parse_entry_points
 
 __all__ = [
     "build_editable",
@@ -62,6 +71,8 @@ __all__ = [
 
 _GROUP = "container.plugins"
 _INDEX = "share/ament_index/resource_index"
+#: Set while the inner backend builds (lifecycle_container-config.cmake reads it).
+_MARK = "LIFECYCLE_CONTAINER_BUILD_BACKEND"
 
 
 def _inner() -> Any:
@@ -73,6 +84,24 @@ def _inner() -> Any:
         tool = {}
     name = "scikit_build_core.build" if "scikit-build" in tool else "setuptools.build_meta"
     return importlib.import_module(name)
+
+
+@contextlib.contextmanager
+def _through_this_backend() -> Iterator[None]:
+    """Tell ``find_package(lifecycle_container)`` in the build that this backend adds the index entries.
+
+    (It refuses a plugin built by scikit-build-core's backend alone, whose
+    wheel would silently lack them.)
+    """
+    previous = os.environ.get(_MARK)
+    os.environ[_MARK] = "1"
+    try:
+        yield
+    finally:
+        if previous is None:
+            del os.environ[_MARK]
+        else:
+            os.environ[_MARK] = previous
 
 
 def get_requires_for_build_wheel(config_settings: dict[str, Any] | None = None) -> list[str]:
@@ -108,7 +137,8 @@ def build_sdist(sdist_directory: str, config_settings: dict[str, Any] | None = N
 def build_wheel(
     wheel_directory: str, config_settings: dict[str, Any] | None = None, metadata_directory: str | None = None
 ) -> str:
-    name: str = _inner().build_wheel(wheel_directory, config_settings, metadata_directory)
+    with _through_this_backend():
+        name: str = _inner().build_wheel(wheel_directory, config_settings, metadata_directory)
     add_index_entries(Path(wheel_directory) / name, source=Path.cwd())
     return name
 
@@ -116,7 +146,8 @@ def build_wheel(
 def build_editable(
     wheel_directory: str, config_settings: dict[str, Any] | None = None, metadata_directory: str | None = None
 ) -> str:
-    name: str = _inner().build_editable(wheel_directory, config_settings, metadata_directory)
+    with _through_this_backend():
+        name: str = _inner().build_editable(wheel_directory, config_settings, metadata_directory)
     add_index_entries(Path(wheel_directory) / name, source=Path.cwd())
     return name
 
@@ -132,7 +163,7 @@ def add_index_entries(wheel: Path, *, source: Path) -> None:
         info = next(n.split("/")[0] for n in names if n.endswith(".dist-info/METADATA"))
         entry_points = archive.read(f"{info}/entry_points.txt").decode() if f"{info}/entry_points.txt" in names else ""
         metadata = archive.read(f"{info}/METADATA").decode()
-    plugins = _entry_points(entry_points).get(_GROUP, {})
+    plugins = parse_entry_points(entry_points).get(_GROUP, {})
     if not plugins:
         return
     distribution = next(line.split(":", 1)[1].strip() for line in metadata.splitlines() if line.startswith("Name:"))
@@ -145,68 +176,25 @@ def add_index_entries(wheel: Path, *, source: Path) -> None:
     _append(wheel, info, files)
 
 
-def _entry_points(text: str) -> dict[str, dict[str, str]]:
-    groups: dict[str, dict[str, str]] = {}
-    current: dict[str, str] | None = None
-    for raw in text.splitlines():
-        line = raw.strip()
-        if not line or line.startswith(("#", ";")):
-            continue
-        if line.startswith("[") and line.endswith("]"):
-            current = groups.setdefault(line[1:-1].strip(), {})
-        elif current is not None and "=" in line:
-            name, _, value = line.partition("=")
-            current[name.strip()] = value.strip()
-    return groups
-
-
-_LIST_TYPES = """
-import json, sys
-from container._registry import PluginRegistry
-import importlib
-registry = PluginRegistry(group="container.build_backend.none")
-distribution, plugins = sys.argv[1], json.loads(sys.argv[2])
-for name, value in plugins.items():
-    module, _, attribute = value.partition(":")
-    plugin = importlib.import_module(module.strip())
-    for part in filter(None, attribute.strip().split(".")):
-        plugin = getattr(plugin, part)
-    registry.add_plugin(plugin, distribution=distribution)
-for t in sorted(registry.types.values(), key=lambda t: t.full_name):
-    print(f"{t.full_name};{t.node_class.__module__}:{t.node_class.__qualname__}")
-"""
-
-
 def _node_types(wheel: Path, *, distribution: str, plugins: dict[str, str], source: Path) -> list[str]:
     """The ``rclcpp_components`` lines of the plugin, listed by importing it from the wheel."""
     with tempfile.TemporaryDirectory(prefix="container-index-") as directory:
         root = Path(directory)
         with zipfile.ZipFile(wheel) as archive:
             archive.extractall(root)
-        paths = [str(root), str(source)]
+        paths = [root, source]
         libraries = []
         for data in root.glob("*.data/data"):
-            paths += [str(p) for p in data.glob("lib/python*/site-packages")]
-            libraries.append(str(data / "lib"))
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([*paths, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-        env["LD_LIBRARY_PATH"] = os.pathsep.join([*libraries, env.get("LD_LIBRARY_PATH", "")]).rstrip(os.pathsep)
-        result = subprocess.run(
-            [sys.executable, "-c", _LIST_TYPES, distribution, json.dumps(plugins)],
-            capture_output=True,
-            text=True,
-            env=env,
-            cwd=root,
-            timeout=300,
-        )
-    if result.returncode != 0:
-        print(
-            f"container.build_backend: could not list the node types of {distribution} "
-            f"(its wheel gets no rclcpp_components entry):\n{result.stderr.strip()}",
-            file=sys.stderr,
-        )
-        return []
-    return [line for line in result.stdout.splitlines() if "::" in line]
+            paths += data.glob("lib/python*/site-packages")
+            libraries.append(data / "lib")
+        try:
+            return list_node_types(distribution, plugins, paths=paths, libraries=libraries, cwd=root)
+        except PluginError as exc:
+            print(
+                f"container.build_backend: {exc.reason} (the wheel of {distribution} gets no rclcpp_components entry)",
+                file=sys.stderr,
+            )
+            return []
 
 
 def _append(wheel: Path, info: str, files: dict[str, bytes]) -> None:

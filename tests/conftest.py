@@ -30,6 +30,8 @@ from container import AsyncioExecutor  # noqa: E402
 from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E402
 from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
 from tests.install_support import make_ros_wheels_venv  # noqa: E402
+from tests.process_support import venv_ament_prefix_path  # noqa: E402
+from tests.signal_support import signals_as_from_a_terminal  # noqa: E402
 
 
 @pytest.fixture
@@ -78,6 +80,15 @@ def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
     yield node
     executor.remove_node(node)
     node.destroy_node()
+
+
+@pytest.fixture
+def ament_prefix_path(monkeypatch: pytest.MonkeyPatch) -> str:
+    """AMENT_PREFIX_PATH as the virtualenv's activation sets it, for this process and its children
+    (launch_ros finds the container's executable through it)."""
+    path = venv_ament_prefix_path()
+    monkeypatch.setenv("AMENT_PREFIX_PATH", path)
+    return path
 
 
 @pytest.fixture
@@ -138,6 +149,9 @@ def run_container(tmp_path: Path) -> Iterator[Callable[..., ContainerProcess]]:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "shared: reads ../shared (skipped when absent)")
+    # Started in the background by a script, the suite would hand an ignored
+    # SIGINT to every process it starts.
+    signals_as_from_a_terminal()
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name
 
 from tests.container_support import REPO
 
@@ -22,9 +26,38 @@ def installed_ros_distro() -> str:
     raise AssertionError("no ros-<distro>-rclpy installed in the test environment")
 
 
+def _installed_closure(requirements: list[str]) -> list[str]:
+    """``name==version`` of every distribution in this environment that ``requirements`` need, theirs
+    included: the versions installed here, read from their metadata."""
+    extras: dict[str, set[str]] = {}
+    todo = [Requirement(line) for line in requirements]
+    while todo:
+        requirement = todo.pop()
+        name = canonicalize_name(requirement.name)
+        if name in extras and set(requirement.extras) <= extras[name]:
+            continue
+        extras[name] = extras.get(name, set()) | set(requirement.extras)
+        try:
+            distribution = importlib.metadata.distribution(name)
+        except importlib.metadata.PackageNotFoundError:
+            raise AssertionError(f"{requirement}: needed for the ROS wheels' virtualenv, not installed here") from None
+        for line in distribution.requires or []:
+            dependency = Requirement(line)
+            wanted = extras[name] or {""}
+            if dependency.marker is None or any(dependency.marker.evaluate({"extra": e}) for e in wanted):
+                todo.append(dependency)
+    return sorted(f"{name}=={importlib.metadata.version(name)}" for name in extras)
+
+
 def make_ros_wheels_venv(prefix: Path) -> Path:
-    """A new virtualenv at ``prefix`` with the ROS wheels, the ROS build tools and colcon: nothing of this project."""
-    subprocess.run([sys.executable, "-m", "venv", str(prefix)], check=True, timeout=120)
+    """A new virtualenv at ``prefix`` with the ROS wheels, the ROS build tools and colcon: nothing of this project.
+
+    The ROS wheels and the build tools are the ones this environment has, at the versions it has
+    (``.ci/setup`` resolved them), installed by name and version without resolving again; colcon, which
+    this environment lacks, is then resolved and installed beside them. pip comes in the first install
+    (``venv`` would install its own copy, slower)."""
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(prefix)], check=True, timeout=120)
+    python = prefix / "bin" / "python"
     ros_distro = REPO / "container" / "interfaces" / "ros_distro.py"
     env = {**os.environ, "ROS_DISTRO": installed_ros_distro()}
     requirements = [
@@ -34,14 +67,30 @@ def make_ros_wheels_venv(prefix: Path) -> Path:
             [sys.executable, str(ros_distro), kind], env=env, check=True, capture_output=True, text=True
         ).stdout.split()
     ]
-    result = subprocess.run(
-        [
-            str(prefix / "bin" / "python"), "-m", "pip", "install", "--quiet", "--no-compile",
-            *requirements, "numpy", "colcon-common-extensions", "cmake>=3.21",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    pinned = _installed_closure([*requirements, "numpy", "cmake>=3.21", "pip"])
+    for args in (
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps", *pinned],
+        [str(python), "-m", "pip", "install", "colcon-common-extensions"],
+    ):
+        result = subprocess.run([*args, "--quiet", "--no-compile"], capture_output=True, text=True, timeout=600)
+        assert result.returncode == 0, result.stdout + result.stderr
     return prefix
+
+
+def greeter_package(destination: Path) -> Path:
+    """A colcon plugin without messages of its own at ``destination``: examples/colcon/radar_nodes' files
+    without its interface package, around the third-party example's module (docs/guide/colcon.md)."""
+    radar = REPO / "examples" / "colcon" / "radar_nodes"
+    for name in ("package.xml", "setup.cfg", "setup.py"):
+        text = (radar / name).read_text(encoding="utf-8")
+        text = text.replace("  <depend>radar_interfaces</depend>\n", "").replace("radar_nodes", "greeter_nodes")
+        assert "radar" not in text.replace("radar_nodes", ""), name
+        (destination / name).parent.mkdir(parents=True, exist_ok=True)
+        (destination / name).write_text(text, encoding="utf-8")
+    (destination / "resource").mkdir()
+    (destination / "resource" / "greeter_nodes").touch()
+    shutil.copytree(
+        REPO / "examples" / "thirdparty_plugin" / "greeter_nodes", destination / "greeter_nodes",
+        ignore=shutil.ignore_patterns("__pycache__"),
+    )
+    return destination

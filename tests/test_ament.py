@@ -16,7 +16,6 @@ packages up with) is. These tests do what they do, step by step:
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -24,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 from ament_index_python import (
     get_package_prefix,
     get_packages_with_prefixes,
@@ -32,43 +30,25 @@ from ament_index_python import (
     get_resources,
     has_resource,
 )
-from composition_interfaces.srv import LoadNode
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
-from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.srv import GetParameters
 from rclpy.client import Client
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from container import AsyncioExecutor
-from container._ament import EXECUTABLES, PROJECT_PACKAGE, write_index
-from container._registry import PluginRegistry
+from container._ament import EXECUTABLES, PROJECT_PACKAGE, RECORD_TYPE, installed_prefix, write_index
+from container._registry import NodeType, PluginRegistry
 from tests.component_support import IMPORT_ROOT, ContainerClient, install_test_plugin
 from tests.container_support import REPO
-from tests.process_support import LoggedProcess
-
-VENV_ACTIVATE = Path(sys.prefix) / "bin" / "activate"
-
-
-@pytest.fixture
-def ament_prefix_path(monkeypatch: pytest.MonkeyPatch) -> str:
-    """AMENT_PREFIX_PATH as the virtualenv's activation sets it, for this process and its children."""
-    result = subprocess.run(
-        ["bash", "-c", f'unset AMENT_PREFIX_PATH; . "{VENV_ACTIVATE}"; printf %s "$AMENT_PREFIX_PATH"'],
-        capture_output=True, text=True, timeout=30, check=True,
-    )
-    monkeypatch.setenv("AMENT_PREFIX_PATH", result.stdout)
-    return result.stdout
-
-
-def executable_in_package(package: str, executable: str) -> str:
-    """launch_ros's ExecutableInPackage: the prefix from the index, then lib/<package>, searched like which."""
-    libexec = os.path.join(get_package_prefix(package), "lib", package)
-    assert os.path.isdir(libexec), f"package {package!r} has no libexec directory {libexec}"
-    found = shutil.which(executable, path=libexec)
-    assert found is not None, f"executable {executable!r} not found in {libexec}"
-    return found
+from tests.process_support import (
+    VENV_ACTIVATE,
+    LoggedProcess,
+    composable_node_request,
+    container_command,
+    executable_in_package,
+    launch_params_file,
+)
 
 
 def executables_of(package: str) -> set[str]:
@@ -163,87 +143,177 @@ def test_index_adds_a_new_plugin_and_removes_it_when_it_is_gone(tmp_path: Path) 
     assert "up to date" in index(env)
 
     gone = index(dict(os.environ))  # the plugin uninstalled
-    assert "test_nodes: removed (no longer installed)" in gone
+    assert "test_nodes: removed (no longer installed in this prefix)" in gone
     index_dir = prefix / "share" / "ament_index" / "resource_index"
     assert not (index_dir / "packages" / "test_nodes").exists()
     assert not (index_dir / "rclcpp_components" / "test_nodes").exists()
     assert foreign.exists()
-    assert (prefix / "lib" / PROJECT_PACKAGE / "component_container").exists()
+    # The container's own package is the prefix it is installed in's, never this one's.
+    assert not (prefix / "lib" / PROJECT_PACKAGE).exists()
+    assert not (index_dir / "packages" / PROJECT_PACKAGE).exists()
+
+
+def installed_plugin(prefix: Path, monkeypatch: pytest.MonkeyPatch, distribution: str) -> list[NodeType]:
+    """``distribution`` installed into ``prefix`` as colcon installs a plugin (its metadata in the
+    prefix's site-packages, on ``sys.path``): its node types."""
+    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+    install_test_plugin(site, distribution=distribution)
+    monkeypatch.syspath_prepend(str(site))
+    return [t for t in PluginRegistry().types.values() if t.distribution == distribution]
+
+
+def files_under(root: Path) -> dict[str, bytes]:
+    return {str(path.relative_to(root)): path.read_bytes() for path in root.rglob("*") if path.is_file()}
 
 
 def test_an_existing_ros_package_of_the_same_name_is_left_alone(tmp_path: Path) -> None:
     index_dir = tmp_path / "share" / "ament_index" / "resource_index"
     (index_dir / "packages").mkdir(parents=True)
-    (index_dir / "packages" / "ldlidar").touch()
-    report = write_index(tmp_path, PluginRegistry().types.values())
-    assert [package for package, _ in report.skipped] == ["ldlidar"]
-    assert not (index_dir / "rclcpp_components" / "ldlidar").exists()
-    assert PROJECT_PACKAGE in report.registered
+    (index_dir / "packages" / "test_nodes").touch()  # some other installation's package
+    site = install_test_plugin(tmp_path / "elsewhere", distribution="test-nodes")
+    sys.path.insert(0, str(site))
+    try:
+        report = write_index(tmp_path, PluginRegistry().types.values(), project=None)
+    finally:
+        sys.path.remove(str(site))
+    assert ("test_nodes", f"a ROS package named 'test_nodes' is already installed in {tmp_path}") in report.skipped
+    assert not (index_dir / "rclcpp_components" / "test_nodes").exists()
 
 
-# Indexes and ROS tools in child processes.
+def test_a_named_plugin_is_registered_in_its_prefix_beside_the_package_marker_colcon_wrote(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `container index --prefix install/my_robot --distribution my_robot` after
+    # `colcon build` of an ament_python plugin: the marker is the package's own.
+    prefix = tmp_path / "install" / "my_robot"
+    index_dir = prefix / "share" / "ament_index" / "resource_index"
+    (index_dir / "packages").mkdir(parents=True)
+    (index_dir / "packages" / "my_robot").touch()
+    types = installed_plugin(prefix, monkeypatch, "my-robot")
+    assert installed_prefix("my-robot") == prefix.resolve()
+
+    report = write_index(prefix, types, project=None, prune=False, strict=True)
+
+    assert (report.skipped, list(report.registered)) == ([], ["my_robot"])
+    assert (index_dir / "rclcpp_components" / "my_robot").read_text().splitlines()[0] == (
+        "my_robot::Burner;tests.component_support:Burner"
+    )
+    # Nothing of the container's own package: its prefix is the one it is installed in.
+    assert sorted(path.name for path in index_dir.iterdir()) == ["lifecycle_container_plugins", "packages",
+                                                                 "rclcpp_components"]
+    assert [path.name for path in (index_dir / "packages").iterdir()] == ["my_robot"]
+    assert not (prefix / "lib" / PROJECT_PACKAGE).exists()
+    # The marker was there before: never removed with the entries written here.
+    assert "marker no" in (index_dir / RECORD_TYPE / "my_robot").read_text()
+    monkeypatch.undo()
+    write_index(prefix, [], project=None)
+    assert (index_dir / "packages" / "my_robot").exists()
+    assert not (index_dir / "rclcpp_components" / "my_robot").exists()
+
+
+def test_the_containers_own_package_goes_only_into_the_prefix_it_is_installed_in(tmp_path: Path) -> None:
+    home = installed_prefix("lifecycle-container")
+    assert home == Path(sys.prefix).resolve()
+    # What an earlier version wrote into a plugin's prefix goes again.
+    index_dir = tmp_path / "share" / "ament_index" / "resource_index"
+    (index_dir / RECORD_TYPE).mkdir(parents=True)
+    (index_dir / RECORD_TYPE / PROJECT_PACKAGE).write_text(
+        "distribution lifecycle-container\nmarker yes\nexecutables component_container\n"
+    )
+    for path in (index_dir / "packages" / PROJECT_PACKAGE, tmp_path / "lib" / PROJECT_PACKAGE / "component_container"):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch()
+
+    refused = write_index(tmp_path, [], strict=True)
+    assert refused.skipped == [(PROJECT_PACKAGE, f"lifecycle-container is installed in {home}, not in {tmp_path} "
+                                                 f"(container index --prefix {home})")]
+    assert refused.changed == []
+
+    report = write_index(tmp_path, [])
+    assert (report.registered, report.removed) == ({}, [PROJECT_PACKAGE])
+    assert files_under(tmp_path) == {}
+
+
+def test_a_refused_name_leaves_the_prefix_untouched(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    types = installed_plugin(tmp_path, monkeypatch, "my-robot")
+    foreign = tmp_path / "share" / "ament_index" / "resource_index" / "packages" / "test_nodes"
+    foreign.parent.mkdir(parents=True)
+    foreign.touch()
+    site = install_test_plugin(tmp_path / "elsewhere", distribution="test-nodes", module="tests.fault_plugin")
+    monkeypatch.syspath_prepend(str(site))
+    types += [t for t in PluginRegistry().types.values() if t.distribution == "test-nodes"]
+    assert types and {t.package for t in types} == {"my_robot", "test_nodes"}
+    before = files_under(tmp_path)
+
+    report = write_index(tmp_path, types, project=None, prune=False, strict=True)
+
+    assert [package for package, _ in report.skipped] == ["test_nodes"]
+    assert (report.registered, report.changed, files_under(tmp_path)) == ({}, [], before)
+
+
+# Indexes in child processes.
 @pytest.mark.slow
-def test_index_of_named_distributions_registers_only_them_and_keeps_the_rest(tmp_path: Path) -> None:
-    # What a colcon install of the repository runs for its own two distributions.
-    site = install_test_plugin(tmp_path / "site", distribution="test-nodes")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(IMPORT_ROOT)]))
-    index_dir = tmp_path / "prefix" / "share" / "ament_index" / "resource_index"
+def test_index_of_named_distributions_registers_only_them_in_their_prefix(tmp_path: Path) -> None:
+    # Issue 45: `container index --prefix install/my_robot --distribution my_robot`
+    # after colcon built an ament_python plugin (its marker and metadata in its
+    # prefix) refused my_robot and wrote lifecycle_container's entries and four
+    # executables there instead.
+    prefix = tmp_path / "install" / "my_robot"
+    index_dir = prefix / "share" / "ament_index" / "resource_index"
+    (index_dir / "packages").mkdir(parents=True)
+    (index_dir / "packages" / "my_robot").touch()
+    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+    install_test_plugin(site, distribution="my_robot")
+    elsewhere = install_test_plugin(tmp_path / "site", distribution="test-nodes", module="tests.fault_plugin")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(elsewhere), str(IMPORT_ROOT)]))
 
     def index(*names: str) -> subprocess.CompletedProcess[str]:
         options = [option for name in names for option in ("--distribution", name)]
         return subprocess.run(
-            [sys.executable, "-m", "container", "index", "--prefix", str(tmp_path / "prefix"), *options],
+            [sys.executable, "-m", "container", "index", "--prefix", str(prefix), *options],
             capture_output=True, text=True, timeout=60, env=env, cwd=REPO,
         )
 
-    assert index("test-nodes").returncode == 0
-    assert index("lifecycle-container").returncode == 0
-    assert sorted(p.name for p in (index_dir / "rclcpp_components").iterdir()) == ["lifecycle_container", "test_nodes"]
-    refused = index("no-such-plugin")
-    assert (refused.returncode, refused.stderr) == (1, "container index: no node types from no_such_plugin\n")
+    done = index("my_robot")
+    assert (done.returncode, done.stderr) == (0, ""), done.stderr
+    assert done.stdout == f"ament index of {prefix}: 2 file(s) changed\n  my_robot: 4 node type(s)\n"
+    assert sorted(files_under(prefix / "share")) == [
+        "ament_index/resource_index/lifecycle_container_plugins/my_robot",
+        "ament_index/resource_index/packages/my_robot",
+        "ament_index/resource_index/rclcpp_components/my_robot",
+    ]
+    assert sorted(path.name for path in prefix.iterdir()) == ["lib", "share"]
+    assert [path.name for path in (prefix / "lib").iterdir()] == [site.parent.name]
+    env_prefix = dict(os.environ, AMENT_PREFIX_PATH=str(prefix))
+    found = subprocess.run(
+        [sys.executable, "-c", "from ament_index_python import get_package_prefix as p, get_resource as r;"
+         "print(p('my_robot')); print(r('rclcpp_components', 'my_robot')[0], end='')"],
+        capture_output=True, text=True, env=env_prefix, timeout=60,
+    )
+    assert found.stdout.splitlines()[0] == str(prefix), found.stderr
+    assert "my_robot::Busy;tests.component_support:Busy" in found.stdout.splitlines()
+
+    # Refused before anything is written: the container's own package (installed
+    # in the test environment), a plugin with another's marker, an unknown name.
+    before = files_under(prefix)
+    refused = index("my_robot", "lifecycle-container")
+    home = installed_prefix("lifecycle-container")
+    assert (refused.returncode, refused.stderr) == (1, (
+        f"container index: lifecycle_container not registered: lifecycle-container is installed in {home}, "
+        f"not in {prefix} (container index --prefix {home})\n"
+        f"container index: nothing written in {prefix}\n"
+    ))
+    (index_dir / "packages" / "test_nodes").touch()
+    before = files_under(prefix)
+    refused = index("test-nodes")
+    assert refused.returncode == 1
+    assert f"a ROS package named 'test_nodes' is already installed in {prefix}" in refused.stderr
+    assert files_under(prefix) == before
+    unknown = index("no-such-plugin")
+    assert (unknown.returncode, unknown.stderr) == (1, "container index: no node types from no_such_plugin\n")
 
 
 # -- a launch file's ComposableNodeContainer, as launch_ros runs it ---------------------------------
-
-
-def launch_params_file(directory: Path, node_name: str, parameters: dict[str, Any]) -> Path:
-    """What launch_ros's Node writes for ``parameters=[{...}]`` of a fully named node."""
-    path = directory / f"launch_params_{node_name.strip('/').replace('/', '_')}"
-    path.write_text(yaml.dump({node_name: {"ros__parameters": parameters}}, default_flow_style=False))
-    return path
-
-
-def flattened(parameters: dict[str, Any], prefix: str = "") -> list[ParameterMsg]:
-    """launch_ros's to_parameters_list for a dict: nested keys joined with '.', one message each."""
-    messages = []
-    for key, value in parameters.items():
-        if isinstance(value, dict):
-            messages.extend(flattened(value, f"{prefix}{key}."))
-        else:
-            messages.append(Parameter(f"{prefix}{key}", value=value).to_parameter_msg())
-    return messages
-
-
-def composable_node_request(
-    *,
-    package: str,
-    plugin: str,
-    name: str,
-    namespace: str,
-    remappings: list[tuple[str, str]] = [],  # noqa: B006 (never mutated)
-    parameters: dict[str, Any] | None = None,
-    extra_arguments: dict[str, Any] | None = None,
-) -> LoadNode.Request:
-    """What get_composable_node_load_request sends for one ComposableNode (no ros_namespace pushed)."""
-    request = LoadNode.Request()
-    request.package_name = package
-    request.plugin_name = plugin
-    request.node_name = name
-    request.node_namespace = namespace if namespace.startswith("/") else f"/{namespace}"
-    request.remap_rules = [f"{source}:={target}" for source, target in remappings]
-    request.parameters = flattened(parameters or {})
-    request.extra_arguments = flattened(extra_arguments or {})
-    return request
 
 
 @pytest.fixture
@@ -254,10 +324,9 @@ def launched(
     name='my_container', namespace='launch_ns', parameters=[{'use_sim_time': True}])."""
     executable = executable_in_package(PROJECT_PACKAGE, "component_container")
     params = launch_params_file(tmp_path, "/launch_ns/my_container", {"use_sim_time": True})
-    process = LoggedProcess([
-        executable,
-        "--ros-args", "-r", "__node:=my_container", "-r", "__ns:=/launch_ns", "--params-file", str(params),
-    ])
+    process = LoggedProcess(
+        container_command(executable, name="my_container", namespace="/launch_ns", params_file=params)
+    )
     try:
         process.wait_for_line("Container '/launch_ns/my_container' ready with 0 node(s)")
         yield process
@@ -282,7 +351,11 @@ def test_a_launch_files_container_comes_up_named_and_loads_its_composable_nodes(
         parameters={"rate": 20.0, "message": "From launch", "unused": {"nested": 1}},
         extra_arguments={"use_intra_process_comms": True, "autostart": True},
     ))
-    assert (talker.success, talker.error_message, talker.full_node_name) == (True, "", "/demo/talker")
+    assert (talker.success, talker.full_node_name) == (True, "/demo/talker"), talker.error_message
+    # On success the answer holds the warnings the load caused (launch_ros reads it only on failure).
+    assert talker.error_message == (
+        "[WARN] [demo.talker]: Unknown parameter 'unused.nested' ignored: this node does not read it"
+    )
     # A ComposableLifecycleNode(autostart=True) of launch_ros 0.26.7+: loaded, then
     # LifecycleTransition calls change_state (configure, activate).
     listener = client.load(composable_node_request(

@@ -6,12 +6,16 @@ import base64
 import csv
 import hashlib
 import io
+import shutil
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
 import pytest
 
 from container.build_backend import add_index_entries
+from tests.container_support import REPO
 
 INDEX = "demo_plugin-1.0.data/data/share/ament_index/resource_index"
 
@@ -94,3 +98,32 @@ def test_a_wheel_without_plugins_is_left_as_it_is(tmp_path: Path) -> None:
     add_index_entries(wheel, source=tmp_path)
 
     assert wheel.read_bytes() == before
+
+
+# A build: pip, then CMake's configure (about 5 s).
+@pytest.mark.slow
+def test_a_plugin_built_by_scikit_build_cores_own_backend_is_refused_with_the_fix(tmp_path: Path) -> None:
+    # Its wheel would load but carry no ament index entries: ros2 pkg list and
+    # ros2 component types would not see the plugin (issue 45).
+    source = tmp_path / "beacon"
+    shutil.copytree(REPO / "examples" / "beacon_plugin", source, ignore=shutil.ignore_patterns("tests", "build"))
+    pyproject = source / "pyproject.toml"
+    text = pyproject.read_text(encoding="utf-8")
+    assert 'build-backend = "container.build_backend"' in text
+    pyproject.write_text(
+        text.replace('build-backend = "container.build_backend"', 'build-backend = "scikit_build_core.build"'),
+        encoding="utf-8",
+    )
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-build-isolation", "--no-deps", "--wheel-dir", tmp_path / "dist",
+         source],
+        capture_output=True, text=True, timeout=300,
+    )
+    said = " ".join((result.stdout + result.stderr).split())  # CMake wraps its messages
+    assert result.returncode != 0, said
+    assert (
+        "lifecycle_container: beacon-nodes is a plugin (container.plugins entry points) built by scikit-build-core's "
+        "own backend, so its wheel would carry no ament index entries"
+    ) in said
+    assert 'in pyproject.toml, [build-system] build-backend = "container.build_backend".' in said
+    assert not list((tmp_path / "dist").glob("*.whl"))

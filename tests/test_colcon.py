@@ -3,13 +3,24 @@
 A fresh virtualenv with only the ROS wheels (and colcon, from PyPI) is the
 underlay, as ``source /opt/ros/jazzy/setup.bash`` would be on a ROS install;
 the repository is copied into ``src/`` and built with ``colcon build``. The
-result must be a ROS prefix ROS tools read, and a working container.
+result must be a ROS prefix ROS tools read, and a working container. Three
+plugin layouts are built beside it by the same ``colcon build``, and the
+beacon example's interface package alone in a workspace of its own, at the
+same time (``builds``).
+
+Cost: the underlay (30 to 40 s, most of it downloads), then the two builds
+side by side (about 2.5 minutes on two cores); the module took 203 s where
+its three builds one after another took 279 s (back to back, beside other
+builds; test_colcon took 8 minutes under heavier load).
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -21,11 +32,13 @@ from pathlib import Path
 import pytest
 
 from tests.container_support import REPO
-from tests.install_support import installed_ros_distro
+from tests.install_support import greeter_package, installed_ros_distro
 
-# Builds: a virtualenv of the ROS wheels and colcon (about 2 minutes, the first
-# test's set-up), then the workspace.
+# Builds: a virtualenv of the ROS wheels and colcon, then the workspace with the
+# plugins in it (together about 3 minutes, the first test's set-up).
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+
+INDEX = Path("share") / "ament_index" / "resource_index"
 
 
 def _snapshot(root: Path) -> dict[str, float]:
@@ -46,9 +59,28 @@ def _environment(underlay: Path) -> dict[str, str]:
     env["PATH"] = f"{underlay / 'bin'}{os.pathsep}{env.get('PATH', '')}"
     env["AMENT_PREFIX_PATH"] = str(underlay)
     env["ROS_DISTRO"] = installed_ros_distro()
-    # Both cores for the interface packages, which build one after another otherwise.
-    env.setdefault("CMAKE_BUILD_PARALLEL_LEVEL", str(os.cpu_count() or 1))
+    # Both cores, whatever the load. Each interface package's build (an
+    # ExternalProject's `cmake --build`) reads CMAKE_BUILD_PARALLEL_LEVEL. And
+    # colcon gives make `-j<cores> -l<cores>` unless MAKEFLAGS has a -j: with
+    # -l, make starts no second job while the load average is at the core
+    # count, which these builds keep it at; measured here, the container's
+    # interface packages then built one at a time, one compiler at a time.
+    cores = str(os.cpu_count() or 1)
+    env.setdefault("CMAKE_BUILD_PARALLEL_LEVEL", cores)
+    env.setdefault("MAKEFLAGS", f"-j{cores}")
     return env
+
+
+def _copy_tracked(directory: Path, destination: Path) -> None:
+    """The repository's files under ``directory`` (tracked, or new and not ignored), into ``destination``."""
+    tracked = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard", "--", "."],
+        cwd=directory, check=True, capture_output=True,
+    ).stdout.decode().split("\0")
+    for name in filter(None, tracked):
+        if (directory / name).is_file():
+            (destination / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(directory / name, destination / name)
 
 
 def _in_workspace(workspace: Path, env: dict[str, str], script: str, *, timeout: float = 120) -> str:
@@ -65,36 +97,99 @@ def _in_workspace(workspace: Path, env: dict[str, str], script: str, *, timeout:
     return result.stdout
 
 
+#: What ``ros2 component types`` lists for each plugin package the workspace builds.
+PLUGIN_TYPES = {
+    "beacon_nodes": ["beacon_nodes::Beacon;beacon_nodes:Beacon"],
+    "greeter_nodes": ["greeter_nodes::Greeter;greeter_nodes:Greeter"],
+    "radar_nodes": ["radar_nodes::Radar;radar_nodes:Radar"],
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Builds:
+    """The two ``colcon build`` runs of the module, made side by side (``builds``)."""
+
+    #: The workspace: the repository (``src/lifecycle_container``) and three plugins beside it.
+    workspace: Path
+    #: The environment both ran in (the underlay's, as sourced).
+    env: dict[str, str]
+    #: colcon's output for the workspace, and its exit status.
+    output: str
+    returncode: int
+    #: The workspace of the beacon example's interface package alone, and its colcon's result.
+    interfaces: Path
+    interfaces_result: subprocess.CompletedProcess[str]
+
+    def finished(self, package: str) -> bool:
+        """Whether colcon built and installed ``package`` (the workspace's build goes on past a failure)."""
+        return re.search(rf"^Finished <<< {package} \[", self.output, flags=re.MULTILINE) is not None
+
+
 @pytest.fixture(scope="module")
-def workspace(underlay: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict[str, str]]]:
-    """``colcon build`` of the repository (its tracked files) in a fresh workspace."""
+def builds(underlay: Path, tmp_path_factory: pytest.TempPathFactory) -> Builds:
+    """One ``colcon build`` of a workspace holding the repository (its tracked files) and three plugins:
+    radar_nodes (ament_python) with its interface package radar_interfaces, greeter_nodes (ament_python,
+    no messages) and beacon_nodes (the pip layout: pyproject.toml and CMakeLists.txt, plus a package.xml).
+    At the same time, in a workspace of its own, the beacon example's interface package as an ordinary
+    colcon package.
+
+    One build, so that colcon (a worker per core) builds radar_interfaces while the container builds, and
+    the plugins that need the container side by side after it; the interface package apart, so that the
+    plugins' workspace holds one beacon_interfaces only (the one beacon_nodes installs). The container is
+    built as a plain ``colcon build`` builds it; the plugins' packages get the one CMake argument that
+    docs/guide/colcon.md gives them over PyPI's wheels, from a colcon metadata file outside the workspace.
+    The build goes on past a package's failure, so that the container's tests say whether it built
+    whatever became of the plugins."""
     workspace = tmp_path_factory.mktemp("colcon_ws")
-    source = workspace / "src" / "lifecycle_container"
-    tracked = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO, check=True, capture_output=True,
-    ).stdout.decode().split("\0")
-    for name in filter(None, tracked):
-        if (REPO / name).is_file():
-            (source / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(REPO / name, source / name)
+    src = workspace / "src"
+    _copy_tracked(REPO, src / "lifecycle_container")
+    _copy_tracked(REPO / "examples" / "colcon", src)
+    _copy_tracked(REPO / "examples" / "beacon_plugin", src / "beacon_plugin")
+    greeter_package(src / "greeter_nodes")
+    fix = src / "lifecycle_container" / "container" / "cmake" / "ros_wheels.cmake"
+    meta = tmp_path_factory.mktemp("colcon_meta") / "plugins.meta"
+    plugins = ["radar_interfaces", *PLUGIN_TYPES]
+    meta.write_text(json.dumps({"names": {name: {"cmake-args": [f"-DCMAKE_PROJECT_INCLUDE={fix}"]}
+                                          for name in plugins}}))
+    # The example plugin's interface package, built as an ordinary colcon
+    # package over the wheels (the one CMake argument works around their
+    # targets), for test_an_interface_package_built_by_colcon_hashes_as_the_one_pip_built.
+    interfaces = tmp_path_factory.mktemp("colcon_interfaces_ws")
+    shutil.copytree(REPO / "examples" / "beacon_plugin" / "beacon_interfaces", interfaces / "src" / "beacon_interfaces")
     env = _environment(underlay)
-    before = {"src": _snapshot(source), "underlay": _snapshot(underlay)}
-    result = subprocess.run(
-        ["colcon", "build", "--event-handlers", "console_cohesion-"],
-        cwd=workspace,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
+    before = {"src": _snapshot(src), "underlay": _snapshot(underlay)}
+    apart = subprocess.Popen(
+        ["colcon", "build", "--event-handlers", "console_cohesion-",
+         "--cmake-args", f"-DCMAKE_PROJECT_INCLUDE={REPO / 'container' / 'cmake' / 'ros_wheels.cmake'}",
+         "-DBUILD_TESTING=OFF"],
+        cwd=interfaces, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
-    assert result.returncode == 0, result.stdout + result.stderr
-    after = {"src": _snapshot(source), "underlay": _snapshot(underlay)}
+    try:
+        result = subprocess.run(
+            ["colcon", "build", "--event-handlers", "console_cohesion-", "--continue-on-error", "--metas", meta],
+            cwd=workspace, env=env, capture_output=True, text=True, timeout=900,
+        )
+        out, err = apart.communicate(timeout=900)
+    finally:
+        if apart.poll() is None:
+            apart.kill()
+            apart.communicate()
+    after = {"src": _snapshot(src), "underlay": _snapshot(underlay)}
     # colcon writes build/, install/ and log/; nothing else may change.
     assert after == before
     assert sorted(p.name for p in workspace.iterdir()) == ["build", "install", "log", "src"]
     assert not Path("/container").exists()
-    yield workspace, env
+    return Builds(
+        workspace=workspace, env=env, output=result.stdout + result.stderr, returncode=result.returncode,
+        interfaces=interfaces, interfaces_result=subprocess.CompletedProcess(apart.args, apart.returncode, out, err),
+    )
+
+
+@pytest.fixture(scope="module")
+def workspace(builds: Builds) -> tuple[Path, dict[str, str]]:
+    """The workspace, with the repository built and installed by colcon."""
+    assert builds.finished("lifecycle_container"), builds.output
+    return builds.workspace, builds.env
 
 
 def test_the_install_is_a_ros_prefix_with_the_packages_types_and_executables(
@@ -114,7 +209,13 @@ def test_the_install_is_a_ros_prefix_with_the_packages_types_and_executables(
         "'prefix': get_package_prefix('lifecycle_container')}))\"",
     )
     ament_prefix_path, report = out.splitlines()[-2:]
-    assert ament_prefix_path.split(":")[:2] == [str(prefix), env["AMENT_PREFIX_PATH"]]
+    # The container's prefix before the underlay's; the plugins' prefixes beside it come first too.
+    install = f"{root / 'install'}{os.sep}"
+    prefixes = ament_prefix_path.split(":")
+    assert [p for p in prefixes if not p.startswith(install) or p == str(prefix)][:2] == [
+        str(prefix), env["AMENT_PREFIX_PATH"]
+    ]
+    assert all(p.startswith(install) for p in prefixes[: prefixes.index(str(prefix))])
     found = json.loads(report)
     assert all(module.startswith(str(prefix)) for module in found["modules"]), found["modules"]
     assert found["prefix"] == str(prefix)
@@ -127,54 +228,111 @@ def test_the_install_is_a_ros_prefix_with_the_packages_types_and_executables(
     for executable in ("component_container", "component_container_mt", "component_container_isolated",
                        "lifecycle_manager"):
         assert os.access(prefix / "lib" / "lifecycle_container" / executable, os.X_OK)
+    # The command and the executables: sh, which starts Python with the signals held (container/_entry.py).
+    for script in (prefix / "bin" / "container", prefix / "lib" / "lifecycle_container" / "component_container"):
+        text = script.read_text()
+        assert text.startswith("#!/bin/sh\n") and "exec env --block-signal=INT,TERM" in text, text
     types = _in_workspace(root, env, "container types")
     assert "ldlidar\n  ldlidar::LdLidarNode\n" in types
     assert "lifecycle_container\n  lifecycle_container::Counter\n" in types
 
 
-def test_the_installed_container_executable_serves_load_requests(workspace: tuple[Path, dict[str, str]]) -> None:
-    root, env = workspace
-    env = {**env, "PYTHONUNBUFFERED": "1"}
+@contextlib.contextmanager
+def _container(root: Path, env: dict[str, str], name: str) -> Iterator[list[str]]:
+    """The workspace's installed ``component_container`` as ``/name``, ready; SIGINT at the end, which it
+    must exit 0 on. Yields its output lines so far; the rest is appended when it has exited."""
     proc = subprocess.Popen(
         ["bash", "-c", "source install/setup.bash && exec install/lifecycle_container/lib/lifecycle_container/"
-         "component_container --ros-args -r __node:=colcon_container"],
-        cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+         f"component_container --ros-args -r __node:={name}"],
+        cwd=root, env={**env, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
+    lines: list[str] = []
     try:
         assert proc.stdout is not None
-        lines: list[str] = []
         deadline = time.monotonic() + 60
         while not any("ready with" in line for line in lines):
             assert time.monotonic() < deadline and proc.poll() is None, "".join(lines)
             lines.append(proc.stdout.readline())
-        loaded = _in_workspace(root, env, "container load /colcon_container lifecycle_container Talker")
-        assert loaded == "Loaded component 1 into '/colcon_container' container node as '/talker'\n"
+        yield lines
     finally:
         proc.send_signal(signal.SIGINT)
         rest, _ = proc.communicate(timeout=60)
-    assert proc.returncode == 0, rest
-    assert "Unloaded '/talker'" in rest
+        lines += rest.splitlines(keepends=True)
+    assert proc.returncode == 0, "".join(lines)
 
 
-def test_an_interface_package_built_by_colcon_hashes_as_the_one_pip_built(
-    underlay: Path, tmp_path: Path
+def test_the_installed_container_executable_serves_load_requests(workspace: tuple[Path, dict[str, str]]) -> None:
+    root, env = workspace
+    with _container(root, env, "colcon_container") as output:
+        loaded = _in_workspace(root, env, "container load /colcon_container lifecycle_container Talker")
+        assert loaded == "Loaded component 1 into '/colcon_container' container node as '/talker'\n"
+    assert "Unloaded '/talker'" in "".join(output)
+
+
+# -- third-party plugins in the workspace, as docs/guide/install.md lays them out ---------------------
+
+@pytest.fixture(scope="module")
+def plugins(builds: Builds, workspace: tuple[Path, dict[str, str]]) -> tuple[Path, dict[str, str]]:
+    """The workspace, with the three plugins built by colcon beside the container (``builds``)."""
+    assert builds.returncode == 0, builds.output
+    for package in ["radar_interfaces", *PLUGIN_TYPES]:
+        assert builds.finished(package), builds.output
+    return workspace
+
+
+def test_plugins_built_by_colcon_are_ros_packages_with_their_component_types(
+    plugins: tuple[Path, dict[str, str]],
 ) -> None:
-    # The example plugin's interface package, built as an ordinary colcon
-    # package over the wheels (the one CMake argument works around their
-    # targets), against what `pip install ./examples/beacon_plugin` built into
-    # the test environment: the same RIHS01 type hashes.
-    source = REPO / "examples" / "beacon_plugin" / "beacon_interfaces"
-    (tmp_path / "src").mkdir()
-    shutil.copytree(source, tmp_path / "src" / "beacon_interfaces")
-    fix = REPO / "container" / "cmake" / "ros_wheels.cmake"
-    result = subprocess.run(
-        ["colcon", "build", "--event-handlers", "console_cohesion-",
-         "--cmake-args", f"-DCMAKE_PROJECT_INCLUDE={fix}", "-DBUILD_TESTING=OFF"],
-        cwd=tmp_path, env=_environment(underlay), capture_output=True, text=True, timeout=600,
+    root, env = plugins
+    out = _in_workspace(
+        root,
+        env,
+        'python -c "'
+        "import json;"
+        "from ament_index_python import get_packages_with_prefixes, get_resource, get_resources;"
+        "print(json.dumps({'packages': get_packages_with_prefixes(), "
+        "'components': {p: get_resource('rclcpp_components', p)[0] for p in get_resources('rclcpp_components')}}))\"",
     )
+    found = json.loads(out.splitlines()[-1])
+    install = root / "install"
+    # ros2 pkg list: each plugin is the package of its own prefix, and so is the container.
+    for package in [*PLUGIN_TYPES, "radar_interfaces", "lifecycle_container"]:
+        assert found["packages"][package] == str(install / package), package
+    # ros2 component types
+    assert {p: c.splitlines() for p, c in found["components"].items() if p in PLUGIN_TYPES} == PLUGIN_TYPES
+    # Nothing of the container's own package in a plugin's prefix.
+    for package in PLUGIN_TYPES:
+        assert not (install / package / "lib" / "lifecycle_container").exists()
+        assert not (install / package / INDEX / "packages" / "lifecycle_container").exists()
+    types = _in_workspace(root, env, "container types")
+    for package, lines in PLUGIN_TYPES.items():
+        assert f"{package}\n  {lines[0].split(';')[0]}\n" in types
+
+
+def test_the_container_loads_the_plugins_colcon_built(plugins: tuple[Path, dict[str, str]]) -> None:
+    root, env = plugins
+    with _container(root, env, "plugin_container") as output:
+        for number, (package, lines) in enumerate(sorted(PLUGIN_TYPES.items()), start=1):
+            plugin = lines[0].split(";")[0]
+            loaded = _in_workspace(root, env, f"container load /plugin_container {package} {plugin} "
+                                              "-e autostart:=true")
+            name = plugin.split("::")[1].lower()
+            assert loaded == f"Loaded component {number} into '/plugin_container' container node as '/{name}'\n"
+    text = "".join(output)
+    for name in ("beacon", "greeter", "radar"):
+        assert f"Unloaded '/{name}'" in text, text
+
+
+def test_an_interface_package_built_by_colcon_hashes_as_the_one_pip_built(builds: Builds) -> None:
+    # The example plugin's interface package, built as an ordinary colcon
+    # package over the wheels (``builds``), against what `pip install
+    # ./examples/beacon_plugin` built into the test environment: the same
+    # RIHS01 type hashes.
+    result = builds.interfaces_result
     assert result.returncode == 0, result.stdout + result.stderr
     for kind, name in (("msg", "Beacon"), ("action", "Sweep")):
-        by_colcon = tmp_path / "install" / "beacon_interfaces" / "share" / "beacon_interfaces" / kind / f"{name}.json"
+        share = builds.interfaces / "install" / "beacon_interfaces" / "share" / "beacon_interfaces"
+        by_colcon = share / kind / f"{name}.json"
         by_pip = Path(sys.prefix) / "share" / "beacon_interfaces" / kind / f"{name}.json"
         hashes = [
             {entry["type_name"]: entry["hash_string"] for entry in json.loads(path.read_text())["type_hashes"]}

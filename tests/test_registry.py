@@ -653,10 +653,33 @@ def test_a_plugin_uninstalled_after_start_is_refused(registry: PluginRegistry) -
         with pytest.raises(LoadError) as caught:
             registry.resolve("demo_nodes", "Talker")
         assert str(caught.value) == (
-            "Cannot load demo_nodes::Talker: distribution 'demo-nodes' was uninstalled since the container started"
+            "Cannot load demo_nodes::Talker: distribution 'demo-nodes' is no longer installed"
         )
     assert not any(name.startswith("demo_nodes::") for name in registry.types)
     assert registry.resolve("other", "Talker").full_name == "other::Talker"
+
+
+def test_a_plugin_installed_after_start_then_uninstalled_is_no_longer_installed(
+    registry: PluginRegistry, make_dist: MakeDist
+) -> None:
+    info = make_dist("late-nodes", {"nodes": "late_nodes"}, late_nodes=GOOD)
+    assert registry.resolve("late_nodes", "Talker").distribution == "late-nodes"
+    # What pip uninstall removes: the metadata (the module stays imported).
+    moved = info.rename(info.with_name("gone"))
+
+    with pytest.raises(LoadError) as caught:
+        registry.resolve("late_nodes", "Talker")
+    # Not "since the container started": it was installed after that.
+    assert str(caught.value) == "Cannot load late_nodes::Talker: distribution 'late-nodes' is no longer installed"
+
+    moved.rename(info)  # installed again: Python still holds the first import
+    importlib.invalidate_caches()
+    with pytest.raises(LoadError) as caught:
+        registry.resolve("late_nodes", "Listener")
+    assert str(caught.value) == (
+        "Cannot load late_nodes::Listener: distribution 'late-nodes' was uninstalled after the container "
+        "imported it, and installed again since: restart the container to load it"
+    )
 
 
 def test_a_plugin_replaced_after_start_asks_for_a_restart(registry: PluginRegistry) -> None:

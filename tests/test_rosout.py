@@ -107,7 +107,7 @@ def test_the_watchdog_and_the_signal_reach_rosout_and_the_log_file(
         assert line_in(lines, severity="INFO", name="ComponentManager", text="ready with 1 node(s)")
 
 
-def test_a_third_sigint_is_a_ros_error_line_and_in_the_log_file(
+def test_a_third_sigint_is_a_ros_warning_line_and_in_the_log_file(
     logs: Path,
     rosout: list[Log],
     run_container: Callable[..., ContainerProcess],
@@ -126,6 +126,8 @@ def test_a_third_sigint_is_a_ros_error_line_and_in_the_log_file(
     container.close()
 
     message = "SIGINT a third time: exiting at once"
-    # An ERROR line: rcl's log file flushes it at once, before the exit.
+    # A warning (what the operator asked for), in the log file although the
+    # process ends at once: rcl's file sink writes through only an ERROR by
+    # itself; the signal's line is flushed.
     for lines in (container.lines, log_file_lines(logs, container)):
-        assert line_in(lines, severity="ERROR", name="ComponentManager", text=message), "\n".join(lines)
+        assert line_in(lines, severity="WARN", name="ComponentManager", text=message), "\n".join(lines)

@@ -5,12 +5,18 @@ into a wheel (as ``pip wheel`` or ``python -m build`` would, without build
 isolation: lifecycle-container is not on PyPI for an isolated build of the
 plugins to fetch), installed into a new virtualenv with their dependencies
 from PyPI, used, and uninstalled: what pip installed, pip removes.
+
+Cost: the four wheels, built side by side, the project and the beacon example
+in the build directories ``.ci/setup`` keeps (nothing compiled again): 13 to
+19 s where one after another, the beacon example compiled anew, took 51 s
+(back to back, beside other builds); then pip and the tests, about 40 s.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -23,11 +29,15 @@ import pytest
 from container._ament import EXECUTABLES
 from container._registry import PluginRegistry
 from tests.container_support import REPO
+from tests.install_support import greeter_package, installed_ros_distro
 
-# Builds: the wheels (over a minute, the first test's set-up), a virtualenv to install them into.
+# Builds: the wheels (under 20 s, the first test's set-up), a virtualenv to install them into.
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 INDEX = Path("share") / "ament_index" / "resource_index"
+SITE = Path("lib") / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
+#: Holds the command's signals from site's first .pth file on (container/_entry.py).
+PTH = REPO / "container" / "interfaces" / "00_lifecycle_container.pth"
 
 
 def _run(*args: str | Path, env: dict[str, str] | None = None, timeout: float = 600) -> str:
@@ -39,16 +49,30 @@ def _run(*args: str | Path, env: dict[str, str] | None = None, timeout: float = 
 @pytest.fixture(scope="module")
 def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     out = tmp_path_factory.mktemp("wheels")
-    build: list[str | Path] = ["pip", "wheel", "--quiet", "--no-build-isolation", "--no-deps", "--wheel-dir", out]
-    # The project in the build directory .ci/setup left in the environment,
-    # if there is one: its compiled parts are up to date there.
-    kept = Path(sys.prefix) / "skbuild"
-    options = [f"--config-settings=build-dir={kept}"] if kept.is_dir() else []
-    _run(sys.executable, "-m", *build, *options, REPO)
-    _run(
-        sys.executable, "-m", *build,
-        REPO / "plugins" / "ldlidar", REPO / "examples" / "thirdparty_plugin", REPO / "examples" / "beacon_plugin",
-    )
+    build = [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-build-isolation", "--no-deps", "--wheel-dir", out]
+    # The project and the beacon example in the build directories .ci/setup
+    # left in the environment, if there are: their compiled parts are up to
+    # date there. The four builds run side by side (separate directories).
+    sources = [REPO, REPO / "plugins" / "ldlidar", REPO / "examples" / "thirdparty_plugin",
+               REPO / "examples" / "beacon_plugin"]
+    kept = {REPO: Path(sys.prefix) / "skbuild", sources[3]: Path(sys.prefix) / "skbuild-beacon_plugin"}
+    builds = [
+        subprocess.Popen(
+            [str(a) for a in (*build, source)]
+            + ([f"--config-settings=build-dir={kept[source]}"] if source in kept and kept[source].is_dir() else []),
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        for source in sources
+    ]
+    try:
+        for proc in builds:
+            output, _ = proc.communicate(timeout=600)
+            assert proc.returncode == 0, output
+    finally:
+        for proc in builds:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
     found = {path.name.split("-")[0]: path for path in out.glob("*.whl")}
     assert sorted(found) == ["beacon_nodes", "greeter_nodes", "ldlidar", "lifecycle_container"]
     return found
@@ -110,6 +134,14 @@ def test_the_wheels_carry_the_ament_index_and_executables(venv: Path) -> None:
         assert (venv / INDEX / "packages" / package).is_file()
     for name in EXECUTABLES:
         assert os.access(venv / "lib" / "lifecycle_container" / name, os.X_OK)
+    # The command: the wheel's launcher (sh, which starts the virtualenv's Python with the
+    # signals held; container/_entry.py), not a console script of pip's, which the kernel starts.
+    command = (venv / "bin" / "container").read_text()
+    assert command.startswith("#!/bin/sh\n") and "exec env --block-signal=INT,TERM" in command, command
+    assert os.access(venv / "bin" / "container", os.X_OK)
+    # Where site reads it, before the ROS wheels' bootstrapper's.
+    assert (venv / SITE / PTH.name).read_text() == PTH.read_text()
+    assert sorted(path.name for path in (venv / SITE).glob("*.pth"))[0] == PTH.name
     found = _run(
         venv / "bin" / "python", "-c",
         "from ament_index_python import get_resources; import json;"
@@ -168,7 +200,7 @@ def test_a_plugin_with_its_own_interfaces_installs_and_uninstalls_them(wheels: d
         env=_plain_env(),
     )
     assert made.split() == ["x", "3"]
-    site = venv / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
+    site = venv / SITE
     generated = [venv / "share" / "beacon_interfaces", site]
     assert (generated[0] / "msg" / "Beacon.msg").is_file()
 
@@ -178,6 +210,44 @@ def test_a_plugin_with_its_own_interfaces_installs_and_uninstalls_them(wheels: d
     assert not any(path.is_file() for path in generated[0].rglob("*"))
     assert not any((venv / "lib").glob("libbeacon_interfaces__*.so"))
     assert not any(path.is_file() for path in (site / "beacon_interfaces").rglob("*"))
+
+
+def test_colcon_builds_a_plugin_against_the_containers_wheel(venv: Path, tmp_path: Path) -> None:
+    # docs/guide/colcon.md over a plain virtualenv: the ROS wheels, colcon and
+    # the container's wheel, with AMENT_PREFIX_PATH and ROS_DISTRO exported.
+    workspace = tmp_path / "ws"
+    greeter_package(workspace / "src" / "greeter_nodes")
+    env = {
+        **_plain_env(), "PATH": f"{venv / 'bin'}{os.pathsep}{os.environ['PATH']}",
+        "AMENT_PREFIX_PATH": str(venv), "ROS_DISTRO": installed_ros_distro(),
+    }
+    built = subprocess.run(
+        ["colcon", "build", "--event-handlers", "console_cohesion-"],
+        cwd=workspace, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert built.returncode == 0, built.stdout + built.stderr
+    prefix = workspace / "install" / "greeter_nodes"
+    assert (prefix / INDEX / "rclcpp_components" / "greeter_nodes").read_text() == (
+        "greeter_nodes::Greeter;greeter_nodes:Greeter\n"
+    )
+    listed = subprocess.run(
+        ["bash", "-c", "source install/setup.bash && container types && python -c "
+         "'from ament_index_python import get_package_prefix as p; print(p(\"greeter_nodes\"))'"],
+        cwd=workspace, env=env, capture_output=True, text=True, timeout=120,
+    )
+    assert "greeter_nodes\n  greeter_nodes::Greeter\n" in listed.stdout, listed.stdout + listed.stderr
+    assert listed.stdout.splitlines()[-1] == str(prefix)
+    # The pip layout finds the CMake files the container's wheel installed (configured only).
+    shutil.copytree(REPO / "examples" / "beacon_plugin", tmp_path / "beacon", ignore=shutil.ignore_patterns("tests"))
+    configured = subprocess.run(
+        ["cmake", "-S", tmp_path / "beacon", "-B", tmp_path / "beacon-build", f"-DCMAKE_INSTALL_PREFIX={tmp_path}"],
+        env=env, capture_output=True, text=True, timeout=120,
+    )
+    assert configured.returncode == 0, configured.stdout + configured.stderr
+    found = "lifecycle_container: plugin beacon-nodes (ROS package beacon_nodes; Python: beacon_nodes)"
+    assert found in configured.stdout
+    cache = (tmp_path / "beacon-build" / "CMakeCache.txt").read_text()
+    assert f"lifecycle_container_DIR:PATH={venv / 'share' / 'lifecycle_container' / 'cmake'}\n" in cache
 
 
 def test_pip_uninstall_takes_everything_the_wheels_installed(wheels: dict[str, Path], venv: Path) -> None:
@@ -195,3 +265,4 @@ def test_pip_uninstall_takes_everything_the_wheels_installed(wheels: dict[str, P
     for leftover in ("share/composition_interfaces", "share/lifecycle_container", "lib/lifecycle_container"):
         assert not any(path.is_file() for path in (venv / leftover).rglob("*")), leftover
     assert not (venv / "bin" / "container").exists()
+    assert not (venv / SITE / PTH.name).exists()

@@ -55,6 +55,21 @@ def _dirs(paths: Iterable[str]) -> tuple[str, ...]:
     return tuple(os.path.join(os.path.realpath(path), "") for path in paths if path)
 
 
+def _command_file() -> str | None:
+    """The script this process runs when it is the ``container`` command, resolved.
+
+    The command is a file in the environment's ``bin/`` (or ``lib/<package>``
+    for ros2 run), outside every platform directory: without this, the
+    bottom frame of every thread's stack would pass for a plugin's.
+    """
+    main = sys.modules.get("__main__")
+    command = sys.modules.get("container.__main__")
+    file = getattr(main, "__file__", None)
+    if file is None or command is None or getattr(main, "main", None) is not getattr(command, "main", None):
+        return None
+    return os.path.realpath(str(file))
+
+
 @functools.lru_cache(maxsize=1024)
 def is_platform_file(filename: str) -> bool:
     """Whether code in ``filename`` is the platform's (see the module's docstring)."""
@@ -63,6 +78,8 @@ def is_platform_file(filename: str) -> bool:
     if filename.startswith("<"):
         return False  # code a plugin compiled or exec'd itself
     path = os.path.realpath(filename)
+    if path == _command_file():
+        return True  # the `container` command's script (its `sys.exit(main())` line)
     roots, installed = _platform_roots()
     inside = [root for root in roots if path.startswith(root)]
     if not inside:

@@ -256,7 +256,7 @@ def test_a_running_container_follows_installs_and_uninstalls(
     assert result.returncode == 1
     assert result.stderr == (
         "Failed to load component: Cannot load greeter_nodes::Greeter: distribution 'greeter-nodes' "
-        "was uninstalled since the container started\n"
+        "is no longer installed\n"
     )
 
     # A plugin that fails to import: the load answer says why, not just "not found".

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.component_support import IMPORT_ROOT, install_test_plugin
 from tests.container_support import REPO, ContainerProcess
 from tests.waiting import wait_until
 
@@ -145,16 +146,20 @@ def test_a_reading_command_ends_quietly_when_its_output_is_closed_from_the_start
     clean(tmp_path / "stderr")
 
 
-@pytest.mark.parametrize(
-    "args", [("top", "--json"), ("top", "--json", "--once"), ("top", "--json", "/ComponentManager")], ids=" ".join
-)
+#: Every command line with ``--json`` output (tests/cli/test_json.py keeps the list whole).
+JSON_OUTPUT: list[tuple[str, ...]] = [
+    ("top", "--json"), ("top", "--json", "--once"), ("top", "--json", "/ComponentManager"),
+]
+
+
+@pytest.mark.parametrize("args", JSON_OUTPUT, ids=" ".join)
 def test_json_output_is_one_document(container: ContainerProcess, args: tuple[str, ...]) -> None:
     (load,) = json.loads(output(args))
     assert load["container"] == "/ComponentManager"
 
 
 def test_acting_commands_do_all_they_were_asked_with_nobody_reading(
-    container: ContainerProcess, tmp_path: Path
+    container: ContainerProcess, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     stderr = tmp_path / "stderr"
     for name in ("one", "two"):
@@ -175,11 +180,16 @@ def test_acting_commands_do_all_they_were_asked_with_nobody_reading(
     clean(stderr)
     assert output(("lifecycle", "get", "/talker")) == "inactive [2]\n"
 
+    # Two plugins in no prefix of their own: both registered in the one named.
     prefix = tmp_path / "prefix"
+    sites = [install_test_plugin(tmp_path / "site", distribution="test-nodes"),
+             install_test_plugin(tmp_path / "faults", distribution="test-faults", module="tests.fault_plugin")]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([*map(str, sites), str(IMPORT_ROOT)]))
     code, first = closed_after_first_line(("index", "--prefix", str(prefix)), stderr)
     assert (code, first.startswith(f"ament index of {prefix}")) == (0, True), clean(stderr)
     clean(stderr)
-    assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "lifecycle_container").is_file()
+    for package in ("test_nodes", "test_faults"):
+        assert (prefix / "share" / "ament_index" / "resource_index" / "rclcpp_components" / package).is_file()
 
 
 def test_a_server_whose_log_reader_goes_serves_on_and_stops_cleanly(tmp_path: Path) -> None:

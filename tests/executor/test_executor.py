@@ -1134,9 +1134,11 @@ def test_retrying_an_answer_its_client_cannot_match_holds_up_no_other_thread(
         thread.join(5.0)
     blocked = [(start, end) for start, end in retries if end - start >= 0.09]
     assert len(blocked) >= 3, retries  # rmw did wait for the client, each time
-    inside = [t for t in ticks if blocked[0][0] <= t <= blocked[-1][1]]
-    gaps = [later - earlier for earlier, later in itertools.pairwise(inside)]
-    assert gaps and max(gaps) < 0.06, f"largest gap {max(gaps, default=0) * 1000:.0f} ms during {len(blocked)} retries"
+    # The ticker (a 2 ms period) ran during each 100 ms wait: with the GIL held
+    # through the wait it could tick in none of them. A loaded machine may
+    # leave the ticker unscheduled through one wait; not through most.
+    ticked = [sum(start <= t <= end for t in ticks) for start, end in blocked]
+    assert sum(n >= 5 for n in ticked) > len(blocked) // 2, f"ticks during each of {len(blocked)} retries: {ticked}"
 
 
 def test_an_answer_its_client_cannot_match_is_retried_off_the_loop_then_dropped(

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import sys
 import traceback
+import types
+from pathlib import Path
 
+import pytest
 import rclpy
 
 import container
@@ -26,6 +30,28 @@ def test_platform_files_are_the_stdlib_rclpy_and_container() -> None:
     assert not is_platform_file("<string>")
 
 
+def test_the_container_commands_script_is_the_platforms(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # The `container` command's file (bin/container: `sys.exit(main())`) is
+    # outside every platform directory; the bottom frame of every stack.
+    script = tmp_path / "container"
+    script.write_text("from container.__main__ import main\n", encoding="utf-8")
+    main = types.ModuleType("__main__")
+    main.__file__ = str(script)
+    other = str(tmp_path / "other")
+    assert not is_platform_file(str(script))
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    assert not is_platform_file(other)  # no command yet: `main` is not the container's
+    from container.__main__ import main as command
+
+    main.main = command  # type: ignore[attr-defined]
+    is_platform_file.cache_clear()
+    try:
+        assert is_platform_file(str(script))
+        assert not is_platform_file(other)
+    finally:
+        is_platform_file.cache_clear()
+
+
 def test_a_traceback_shows_the_plugin_frames_and_counts_the_platform_ones() -> None:
     try:
         _parse("{")
@@ -34,7 +60,7 @@ def test_a_traceback_shows_the_plugin_frames_and_counts_the_platform_ones() -> N
     text = format_plugin_frames(error.__traceback__)
     lines = text.splitlines()
     files = [line for line in lines if line.startswith('  File "')]
-    assert files[0] == f'  File "{__file__}", line 16, in _parse', "innermost first"
+    assert files[0] == f'  File "{__file__}", line {_parse.__code__.co_firstlineno + 1}, in _parse', "innermost first"
     assert "json.loads(text)" in lines[1]
     assert files[1].endswith("in test_a_traceback_shows_the_plugin_frames_and_counts_the_platform_ones")
     assert len(files) == 2

@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import sys
 import threading
+import weakref
 from collections.abc import Callable, Iterator
 from typing import Any, Final, TypeAlias
 
@@ -81,14 +83,31 @@ def executor_context() -> contextvars.Context:
     return context
 
 
+#: The threads the executor started (in :func:`executor_work`), noted by the thread ledger
+#: (``_threads``) from the audit event of each thread's start, or on Python 3.11, which raises
+#: none, by :func:`executor_work` itself.
+EXECUTOR_THREADS: weakref.WeakSet[threading.Thread] = weakref.WeakSet()
+#: Whether this Python tells audit hooks of a thread's start (3.12 and later).
+SEES_THREAD_STARTS: Final = sys.version_info >= (3, 12)
+
+
 @contextlib.contextmanager
 def executor_work() -> Iterator[None]:
-    """Count what this block starts (threads above all) as the executor's own."""
+    """Count what this block starts (threads above all) as the executor's own.
+
+    On Python 3.11 the threads are found by looking: those alive (or
+    starting) after the block and not before it. A thread another thread
+    started meanwhile would count as the executor's too; there, with no
+    thread of a node's told apart, it would count as nobody's otherwise.
+    """
     reset = OWNER.set(EXECUTOR)
+    before = None if SEES_THREAD_STARTS else frozenset(threading.enumerate())
     try:
         yield
     finally:
         OWNER.reset(reset)
+        if before is not None:
+            EXECUTOR_THREADS.update(thread for thread in threading.enumerate() if thread not in before)
 
 
 class Account:

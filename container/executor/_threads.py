@@ -9,7 +9,8 @@ handles run with) and notes it. Its ``run`` is wrapped so that the thread
 itself runs as the node (what it starts and hands to the loop is the
 node's too) and tells its last stretch of CPU when it ends. Python 3.11
 raises no such event: there a node's threads are unattributed Python
-threads (said in ``docs/guide/load.md``).
+threads (said in ``docs/guide/load.md``), and the executor's are found by
+``executor_work`` itself.
 
 Each window :class:`ThreadLedger` reads every thread of the process
 (``/proc/self/task``) through its own CPU clock and credits what it spent:
@@ -42,21 +43,21 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Final
 
-from ._owners import EXECUTOR, OWNER, Owner
+from ._owners import EXECUTOR, EXECUTOR_THREADS, OWNER, SEES_THREAD_STARTS, Owner
 
 __all__ = ["ThreadLedger", "ThreadShares", "install", "owner_of"]
 
 #: The audit events of a thread starting, whose first argument is the bound ``Thread._bootstrap``.
 _STARTS: Final = frozenset({"_thread.start_new_thread", "_thread.start_joinable_thread"})
 #: Whether this Python raises them (3.12 and later).
-ATTRIBUTES_THREADS: Final = sys.version_info >= (3, 12)
+ATTRIBUTES_THREADS: Final = SEES_THREAD_STARTS
 #: The compiled engine's fd watcher names its thread so (``fastpath/watcher.c``).
 _WATCHER_NAME: Final = "fd-watcher"
 #: Fast DDS's threads' names begin so (``dds.udp.7400``, ``dds.ev.0``, ``dds.shm.wdog``).
 _MIDDLEWARE_PREFIX: Final = "dds."
 
 #: Threads started under ``executor_work``, the executor's.
-_executor_threads: weakref.WeakSet[threading.Thread] = weakref.WeakSet()
+_executor_threads = EXECUTOR_THREADS
 #: Threads a node's code started, and whose.
 _owners: weakref.WeakKeyDictionary[threading.Thread, Owner] = weakref.WeakKeyDictionary()
 _installed = False

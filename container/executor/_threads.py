@@ -49,15 +49,11 @@ __all__ = ["ThreadLedger", "ThreadShares", "install", "owner_of"]
 
 #: The audit events of a thread starting, whose first argument is the bound ``Thread._bootstrap``.
 _STARTS: Final = frozenset({"_thread.start_new_thread", "_thread.start_joinable_thread"})
-#: Whether this Python raises them (3.12 and later).
-ATTRIBUTES_THREADS: Final = SEES_THREAD_STARTS
 #: The compiled engine's fd watcher names its thread so (``fastpath/watcher.c``).
 _WATCHER_NAME: Final = "fd-watcher"
 #: Fast DDS's threads' names begin so (``dds.udp.7400``, ``dds.ev.0``, ``dds.shm.wdog``).
 _MIDDLEWARE_PREFIX: Final = "dds."
 
-#: Threads started under ``executor_work``, the executor's.
-_executor_threads = EXECUTOR_THREADS
 #: Threads a node's code started, and whose.
 _owners: weakref.WeakKeyDictionary[threading.Thread, Owner] = weakref.WeakKeyDictionary()
 _installed = False
@@ -72,7 +68,7 @@ def install() -> None:
     """
     global _installed
     with _install_lock:
-        if _installed or not ATTRIBUTES_THREADS:
+        if _installed or not SEES_THREAD_STARTS:
             return
         sys.addaudithook(_on_audit)
         _installed = True
@@ -92,7 +88,7 @@ def _started(bootstrap: object) -> None:
         return
     owner = OWNER.get()
     if owner is EXECUTOR:
-        _executor_threads.add(thread)
+        EXECUTOR_THREADS.add(thread)
     elif isinstance(owner, Owner):
         _owners[thread] = owner
         # An instance attribute: Thread._bootstrap_inner calls self.run().
@@ -203,7 +199,7 @@ class ThreadLedger:
                     if owner is not None:
                         shares.owners[owner] = shares.owners.get(owner, 0) + spent
                         shares.running[owner] = shares.running.get(owner, 0) + 1
-                    elif tid in loop_threads or thread in _executor_threads:
+                    elif tid in loop_threads or thread in EXECUTOR_THREADS:
                         shares.executor += spent
                     else:
                         shares.unattributed["python threads"] += spent

@@ -26,7 +26,7 @@ from rclpy.node import Node
 
 from container import AsyncioExecutor
 from container.executor import ContainerLoad, NodeLoad
-from container.executor._threads import ATTRIBUTES_THREADS
+from container.executor._owners import SEES_THREAD_STARTS
 from tests.component_support import burn
 from tests.waiting import wait_until
 
@@ -277,7 +277,7 @@ def _check(load: ContainerLoad, burned: dict[str, float], process: float) -> Non
 
 
 def _skip_without_thread_attribution(place: str) -> None:
-    if place == "thread" and not ATTRIBUTES_THREADS:
+    if place == "thread" and not SEES_THREAD_STARTS:
         pytest.skip("Python 3.11 tells no audit hook of a thread's start: its threads are nobody's")
 
 
@@ -304,7 +304,7 @@ def test_a_node_is_credited_what_it_burns_in_each_place(
 def test_nodes_burning_in_every_place_side_by_side_are_each_credited_their_own(
     spinning: AsyncioExecutor, host: Callable[..., Any], stop: _Stop, style: str
 ) -> None:
-    places = [place for place in PLACES if place != "thread" or ATTRIBUTES_THREADS]
+    places = [place for place in PLACES if place != "thread" or SEES_THREAD_STARTS]
     burning = {place: burning_node(host, spinning, stop, place, style, place) for place in places}
     host(Node, "idle").create_timer(1.0, lambda: None)
     load, burned, process = _measure(spinning, burning)

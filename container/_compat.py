@@ -42,6 +42,7 @@ __all__ = [
     "PRIVATE_NAMES",
     "TIMER_INFO",
     "DoneCallbackRunner",
+    "FdCallbackLoop",
     "InvalidROSArgsError",
     "RCLError",
     "RequestId",
@@ -107,6 +108,12 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.action.server.ActionServer", "_execute_goal", "rclpy 1.0-10.x; create_task()s the execute callback"),
     ("asyncio.base_events.BaseEventLoop", "_ready", "CPython 3.4-3.14 (instance attribute)"),
     ("asyncio.base_events.BaseEventLoop", "_stopping", "CPython 3.4-3.14 (instance attribute)"),
+    (
+        "asyncio.selector_events.BaseSelectorEventLoop",
+        "_add_reader",
+        "CPython 3.4-3.14; add_reader() and the loop's own transports register readers through it",
+    ),
+    ("asyncio.selector_events.BaseSelectorEventLoop", "_add_writer", "CPython 3.4-3.14; as _add_reader, for writers"),
 ) + (
     # Checked where it exists: from 3.12 asyncio wraps such an awaitable in
     # a local ``async def``, an ordinary coroutine the task factory adapts.
@@ -168,6 +175,31 @@ def loop_is_idle(loop: asyncio.AbstractEventLoop) -> bool:
 def loop_ready_queue(loop: asyncio.AbstractEventLoop) -> Sized:
     """The queue of callbacks asyncio runs before its next select (non-empty: it has work)."""
     return loop._ready  # type: ignore[attr-defined, no-any-return]
+
+
+class FdCallbackLoop(asyncio.SelectorEventLoop):
+    """asyncio's selector loop, with one place that sees every file descriptor's callback.
+
+    ``add_reader``/``add_writer`` and asyncio's own transports (sockets,
+    pipes, subprocesses: they call ``_add_reader`` directly, past the public
+    method) all register through ``_add_reader``/``_add_writer``, which hand
+    each callback to :meth:`fd_callback` first. A serial transport
+    (pyserial-asyncio) uses the public ``add_reader``, which ends there too.
+    """
+
+    def fd_callback(
+        self, callback: Callable[..., Any], args: tuple[Any, ...]
+    ) -> tuple[Callable[..., Any], tuple[Any, ...]]:
+        """What the loop registers instead of ``callback(*args)`` (by default, that)."""
+        return callback, args
+
+    def _add_reader(self, fd: Any, callback: Callable[..., Any], *args: Any) -> Any:
+        callback, args = self.fd_callback(callback, args)
+        return super()._add_reader(fd, callback, *args)  # type: ignore[misc]
+
+    def _add_writer(self, fd: Any, callback: Callable[..., Any], *args: Any) -> Any:
+        callback, args = self.fd_callback(callback, args)
+        return super()._add_writer(fd, callback, *args)  # type: ignore[misc]
 
 
 def thread_frame(ident: int) -> FrameType | None:

@@ -350,7 +350,10 @@ class ComponentManager(Node):
             )
             return node
 
-        construction = asyncio.ensure_future(in_thread(construct, name=f"construct:{clip(full_name)}"))
+        accounting = self._host.accounting
+        # The constructor, and the threads it starts, are the new node's (by the name it is loaded as).
+        with accounting.working_as(full_name) if accounting is not None else contextlib.nullcontext():
+            construction = asyncio.ensure_future(in_thread(construct, name=f"construct:{clip(full_name)}"))
         try:
             node = await asyncio.wait_for(asyncio.shield(construction), self.load_timeout)
             # Remap rules (__node:=, __ns:=) or the class may have renamed it.

@@ -32,6 +32,9 @@ from lifecycle_container_interfaces.msg import (
 from lifecycle_container_interfaces.msg import (
     NodeLoad as NodeLoadMsg,
 )
+from lifecycle_container_interfaces.msg import (
+    UnattributedLoad as UnattributedLoadMsg,
+)
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -146,5 +149,8 @@ def to_message(load: ContainerLoad, *, container: str) -> ContainerLoadMsg:
         )
         for node in load.nodes
     ]
-    message: ContainerLoadMsg = _copied(ContainerLoadMsg, load, stamp=Time(), container=container, nodes=nodes)
+    unattributed = [_copied(UnattributedLoadMsg, item) for item in load.unattributed]
+    message: ContainerLoadMsg = _copied(
+        ContainerLoadMsg, load, stamp=Time(), container=container, nodes=nodes, unattributed=unattributed
+    )
     return message

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import json
 import os
@@ -40,7 +41,7 @@ if TYPE_CHECKING:
 
     from .._compat import SubParsers
 
-__all__ = ["add_parser", "as_dict", "plain_table"]
+__all__ = ["History", "add_parser", "as_dict", "plain_table", "short_name"]
 
 #: The load message's type, as the graph names it.
 LOAD_TYPE = "lifecycle_container_interfaces/msg/ContainerLoad"
@@ -89,6 +90,46 @@ def add_parser(subparsers: SubParsers) -> None:
     top.set_defaults(handler=_run)
 
 
+#: Seconds of each node's CPU the live view draws, and in how many characters.
+HISTORY_S = 60.0
+SPARK_WIDTH = 30
+_SPARKS = " ▁▂▃▄▅▆▇█"
+
+
+class History:
+    """Each node's CPU over the last :data:`HISTORY_S` seconds, per container, drawn as a sparkline."""
+
+    def __init__(self) -> None:
+        self._cpu: dict[tuple[str, str], collections.deque[tuple[float, float]]] = {}
+
+    def add(self, load: ContainerLoad, now: float) -> None:
+        for node in load.nodes:
+            seen = self._cpu.setdefault((load.container, node.name), collections.deque())
+            seen.append((now, node.cpu))
+            while seen and seen[0][0] < now - HISTORY_S:
+                seen.popleft()
+
+    def peak(self, container: str) -> float:
+        """The highest CPU of any node of ``container`` in the last minute (the lines' common scale)."""
+        return max(
+            (cpu for (name, _), seen in self._cpu.items() if name == container for _, cpu in seen), default=0.0
+        )
+
+    def spark(self, container: str, node: str, now: float, *, scale: float, width: int = SPARK_WIDTH) -> str:
+        """``width`` characters, the oldest first, each the highest CPU of its share of the minute,
+        ``scale`` cores a full block (at least 1% of a core: an idle node stays at the bottom)."""
+        slots: list[float | None] = [None] * width
+        slot_s = HISTORY_S / width
+        for at, cpu in self._cpu.get((container, node), ()):
+            index = width - 1 - int((now - at) / slot_s)
+            if 0 <= index < width:
+                slots[index] = max(cpu, slots[index] or 0.0)
+        top = max(scale, 0.01)
+        return "".join(
+            " " if cpu is None else _SPARKS[1 + min(7, int(cpu / top * 7.999))] for cpu in slots
+        )
+
+
 @dataclass
 class _Reports:
     """The latest window of each container heard from, and the subscriptions bringing them."""
@@ -96,6 +137,7 @@ class _Reports:
     node: Node
     only: str | None
     latest: dict[str, ContainerLoad] = field(default_factory=dict)
+    history: History = field(default_factory=History)
     heard: float = 0.0
     _subscribed: dict[str, Any] = field(default_factory=dict)
     changed: asyncio.Event = field(default_factory=asyncio.Event)
@@ -116,6 +158,7 @@ class _Reports:
     def _heard(self, message: ContainerLoad) -> None:
         self.latest[message.container] = message
         self.heard = time.monotonic()
+        self.history.add(message, self.heard)
         self.changed.set()
 
     @property
@@ -175,7 +218,63 @@ def as_dict(message: Any) -> Any:
 
 
 def _ms(seconds: float) -> str:
-    return f"{seconds * 1e3:.3f}"
+    """Milliseconds in at most 6 characters, 4 significant digits or so: 0.458, 20.89, 458.1, 12345."""
+    ms = seconds * 1e3
+    if ms < 10:
+        return f"{ms:.3f}"
+    if ms < 100:
+        return f"{ms:.2f}"
+    if ms < 1000:
+        return f"{ms:.1f}"
+    return f"{ms:.0f}"
+
+
+#: What a shortened callback name may be at most, in characters (the full name is in ``--json``).
+NAME_WIDTH = 40
+
+#: Kinds of entity whose rclpy names say little (``eventhandler callback ...``), as a person says them.
+_ENTITY_WORDS = {"eventhandler": "QoS event", "guardcondition": "guard condition", "waitable": "waitable"}
+
+
+def short_name(name: str, *, width: int = NAME_WIDTH) -> str:
+    """A callback's name as a person reads it, in at most ``width`` characters.
+
+    rclpy's own callbacks have long generated names (``eventhandler callback
+    PublisherEventCallbacks.create_event_handlers.<locals>._default_incompatible_qos_callback``):
+    the word ``callback`` goes, the kinds of entity are said in words, a
+    function's ``<locals>`` steps go (``Node.__init__.<locals>.tick`` reads
+    ``Node.__init__.tick``) and a lambda is ``λ``. Still too long, step by
+    step: the function keeps its first and last parts
+    (``PublisherEventCallbacks…_on_matched``); a topic's or service's callback
+    is its topic or service alone; the function is its own name alone, without
+    a leading underscore or a ``_callback`` ending (``QoS event
+    default_incompatible_qos``); what is left too long is cut in the middle.
+    """
+    head, sep, code = name.partition(" callback ")
+    if not sep:
+        return _cut(name, width)
+    first, _, rest = head.partition(" ")
+    head = " ".join(filter(None, (_ENTITY_WORDS.get(first, first), rest)))
+    code = code.replace(".<locals>", "").replace("<lambda>", "λ")
+    parts = code.split(".")
+
+    def fits(candidate: str) -> bool:
+        return len(head) + 1 + len(candidate) <= width
+
+    if not fits(code) and len(parts) > 2:
+        code = f"{parts[0]}…{parts[-1]}"
+    if not fits(code) and "'" in head:
+        return _cut(head, width)
+    if not fits(code):
+        code = parts[-1].lstrip("_").removesuffix("_callback") or parts[-1]
+    return _cut(f"{head} {code}", width)
+
+
+def _cut(text: str, width: int) -> str:
+    if len(text) <= width:
+        return text
+    keep = width - 1
+    return f"{text[: (keep + 1) // 2]}…{text[len(text) - keep // 2 :]}"
 
 
 def _stuck(item: NodeLoad | CallbackLoad) -> str:
@@ -187,15 +286,29 @@ def _stuck(item: NodeLoad | CallbackLoad) -> str:
 def _heading(load: ContainerLoad) -> str:
     return (
         f"container {load.container}  window {load.period:.2f} s  cpu {load.cpu * 100:.1f}%"
-        f"  callbacks {load.callbacks_cpu * 100:.1f}%  executor {load.executor_cpu * 100:.1f}%"
-        f"  loop idle {load.loop_idle * 100:.1f}%"
+        f"  nodes {load.nodes_cpu * 100:.1f}%  executor {load.executor_cpu * 100:.1f}%"
+        f"  unattributed {load.unattributed_cpu * 100:.1f}%  loop idle {load.loop_idle * 100:.1f}%"
     )
 
 
+#: An unattributed kind below this share of a core is left out of its line.
+_SHOWN_FROM = 0.0005
+
+
+def _unattributed(load: ContainerLoad) -> str | None:
+    """``unattributed: middleware threads 0.4%  python threads 0.1%``, or ``None`` when all are below 0.05%."""
+    parts = [
+        f"{item.kind} {item.cpu * 100:.1f}%"
+        for item in sorted(load.unattributed, key=lambda item: -item.cpu)
+        if item.cpu >= _SHOWN_FROM
+    ]
+    return f"unattributed: {'  '.join(parts)}" if parts else None
+
+
 _NODE_COLUMNS = ("NODE", "CPU%", "CB/S", "LATE_P99_MS", "DUR_P99_MS", "DROPPED", "STUCK", "CPU_TOTAL_S")
+#: Times in ms; p50s and the full names are in ``--json``. Fits 120 columns.
 _CALLBACK_COLUMNS = (
-    "CALLBACK", "GROUP", "CPU%", "CB/S", "LATE_P50_MS", "LATE_P99_MS", "LATE_MAX_MS", "DUR_P50_MS",
-    "DUR_P99_MS", "DUR_MAX_MS", "DROPPED", "STUCK",
+    "CALLBACK", "GROUP", "CPU%", "CB/S", "LATE_P99", "LATE_MAX", "DUR_P99", "DUR_MAX", "DROP", "STUCK",
 )
 
 
@@ -207,10 +320,13 @@ def _node_row(node: NodeLoad) -> list[str]:
 
 
 def _callback_row(callback: CallbackLoad) -> list[str]:
+    if callback.kind == "thread":  # CPU alone: no runs, no times
+        times = ["-"] * 4
+    else:
+        times = [_ms(callback.lateness_p99), _ms(callback.lateness_max), _ms(callback.duration_p99),
+                 _ms(callback.duration_max)]  # fmt: skip
     return [
-        callback.name, callback.group, f"{callback.cpu * 100:.1f}", f"{callback.rate:.1f}",
-        _ms(callback.lateness_p50), _ms(callback.lateness_p99), _ms(callback.lateness_max),
-        _ms(callback.duration_p50), _ms(callback.duration_p99), _ms(callback.duration_max),
+        short_name(callback.name), callback.group, f"{callback.cpu * 100:.1f}", f"{callback.rate:.1f}", *times,
         str(callback.dropped), _stuck(callback),
     ]
 
@@ -223,6 +339,17 @@ def _columns(header: Sequence[str], rows: list[list[str]]) -> Iterator[str]:
         yield "  ".join(cells).rstrip()
 
 
+#: Below a node's callbacks: those left out.
+_NEVER_RAN = "and {} callback(s) that never ran (--json lists every one)"
+
+
+def _ran(callbacks: Sequence[CallbackLoad]) -> tuple[list[CallbackLoad], int]:
+    """The callbacks that ever ran, took CPU or are stuck (a lifecycle node has some twenty of
+    rclpy's own that an operator would scroll past), and how many others there are."""
+    shown = [c for c in callbacks if c.runs_total or c.cpu_seconds_total or c.cpu or c.stuck_for]
+    return shown, len(callbacks) - len(shown)
+
+
 def _sorted(items: Sequence[Any], sort: str) -> list[Any]:
     return sorted(items, key=lambda item: (_SORTS[sort][1](item), item.name))
 
@@ -230,6 +357,9 @@ def _sorted(items: Sequence[Any], sort: str) -> list[Any]:
 def plain_table(load: ContainerLoad, *, sort: str = "c", node: str | None = None) -> str:
     """One container's window as plain text: a heading, then a row per node (and ``node``'s callbacks)."""
     lines = [_heading(load)]
+    unattributed = _unattributed(load)
+    if unattributed is not None:
+        lines.append(unattributed)
     lines += _columns(_NODE_COLUMNS, [_node_row(item) for item in _sorted(load.nodes, sort)])
     if node is not None:
         chosen = [item for item in load.nodes if item.name == node]
@@ -237,8 +367,11 @@ def plain_table(load: ContainerLoad, *, sort: str = "c", node: str | None = None
         if not chosen:
             lines.append(f"no node {node} in container {load.container}")
         else:
-            lines.append(f"callbacks of {node}")
-            lines += _columns(_CALLBACK_COLUMNS, [_callback_row(c) for c in _sorted(chosen[0].callbacks, sort)])
+            lines.append(f"callbacks of {node} (times in ms)")
+            shown, idle = _ran(chosen[0].callbacks)
+            lines += _columns(_CALLBACK_COLUMNS, [_callback_row(c) for c in _sorted(shown, sort)])
+            if idle:
+                lines.append(_NEVER_RAN.format(idle))
     return "\n".join(lines)
 
 
@@ -277,10 +410,14 @@ class _View:
             return _sorted(load.nodes, self.sort)
         for node in load.nodes:
             if node.name == self.opened:
-                return _sorted(node.callbacks, self.sort)
+                return _sorted(_ran(node.callbacks)[0], self.sort)
         return []
 
-    def render(self, loads: list[ContainerLoad]) -> RenderableType:
+    def render(
+        self, loads: list[ContainerLoad], history: History | None = None, *, now: float | None = None
+    ) -> RenderableType:
+        """The screen: a container's heading and its nodes (or a node's callbacks), with each
+        node's last minute from ``history`` (as of ``now``, monotonic seconds)."""
         from rich.console import Group
         from rich.table import Table
         from rich.text import Text
@@ -296,8 +433,13 @@ class _View:
         load = loads[self.container]
         rows = self._rows(load)
         self.selected = min(self.selected, max(0, len(rows) - 1))
-        title = f"{self.opened} (callbacks)" if self.opened is not None else "nodes"
+        title = f"{self.opened} (callbacks, times in ms)" if self.opened is not None else "nodes"
         columns = _CALLBACK_COLUMNS if self.opened is not None else _NODE_COLUMNS
+        sparks = history is not None and self.opened is None
+        if sparks:
+            columns = (*columns, "CPU_LAST_MIN")
+        now = time.monotonic() if now is None else now
+        scale = history.peak(load.container) if history is not None else 0.0
         table = Table(title=title, expand=True)
         sorted_by = _SORTS[self.sort][0] or columns[0]
         names = 2 if self.opened is not None else 1  # left-aligned: the name (and the group)
@@ -305,14 +447,25 @@ class _View:
             mark = " *" if column == sorted_by else ""
             if index < names:  # names shrink (cut with an ellipsis); figures keep their width
                 table.add_column(column + mark, no_wrap=True, overflow="ellipsis", ratio=3 if index == 0 else 1)
+            elif column == "CPU_LAST_MIN":
+                table.add_column(column, no_wrap=True, min_width=SPARK_WIDTH)
             else:
                 table.add_column(column + mark, justify="right", no_wrap=True)
         for index, item in enumerate(rows):
             cells = _callback_row(item) if self.opened is not None else _node_row(item)
+            if sparks and history is not None:
+                cells.append(history.spark(load.container, item.name, now, scale=scale))
             style = "reverse" if index == self.selected else ("bold red" if item.stuck_for > 0 else None)
             table.add_row(*cells, style=style)
-        heading = Text(_heading(load) + (f"   [{self.container + 1}/{len(loads)}]" if len(loads) > 1 else ""))
-        return Group(heading, table, keys)
+        if self.opened is not None:
+            idle = sum(_ran(node.callbacks)[1] for node in load.nodes if node.name == self.opened)
+            if idle:
+                table.caption = _NEVER_RAN.format(idle)
+        heading = _heading(load) + (f"   [{self.container + 1}/{len(loads)}]" if len(loads) > 1 else "")
+        unattributed = _unattributed(load)
+        if unattributed is not None:
+            heading += f"\n{unattributed}"
+        return Group(Text(heading), table, keys)
 
 
 @contextlib.contextmanager
@@ -366,5 +519,5 @@ async def _live(reports: _Reports, args: argparse.Namespace, stopping: asyncio.E
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(reports.changed.wait(), timeout=1.0)
             reports.changed.clear()
-            live.update(view.render(reports.loads()), refresh=True)
+            live.update(view.render(reports.loads(), reports.history), refresh=True)
     return 0

@@ -10,7 +10,7 @@ package depends on rclpy and :mod:`container._compat` only, never on the
 rest of the container.
 """
 
-from ._accounting import Accounting, CallbackLoad, ContainerLoad, GroupLoad, NodeLoad
+from ._accounting import Accounting, CallbackLoad, ContainerLoad, GroupLoad, NodeLoad, UnattributedLoad
 from ._answers import end_resender
 from ._bridge import Escaped, contained, in_thread, result
 from ._culprit import working_for
@@ -41,6 +41,7 @@ __all__ = [
     "ExecutorState",
     "GroupLoad",
     "NodeLoad",
+    "UnattributedLoad",
     "call_soon",
     "contained",
     "describe",

@@ -92,6 +92,7 @@ from rclpy.qos import QoSCompatibility, qos_check_compatible
 from .._compat import client_not_matched, raise_client_not_matched, request_client
 from . import _engine
 from ._engine import Server
+from ._owners import executor_work
 
 __all__ = ["end_resender", "respond"]
 
@@ -329,7 +330,8 @@ class _Resender:
             if self._thread is None:
                 self._ending = False
                 self._thread = threading.Thread(target=self._run, name="respond-again", daemon=True)
-                self._thread.start()
+                with executor_work():
+                    self._thread.start()
             self._wake.notify()
 
     def end(self, *, timeout: float) -> None:

@@ -32,6 +32,7 @@ from rclpy.task import Future as RclFuture
 from .._compat import running_loop, sleeps_zero
 from ._engine import Work
 from ._inbox import call_soon
+from ._owners import OWNER, Owner
 from ._spare import run_on_spare_thread
 
 __all__ = [
@@ -200,8 +201,9 @@ async def _adapted(
     coro: Coroutine[Any, Any, T],
     progress: Callable[[], asyncio.Future[None]],
     on_suspend: Callable[[], object] | None,
+    work: Work | None,
 ) -> T:
-    return await drive(coro, progress, on_suspend=on_suspend)
+    return await drive(coro, progress, on_suspend=on_suspend, work=work)
 
 
 def is_adapted(coro: object) -> bool:
@@ -215,9 +217,13 @@ def adapt(
     progress: Callable[[], asyncio.Future[None]],
     *,
     on_suspend: Callable[[], object] | None = None,
+    work: Work | None = None,
 ) -> Coroutine[Any, Any, T]:
-    """``coro`` as a coroutine that :func:`drive` runs (see there): what a task takes."""
-    adapted: Coroutine[Any, Any, T] = _adapted(coro, progress, on_suspend)
+    """``coro`` as a coroutine that :func:`drive` runs (see there): what a task takes.
+
+    :param work: whose meter times each step (a node's task: see ``_owners``).
+    """
+    adapted: Coroutine[Any, Any, T] = _adapted(coro, progress, on_suspend, work)
     # Named after what it runs: task reprs and the watchdog's reports show it.
     for name in ("__name__", "__qualname__"):
         with contextlib.suppress(AttributeError, TypeError):
@@ -234,9 +240,21 @@ async def in_thread(call: Callable[[], T], *, name: str) -> T:
     gives up (cancelled, timed out), the call runs on and its outcome is
     dropped. Any exception, ``SystemExit`` included, is raised to the
     awaiting coroutine.
+
+    The call runs in a copy of the caller's context, as ``asyncio.to_thread``'s
+    does: a node's transition callback, or its constructor, runs as that
+    node and is metered as its call on a thread (see ``_owners``); what it
+    starts is the node's.
     """
     loop = asyncio.get_running_loop()
     outcome: asyncio.Future[T] = loop.create_future()
+    context = contextvars.copy_context()
+    owner = OWNER.get()
+    run: Callable[[], object]
+    if isinstance(owner, Owner):
+        run = functools.partial(context.run, owner.account("thread_call").call, 0, call)
+    else:
+        run = functools.partial(context.run, call)
 
     def settle(value: object, error: BaseException | None) -> None:
         if outcome.done():
@@ -249,7 +267,7 @@ async def in_thread(call: Callable[[], T], *, name: str) -> T:
     def deliver(value: object, error: BaseException | None) -> None:
         call_soon(loop, settle, value, error)
 
-    run_on_spare_thread(call, deliver, name=name)
+    run_on_spare_thread(run, deliver, name=name)
     return await outcome
 
 

@@ -15,7 +15,11 @@ plugin's work:
 * loop work the platform runs for a node where no callback of the node
   created it, declared with :func:`working_for` (a lifecycle transition a
   ``change_state`` request started, posted to the loop from the service's
-  worker thread), and the tasks created under it.
+  worker thread), and the tasks created under it;
+* a task or a loop handle (a reader, a ``call_later``) started where a
+  node's code ran, as the accounting knows it (``_owners``): a task created
+  from a node's thread or one of its handles, a serial transport's reads
+  (:func:`handle_culprit`).
 
 Everything else on the loop thread is the platform's: the session's main
 task (``_guarded``), the container's own coroutines, asyncio's callbacks.
@@ -35,8 +39,9 @@ from rclpy.node import Node
 
 from ._engine import Token, Work
 from ._entries import describe
+from ._owners import OWNER, Owner
 
-__all__ = ["Culprit", "TaskOrigins", "is_platform_node", "working_for"]
+__all__ = ["Culprit", "TaskOrigins", "handle_culprit", "is_platform_node", "working_for"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,8 +57,9 @@ class Culprit:
     key: tuple[str, ...]
 
 
-#: A task's origin: the entity whose work created it, and that work's token.
-_Origin = tuple[object, Token | None]
+#: A task's origin: the entity whose work created it, and that work's token;
+#: or the owner whose code created it (see ``_owners``).
+_Origin = tuple[object, Token | None] | Owner
 
 #: Loop work declared as a node's (:func:`working_for`), in this context.
 _working_for: contextvars.ContextVar[_Origin | None] = contextvars.ContextVar("working_for", default=None)
@@ -108,8 +114,13 @@ class TaskOrigins:
             work = self._runner_work(parent)
             if work is not None:
                 origin = (work.entity, work.token)
+        if origin is None or isinstance(origin, Owner):
+            # Declared (the factory runs in the creator's context): it says more than whose code ran.
+            origin = _working_for.get() or origin
         if origin is None:
-            origin = _working_for.get()  # the factory runs in the creator's context
+            owner = OWNER.get()
+            if isinstance(owner, Owner) and owner.name:
+                origin = owner
         if origin is not None:
             self._origins[task] = origin
 
@@ -127,6 +138,9 @@ class TaskOrigins:
         origin = self._origins.get(task) or _declared(task)
         if origin is None:
             return Culprit(f"task {task.get_name()!r} ({code})", plugin=False, key=("platform", code))
+        if isinstance(origin, Owner):
+            what = f"task {task.get_name()!r} ({code})"
+            return Culprit(f"{origin.name}: {what}", plugin=origin.plugin, key=(origin.name, "task", code))
         entity, token = origin
         node, plugin = _owner(token)
         callback = describe(entity)
@@ -134,10 +148,26 @@ class TaskOrigins:
         return Culprit(f"{node}: {what}" if node else what, plugin=plugin, key=(node, callback, code))
 
 
+def handle_culprit(node: str, plugin: bool, kind: str) -> Culprit:
+    """Name a loop handle a node scheduled (``kind``: how the accounting names its kind of work;
+    the report's stack shows which of its callbacks)."""
+    if not node:
+        return Culprit(f"{kind} of no node", plugin=False, key=("platform", kind))
+    return Culprit(f"{node}: {kind}", plugin=plugin, key=(node, kind))
+
+
 def _declared(task: asyncio.Task[object]) -> _Origin | None:
-    """What ``task`` declared itself to work for (:func:`working_for`), on Python 3.12+."""
+    """What ``task`` declared itself to work for (:func:`working_for`), or whose code made it
+    (``OWNER``), on Python 3.12+."""
     get_context = getattr(task, "get_context", None)
-    return get_context().get(_working_for) if get_context is not None else None
+    if get_context is None:
+        return None
+    context = get_context()
+    declared = context.get(_working_for)
+    if declared is not None:
+        return declared  # type: ignore[no-any-return]
+    owner = context.get(OWNER)
+    return owner if isinstance(owner, Owner) and owner.name else None
 
 
 def _owner(token: Token | None) -> tuple[str, bool]:

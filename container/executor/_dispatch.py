@@ -54,6 +54,7 @@ from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
 from ._gate import Gate
 from ._hooks import ExecutorHooks
 from ._lanes import Lane, Retired
+from ._owners import executor_work
 from ._tasks import DoneCallbacks
 from ._waitset import EntityWaitSet, is_hot_waitable
 
@@ -181,7 +182,8 @@ class Dispatcher:
             self._cold_thread = threading.Thread(
                 target=self._serve_cold, name="rcl-cold-waiter", daemon=True
             )
-            self._cold_thread.start()
+            with executor_work():
+                self._cold_thread.start()
 
     def pause(self) -> None:
         """Stop taking cold work until the next :meth:`start`; return once it stopped.
@@ -294,6 +296,7 @@ class Dispatcher:
         accounting = self.accounting
         return Entry(
             meter=accounting.meter(entity, node, kind) if accounting is not None else None,
+            owner=accounting.owner(node) if accounting is not None and kind == "client" else None,
             wants_info=kind == "subscription" and subscription_wants_info(entity),
             entity=entity,
             node=node,
@@ -605,8 +608,10 @@ class Dispatcher:
             if found is not None and found[0] is group:
                 return found[1]
             limit = self._reentrant_limit if isinstance(group, ReentrantCallbackGroup) else 1
-            owner = node.get_fully_qualified_name() if node is not None else "executor"
-            lane = Lane(name=f"{owner}:{type(group).__name__}", limit=limit, loop=self._loop, hooks=self)
+            name = node.get_fully_qualified_name() if node is not None else "executor"
+            # A group of several nodes (rare) carries the first one's: see ``_owners``.
+            owner = self.accounting.owner(node) if self.accounting is not None and node is not None else None
+            lane = Lane(name=f"{name}:{type(group).__name__}", limit=limit, loop=self._loop, hooks=self, owner=owner)
             self._lanes[key] = (group, lane)
             return lane
 

@@ -7,6 +7,7 @@ work may wait, its token. The wait set and the takes read it per message.
 
 from __future__ import annotations
 
+import contextlib
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from ._engine import (
     Work,
 )
 from ._lanes import Lane
+from ._owners import Owner
 
 __all__: list[str] = []
 
@@ -57,6 +59,9 @@ class Entry:
     wants_info: bool = False
     #: What its callbacks cost is told (``None``: accounting is off).
     meter: Meter | None = None
+    #: Its node's other work (``None``: accounting is off): a client's response's
+    #: done-callbacks run as its node's (see ``_takes.take_response``).
+    owner: Owner | None = None
 
     def close(self) -> None:
         """Let go of the handles its compiled takes hold (the executor is closing).
@@ -72,14 +77,24 @@ class Entry:
 
 
 def describe(entity: object) -> str:
-    """Name an entity the way a ROS user would recognise it in a log."""
+    """Name an entity the way a ROS user would recognise it in a log.
+
+    Topics and services by their full names, as ``ros2 topic list`` and
+    ``ros2 service list`` write them: rclpy keeps a service's name as it was
+    given (``~/change_state`` expanded, ``describe_parameters`` relative),
+    rcl knows it resolved.
+    """
     # Work the executor runs for a node itself (a transition) is the callable.
     callback = getattr(entity, "callback", entity)
     name = getattr(callback, "__qualname__", None) or repr(callback)
-    for attribute, kind in (("topic_name", "subscription"), ("srv_name", "service")):
-        value = getattr(entity, attribute, None)
-        if isinstance(value, str):
-            return f"{kind} {value!r} callback {name}"
+    topic = getattr(entity, "topic_name", None)
+    if isinstance(topic, str):
+        return f"subscription {topic!r} callback {name}"
+    service = getattr(entity, "srv_name", None)
+    if isinstance(service, str):
+        with contextlib.suppress(Exception):  # destroyed: rcl no longer knows it
+            service = entity.service_name  # type: ignore[attr-defined]
+        return f"service {service!r} callback {name}"
     return f"{type(entity).__name__.lower()} callback {name}"
 
 

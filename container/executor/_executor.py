@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import atexit
 import contextlib
+import contextvars
 import enum
 import functools
 import inspect
@@ -50,12 +51,14 @@ from .._compat import (
 from .._errors import ExecutorError
 from ._accounting import Accounting
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
-from ._culprit import Culprit, TaskOrigins
+from ._culprit import Culprit, TaskOrigins, handle_culprit
 from ._dispatch import Dispatcher
 from ._engine import Work, announce
 from ._entries import WOKEN, describe, format_error
 from ._inbox import Inbox, Post, call_soon
 from ._lanes import Lane
+from ._loop import AccountedLoop
+from ._owners import EXECUTOR, OWNER, Account, Owner, Whose, executor_context, executor_work
 from ._selector import RclSelector
 from ._tasks import TaskFuture, TaskLaneHooks, plain_work, settle, settle_from
 from ._watchdog import LoopWatchdog
@@ -95,6 +98,9 @@ _CLOSED = frozenset({ExecutorState.STOPPING, ExecutorState.SHUT_DOWN})
 
 #: Called with the node, the entity and the exception a callback raised.
 CallbackErrorHandler = Callable[["Node", object, BaseException], None]
+
+#: :meth:`AsyncioExecutor.adapt`'s default owner: the caller's context says.
+_CALLER: Any = object()
 
 #: How often :meth:`AsyncioExecutor.retire` looks whether a node's callbacks ended.
 _RETIRE_POLL_S = 0.01
@@ -169,12 +175,21 @@ class AsyncioExecutor(Executor):
         self._watchdog: LoopWatchdog | None = None
         #: Its thread, started by the first spin and parked between spins.
         self._loop_watchdog: LoopWatchdog | None = None
+        #: What each node's work costs (see ``accounting``).
+        self._accounting = (
+            Accounting(loop_thread=self._loop_thread_ident, stuck_after_s=stall_after or 1.0) if accounting else None
+        )
         # One guard condition wakes the loop for everything: entities changed
         # (rclpy's base class), a file descriptor is ready (the selector's
         # watcher), a hand-over arrived in the inbox. Each guard condition in
         # the wait set costs on every single wait.
-        self._selector = RclSelector(guard=wake_guard(self))
-        self._loop: asyncio.AbstractEventLoop = asyncio.SelectorEventLoop(self._selector)
+        with executor_work():  # the Python engine's watcher thread is the executor's
+            self._selector = RclSelector(guard=wake_guard(self))
+        self._loop: asyncio.AbstractEventLoop = (
+            AccountedLoop(self._selector, unattributed=self._accounting.unattributed)
+            if self._accounting is not None
+            else asyncio.SelectorEventLoop(self._selector)
+        )
         #: Every hand-over to a loop's thread: to the owned loop, one guard
         #: trigger instead of call_soon_threadsafe's three wake-ups.
         self._inbox = Inbox(loop=self._loop, wake=self._guard_trigger)
@@ -186,10 +201,6 @@ class AsyncioExecutor(Executor):
         #: Nodes removed while nobody spun (and what they had then), retired
         #: when the next spin starts unless added back first (see :meth:`remove_node`).
         self._removed_idle: weakref.WeakKeyDictionary[Node, tuple[object, ...]] = weakref.WeakKeyDictionary()
-        #: What each node's callbacks cost (see ``accounting``).
-        self._accounting = (
-            Accounting(loop_thread=self._loop_thread_ident, stuck_after_s=stall_after or 1.0) if accounting else None
-        )
         self._dispatcher = self._make_dispatcher(self._loop)
         self._stopped: asyncio.Future[None] | None = None
         self._progress: asyncio.Future[None] | None = None
@@ -210,8 +221,16 @@ class AsyncioExecutor(Executor):
 
     @property
     def accounting(self) -> Accounting | None:
-        """What each node's callbacks cost, per window (``None``: built with ``accounting=False``)."""
+        """What each node's work costs, per window (``None``: built with ``accounting=False``)."""
         return self._accounting
+
+    def _account(self, owner: object, kind: str) -> Account | None:
+        """The account of ``kind`` of ``owner`` (``OWNER``'s value; ``None`` nobody's), or
+        ``None`` when nothing is metered: accounting off, or the executor's own work."""
+        accounting = self._accounting
+        if accounting is None or owner is EXECUTOR:
+            return None
+        return (owner if isinstance(owner, Owner) else accounting.unattributed).account(kind)
 
     def _loop_thread_ident(self) -> int | None:
         return self._dispatcher.loop_thread
@@ -361,7 +380,8 @@ class AsyncioExecutor(Executor):
                 waiter = threading.Thread(
                     target=self._wait_in_thread, name="rcl-waiter", daemon=True
                 )
-                waiter.start()
+                with executor_work():
+                    waiter.start()
                 try:
                     await self._stopped_future()
                 finally:
@@ -390,24 +410,36 @@ class AsyncioExecutor(Executor):
         self._refuse_if_closed("create a task")
         result = TaskFuture(executor=self)
         begin: Callable[[], None]
+        # Whose it is: the caller's (a node's callback, task or thread), wherever it runs.
+        owner = OWNER.get()
         if inspect.iscoroutinefunction(callback) and runs_plain_callback(callback, args):
             function: Callable[..., Any] = callback
+            account = self._account(owner, "task")
 
             def drive_here() -> None:
-                if not result.cancelled():
+                if result.cancelled():
+                    return
+                if account is None:
                     settle_from(result, lambda: drive_in_thread(function(*args, **kwargs)))
+                    return
+                OWNER.set(account.owner)  # in this call's own context: what it starts is the owner's
+                account.call(0, settle_from, result, lambda: drive_in_thread(function(*args, **kwargs)))
 
             begin = functools.partial(self._tasks_lane().submit, plain_work(drive_here, self._task_done))
         elif inspect.iscoroutine(callback) or inspect.iscoroutinefunction(callback):
-            begin = self._loop_task(callback, args, kwargs, result)
+            begin = self._loop_task(callback, args, kwargs, result, owner)
         else:
             plain: Callable[..., Any] = callback  # type: ignore[assignment]  # not a coroutine here
+            loop_account = self._account(owner, "loop_callback")
 
             def run() -> None:
                 if result.cancelled():
                     self._dispatcher.gate.refund()
                     return
-                settle_from(result, lambda: plain(*args, **kwargs))
+                if loop_account is not None:
+                    loop_account.call(0, settle_from, result, lambda: plain(*args, **kwargs))
+                else:
+                    settle_from(result, lambda: plain(*args, **kwargs))
                 self._callback_completed()
                 self._notify_progress()  # a coroutine awaiting the task's future looks again now
 
@@ -423,8 +455,9 @@ class AsyncioExecutor(Executor):
         args: tuple[Any, ...],
         kwargs: dict[str, Any],
         result: TaskFuture,
+        owner: Whose,
     ) -> Callable[[], None]:
-        """What starts a coroutine task of :meth:`create_task` on the loop."""
+        """What starts a coroutine task of :meth:`create_task` on the loop (``owner``: the caller's)."""
         loop = self.loop
         coro: Coroutine[Any, Any, Any] = (
             callback if inspect.iscoroutine(callback) else callback(*args, **kwargs)  # type: ignore[operator]
@@ -443,7 +476,13 @@ class AsyncioExecutor(Executor):
                 self._dispatcher.gate.refund()
                 return
             # Suspended after its first step, it counts as run (spin_once), as in rclpy.
-            task = loop.create_task(self.adapt(contained(coro), on_suspend=self._callback_completed))
+            adapted = self.adapt(contained(coro), on_suspend=self._callback_completed, owner=owner)
+            if OWNER.get() is owner:
+                task = loop.create_task(adapted)
+            else:  # started from another thread: it runs as the caller's all the same
+                context = contextvars.copy_context()
+                context.run(OWNER.set, owner)
+                task = loop.create_task(adapted, context=context)
             task.add_done_callback(finished)
 
             def cancel() -> None:
@@ -591,7 +630,11 @@ class AsyncioExecutor(Executor):
         return tasks
 
     def adapt(
-        self, coro: Coroutine[Any, Any, T], *, on_suspend: Callable[[], object] | None = None
+        self,
+        coro: Coroutine[Any, Any, T],
+        *,
+        on_suspend: Callable[[], object] | None = None,
+        owner: object = _CALLER,
     ) -> Coroutine[Any, Any, T]:
         """Make ``await rclpy_future`` inside ``coro`` sleep instead of spin.
 
@@ -601,8 +644,14 @@ class AsyncioExecutor(Executor):
         schedules a done-callback (or a short poll interval passes).
 
         :param on_suspend: called once if ``coro``'s first step suspends.
+        :param owner: whose task it is (``OWNER``'s value), for the accounting:
+            each of its steps is metered as that node's (by default, the
+            caller's; nothing for the executor's own).
         """
-        return adapt(coro, self._progress_future, on_suspend=on_suspend)
+        account = self._account(OWNER.get() if owner is _CALLER else owner, "task")
+        # Lateness: from now, the task's creation, to its first step.
+        work = None if account is None else Work(account, _never, True, 1, _untold, meter=account.meter)
+        return adapt(coro, self._progress_future, on_suspend=on_suspend, work=work)
 
     # -- running the owned loop ------------------------------------------------
     def _run_owned(self, main: Coroutine[Any, Any, None], *, permits: int | None = None) -> None:
@@ -622,7 +671,11 @@ class AsyncioExecutor(Executor):
                 watchdog = self._start_watchdog()
                 try:
                     with self._inbox.serving():
-                        self._loop.run_until_complete(main)
+                        # The executor's own context: what it schedules itself is its own
+                        # (a copy of the caller's, whose ContextVars main still sees).
+                        context = contextvars.copy_context()
+                        context.run(OWNER.set, EXECUTOR)
+                        context.run(self._loop.run_until_complete, main)
                 finally:
                     if watchdog is not None:
                         watchdog.pause()
@@ -651,6 +704,8 @@ class AsyncioExecutor(Executor):
             if loop is not self._loop:
                 self._dispatcher = self._make_dispatcher(loop)
             self._dispatcher.bind_loop_thread(threading.get_ident())
+            if self._accounting is not None:
+                self._accounting.loop_started()
             self._running_loop = loop
             self._stopped = None
             if self._progress is not None and self._progress.get_loop() is not loop:
@@ -720,8 +775,11 @@ class AsyncioExecutor(Executor):
             task = asyncio.Task(coro, loop=loop, **kwargs)
             self._origins.note(task, asyncio.current_task(loop))
             return task
+        # Each step of a node's task is metered as its (the context it runs in names it).
+        context = kwargs.get("context")
+        owner = OWNER.get() if context is None else context.get(OWNER)
         # Before 3.12 ``coro`` may be asyncio's wrapper generator, which adapt drives alike.
-        task = asyncio.Task(self.adapt(coro), loop=loop, **kwargs)  # type: ignore[arg-type, unused-ignore]
+        task = asyncio.Task(self.adapt(coro, owner=owner), loop=loop, **kwargs)  # type: ignore[arg-type, unused-ignore]
         self._origins.note(task, asyncio.current_task(loop))
         # Cancelled before its first step, the wrapper never starts ``coro``,
         # which would then warn "coroutine ... was never awaited": closed
@@ -731,7 +789,12 @@ class AsyncioExecutor(Executor):
 
     def _describe_loop_work(self) -> Culprit:
         """What the loop thread runs now: which node's which callback, and whether a plugin's."""
-        return self._origins.culprit(asyncio.current_task(self._loop))
+        task = asyncio.current_task(self._loop)
+        if task is None and self._accounting is not None:
+            account = self._accounting.running_on_loop()  # a handle a node scheduled (a reader, a call_later)
+            if account is not None:
+                return handle_culprit(account.owner.name, account.owner.plugin, account.name)
+        return self._origins.culprit(task)
 
     def _runner_work(self, task: asyncio.Task[Any]) -> Work | None:
         """The work ``task`` carries if it is a lane's runner."""
@@ -881,7 +944,8 @@ class AsyncioExecutor(Executor):
             loop = self.loop
             progress = loop.create_future()
             self._progress = progress
-            loop.call_later(_RCL_FUTURE_POLL_S, _resolve, progress)
+            # The executor's poll, though a node's task asks for it (its await of an rclpy future).
+            loop.call_later(_RCL_FUTURE_POLL_S, _resolve, progress, context=executor_context())
         return progress
 
     def _notify_progress(self) -> None:
@@ -954,6 +1018,14 @@ class _DispatcherHooks:
         self.response_arrived = executor._notify_progress
         self.progress = executor._progress_future
         self.wake = executor._guard_trigger
+
+
+def _never(*_: object) -> None:
+    """A task's ``Work`` is stepped by ``drive``, never called."""
+
+
+def _untold(work: Work, error: BaseException | None) -> None:
+    """A task's outcome is its own, told by asyncio."""
 
 
 def _resolve(future: asyncio.Future[None]) -> None:

@@ -9,9 +9,12 @@ reported by handle address (``handle.pointer``): a key to look entries up
 by, never dereferenced by the caller.
 """
 
+import asyncio
 import contextvars
 from collections.abc import Callable, Iterable, Mapping, Sequence, Sized
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVarTuple
+
+_Ts = TypeVarTuple("_Ts")
 
 class Handle(Protocol):
     """An rclpy handle (``Subscription``, ``Timer``, ``GuardCondition``, ``Context``, ...
@@ -253,9 +256,38 @@ class Work:
 class Meter:
     """What one entity's callbacks cost, per window (see ``fastpath/meter.c``)."""
 
+    @property
+    def running(self) -> int:
+        """How long the step running now has run (ns; 0: none runs)."""
+    def call(self, arrived: int, call: Callable[..., Any], /, *args: Any) -> Any:
+        """``call(*args)`` as one run of this meter, begun (its lateness from ``arrived``,
+        monotonic ns; 0 unknown) and ended when it returns or raises."""
+
     def take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
         """``(runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50,
         duration_p99, duration_max, dropped, stuck, running_ns)``: this window's, then a new one."""
+
+class HandleMeter:
+    """The first base of an event loop whose ``call_soon`` and ``call_at`` meter each handle a
+    node's code schedules as that node's (see ``fastpath/handles.c`` and ``_loop.py``)."""
+
+    def __init__(
+        self,
+        owner: contextvars.ContextVar[Any],
+        executor: object,
+        task_type: type,
+        call_soon: Callable[..., Any],
+        call_at: Callable[..., Any],
+        unattributed: Any,
+    ) -> None: ...
+    def call_soon(
+        self, callback: Callable[[*_Ts], object], *args: *_Ts, context: contextvars.Context | None = None
+    ) -> asyncio.Handle:
+        """The loop's own ``call_soon``; a node's handle is scheduled metered as its."""
+    def call_at(
+        self, when: float, callback: Callable[[*_Ts], object], *args: *_Ts, context: contextvars.Context | None = None
+    ) -> asyncio.TimerHandle:
+        """The loop's own ``call_at``; a node's timer is scheduled metered as its, late from ``when``."""
 
 def stuck_after(ns: int, /) -> None:
     """How long one step of a callback runs before its meter counts it stuck (every meter)."""

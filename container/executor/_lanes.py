@@ -59,14 +59,24 @@ from .._compat import enter_task, leave_task
 from ._bridge import drive
 from ._engine import Handoff, Lock, Runner, Slots, Work, first_step, mark_carrier
 from ._hooks import LaneHooks
+from ._owners import OWNER, Owner, executor_work
 
 __all__: list[str] = []
 
 #: Seconds a lane's worker thread waits for more work before it exits.
 WORKER_IDLE_S = 3.0
 #: How long a worker whose work comes quickly stays awake for more (see
-#: ``Handoff.linger``): it lingers only while its last wait for work was
-#: shorter than this.
+#: ``Handoff.linger``): it lingers only while its last work was handed to
+#: it sooner than this after it was free for it.
+#:
+#: Sooner after it was *free*, from the hand-over's own time: not from how
+#: long its wait took, which once the worker sleeps includes its own
+#: wake-up (50-200 us on a virtual machine). Measured that way, one late
+#: hand-over put it to sleep and its wake-ups then kept every wait above
+#: the bound: it never lingered again while the work came as fast as
+#: before, and which of the two a run settled in decided plain service
+#: calls' rate (0.82x-1.24x between otherwise equal two-second turns;
+#: the accounting's 4.5 us a call tipped it to sleeping).
 #:
 #: Measured against, on the project's 2-core shared KVM VM: with the loop's
 #: linger (``fastpath/handoff.c``, ``LOOP_LINGER_NS``, commit bc7e731), plain
@@ -128,6 +138,7 @@ class Lane:
         limit: int,
         loop: asyncio.AbstractEventLoop,
         hooks: LaneHooks,
+        owner: Owner | None = None,
     ) -> None:
         self.name = name
         self._hooks = hooks
@@ -141,6 +152,10 @@ class Lane:
         #: context they are created in. What one callback sets in a
         #: ContextVar is not the next one's.
         self._context = contextvars.copy_context()
+        if owner is not None:
+            # Everything its callbacks start (tasks, loop callbacks, readers,
+            # threads) carries the node along: see ``_owners``.
+            self._context.run(OWNER.set, owner)
         self._carries = hooks.carries
         self._post = hooks.post
         self._progress = hooks.progress
@@ -159,7 +174,8 @@ class Lane:
         self._away = 0
         self._threads: list[threading.Thread] = []
         #: Work for the workers, and whether the loop's thread handed it (and waits for its start).
-        self._inbox: queue.SimpleQueue[tuple[Work, bool] | None] = queue.SimpleQueue()
+        #: (work, handed by the loop thread, when it was handed: monotonic ns)
+        self._inbox: queue.SimpleQueue[tuple[Work, bool, int] | None] = queue.SimpleQueue()
         # Async side, touched on the loop thread only (the idle runners are parked in the slots).
         self._runners: dict[asyncio.Task[None], Runner] = {}
 
@@ -264,9 +280,10 @@ class Lane:
         if handoff is not None and self._on_loop_thread():
             handoff.handed()
             handed = True
-        self._inbox.put((work, handed))
+        self._inbox.put((work, handed, time.monotonic_ns()))
         if spawn:
-            thread.start()
+            with executor_work():  # started in a node's callback maybe, but the executor's thread
+                thread.start()
 
     def _worker(self) -> None:
         if self._carries:
@@ -275,21 +292,21 @@ class Lane:
         # Never on one CPU (Handoff's spin: see Dispatcher), where lingering
         # keeps the loop thread it waits for off the CPU.
         lingering = self._handoff if self._handoff is not None and self._handoff.spin else None
-        quick = False  # the last wait for work was short: linger before the next
+        quick = False  # the last work came soon after this thread was free: linger before the next
         while True:
+            free_from = time.monotonic_ns()
             if quick and lingering is not None and inbox.empty():
                 lingering.linger(WORKER_LINGER_NS)
-            waited_from = time.monotonic_ns()
             try:
                 item = inbox.get(timeout=WORKER_IDLE_S)
             except queue.Empty:
                 if self._retire_idle_thread():
                     return
                 continue
-            quick = time.monotonic_ns() - waited_from < WORKER_LINGER_NS
             if item is None:
                 return
-            work, handed = item
+            work, handed, handed_at = item
+            quick = handed_at - free_from < WORKER_LINGER_NS
             handoff = self._handoff if handed else None
             if handoff is not None:
                 handoff.started()

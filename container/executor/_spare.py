@@ -21,6 +21,8 @@ import threading
 from collections.abc import Callable
 from typing import Final
 
+from ._owners import executor_work
+
 __all__ = ["SPARE_IDLE_S", "end_spare_threads", "run_on_spare_thread"]
 
 #: How long a thread whose call returned waits for another before it ends.
@@ -51,7 +53,9 @@ class _SpareThreads:
         if spare is None:
             inbox: _Inbox = queue.SimpleQueue()
             inbox.put((call, deliver, name))
-            threading.Thread(target=self._serve, args=(inbox,), name=name, daemon=True).start()
+            thread = threading.Thread(target=self._serve, args=(inbox,), name=name, daemon=True)
+            with executor_work():  # the call it runs is metered apart, as its caller's (``in_thread``)
+                thread.start()
         else:
             spare[0].put((call, deliver, name))
 

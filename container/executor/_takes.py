@@ -26,6 +26,7 @@ from . import _engine
 from ._answers import respond
 from ._engine import Server
 from ._entries import Entry
+from ._owners import OWNER
 
 if TYPE_CHECKING:
     from ._dispatch import Dispatcher
@@ -124,7 +125,15 @@ def take_response(dispatcher: Dispatcher, entry: Entry, count: int = _engine.DRA
         except KeyError:
             continue  # the caller cancelled the request
         adopt_future(future, dispatcher.response_executor)
-        future.set_result(response)
+        if entry.owner is None:
+            future.set_result(response)
+        else:
+            # Its done-callbacks (the node's code, handed to the executor) run as its node's.
+            reset = OWNER.set(entry.owner)
+            try:
+                future.set_result(response)
+            finally:
+                OWNER.reset(reset)
         dispatcher.response_arrived()
 
 def take_request(dispatcher: Dispatcher, entry: Entry, count: int = _engine.DRAIN) -> None:

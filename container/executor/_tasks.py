@@ -23,6 +23,7 @@ from rclpy.task import Future as RclFuture
 from .._errors import ExecutorError
 from ._engine import Work
 from ._inbox import Post
+from ._owners import OWNER, Owner
 
 if TYPE_CHECKING:
     from ._gate import Gate
@@ -175,7 +176,11 @@ class DoneCallbacks:
     def create_task(self, callback: Callable[..., Any], *args: Any, **kwargs: Any) -> RclFuture[Any] | None:
         if kwargs or self._gate.permits is not None or not self._on_loop_thread() or self._is_coroutine(callback):
             return self._executor.create_task(callback, *args, **kwargs)
-        self._post(_run_done_callback, callback, args)
+        owner = OWNER.get()
+        if isinstance(owner, Owner):  # the client's node (``_takes.take_response``)
+            self._post(owner.account("loop_callback").call, 0, _run_done_callback, callback, args)
+        else:
+            self._post(_run_done_callback, callback, args)
         return None
 
     def _is_coroutine(self, callback: Callable[..., Any]) -> bool:

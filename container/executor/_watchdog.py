@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from .._compat import thread_frame
 from ._culprit import Culprit
 from ._frames import format_plugin_frames
+from ._owners import executor_work
 
 __all__ = ["LoopWatchdog", "Stall"]
 
@@ -126,7 +127,8 @@ class LoopWatchdog:
         self._watching = False
         self._closed = False
         self._thread = threading.Thread(target=self._watch, name="loop-watchdog", daemon=True)
-        self._thread.start()
+        with executor_work():
+            self._thread.start()
 
     @property
     def stall(self) -> Stall | None:

@@ -236,7 +236,9 @@ def _executor(kind: str) -> Any:
         from container import AsyncioExecutor
 
         # bench_accounting.py measures the executor with its accounting off too.
-        return AsyncioExecutor(accounting=os.environ.get(ACCOUNTING_VARIABLE, "on") != "off")
+        executor = AsyncioExecutor(accounting=os.environ.get(ACCOUNTING_VARIABLE, "on") != "off")
+        sample_every_second(executor)
+        return executor
     if kind == "events":
         from rclpy.experimental.events_executor import EventsExecutor
 
@@ -244,6 +246,25 @@ def _executor(kind: str) -> Any:
     from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
     return SingleThreadedExecutor() if kind == "single" else MultiThreadedExecutor()
+
+
+def sample_every_second(executor: Any) -> None:
+    """Close an accounting window every second while ``executor`` lives, as a container's
+    load reporter does (``container._load``): what that costs is part of the accounting's cost."""
+    accounting = getattr(executor, "accounting", None)
+    if accounting is None:
+        return
+    import weakref
+
+    alive = weakref.ref(accounting)
+
+    def sample() -> None:
+        while (held := alive()) is not None:
+            held.sample()
+            del held
+            time.sleep(1.0)
+
+    threading.Thread(target=sample, name="sampler", daemon=True).start()
 
 
 def _spin_until(

@@ -274,6 +274,121 @@ def _metering(engine: ModuleType) -> Trace:
     return trace
 
 
+def _metered_calls(engine: ModuleType) -> Trace:
+    """``Meter.call``: a loop handle's run, timed as one callback run (``_loop``)."""
+    meter = engine.Meter()
+    arrived = time.monotonic_ns() - 5_000_000  # due 5 ms ago
+    trace: Trace = [meter.call(arrived, lambda a, b: a + b, 1, 2)]
+    runs, finished, busy, _, late50, _, late_max, *_ = meter.take()
+    trace += [(runs, finished), busy > 0, 4_000_000 <= late50 <= late_max]
+    trace += [meter.call(0, time.sleep, 0.002), meter.take()[:2]]
+    trace += [_raised(lambda: meter.call(0, lambda: 1 / 0)), meter.take()[:2]]
+    trace += [meter.take()[4], _raised(lambda: meter.call(0)), _raised(lambda: meter.call(1.5, print))]
+    trace += [_raised(lambda: meter.call(0, "not callable")), meter.take()[:2]]
+    inside: list[int] = []
+    trace += [meter.running, meter.call(0, lambda: inside.append(meter.running)), inside[0] > 0, meter.running]
+    return trace
+
+
+class _Owner:
+    """An owner as ``HandleMeter`` asks one: each kind's account, with a meter, made on first use."""
+
+    def __init__(self, engine: ModuleType, name: str) -> None:
+        self.name = name
+        self.asked: list[str] = []
+        self.meter = engine.Meter()
+        self.call = self.meter.call
+
+    def account(self, kind: str) -> _Owner:
+        self.asked.append(f"{self.name} {kind}")
+        return self
+
+
+def _handle_meters(engine: ModuleType) -> Trace:
+    """``HandleMeter.call_soon``: which handles go through as they are and which are metered, as whose."""
+    owner_var: contextvars.ContextVar[object] = contextvars.ContextVar("engines_owner", default=None)
+    executor, node, nobody = object(), _Owner(engine, "node"), _Owner(engine, "nobody")
+
+    class Loop(engine.HandleMeter, asyncio.SelectorEventLoop):  # type: ignore[misc, name-defined]
+        def __init__(self) -> None:
+            soon, at = asyncio.SelectorEventLoop.call_soon, asyncio.SelectorEventLoop.call_at
+            engine.HandleMeter.__init__(self, owner_var, executor, asyncio.Task, soon, at, nobody)
+            asyncio.SelectorEventLoop.__init__(self)
+
+    ran: list[object] = []
+    trace: Trace = []
+    loop = Loop()
+    # A handle whose context is no context fails as asyncio runs it: told here, not logged.
+    loop.set_exception_handler(lambda _, context: ran.append(f"failed: {type(context.get('exception')).__name__}"))
+    ours = contextvars.copy_context()
+    ours.run(owner_var.set, executor)
+    theirs = contextvars.copy_context()
+    theirs.run(owner_var.set, node)
+    ours.run(loop.call_soon, ran.append, "the executor's")
+    loop.call_soon(ran.append, "the node's", context=theirs)
+    theirs.run(loop.call_soon, ran.append, "the node's, scheduled in its context")
+    loop.call_soon(ran.append, "nobody's")
+    loop.call_soon(ran.append, "nobody's, in no context", context="not a context")  # type: ignore[arg-type]
+
+    async def step() -> None:
+        ran.append("a task's step")
+
+    theirs.run(loop.create_task, step())
+    due = loop.time() - 0.005  # due 5 ms ago: that late, at least
+    loop.call_at(due, ran.append, "the node's timer", context=theirs)
+    theirs.run(loop.call_later, 0, ran.append, "the node's call_later")
+    ours.run(loop.call_at, due, ran.append, "the executor's timer")
+    trace += [node.asked, nobody.asked]
+    loop.call_soon(loop.stop, context=ours)
+    loop.run_forever()
+    figures = node.meter.take()
+    trace += [sorted(str(item) for item in ran), figures[:2], figures[6] >= 5_000_000, nobody.meter.take()[:2]]
+    trace += [_raised(lambda: loop.call_soon()), _raised(lambda: loop.call_at(1.0))]  # type: ignore[call-arg]
+    trace += [_raised(lambda: engine.HandleMeter(1, 2, 3, 4, 5, 6))]
+    trace += [_raised(lambda: engine.HandleMeter(owner_var, executor, asyncio.Task, len, len))]
+    loop.close()
+
+    class Uninitialised(engine.HandleMeter, asyncio.SelectorEventLoop):  # type: ignore[misc, name-defined]
+        def __init__(self) -> None:
+            asyncio.SelectorEventLoop.__init__(self)
+
+    bare = Uninitialised()
+    trace += [_raised(lambda: bare.call_soon(print))]
+    bare.close()
+    return trace
+
+
+def test_a_loops_handles_are_metered_as_whose_alike_on_both_engines() -> None:
+    trace = _same_on_both(_handle_meters)
+    # Asked once per owner and kind: the last owner's account is kept.
+    assert trace[:2] == [["node loop_callback", "node loop_timer"], ["nobody loop_callback"]]
+    assert trace[2] == sorted(
+        [
+            "the executor's", "the node's", "the node's, scheduled in its context", "nobody's", "a task's step",
+            "the node's timer", "the node's call_later", "the executor's timer",
+            "failed: AttributeError",  # a context that is none: in asyncio, as it would unmetered
+        ]
+    )  # fmt: skip
+    assert trace[3:6] == [(4, 4), True, (1, 1)], "the node's two soon and two timers; one late 5 ms at least"
+    assert [error[0] for error in trace[6:8]] == ["TypeError", "TypeError"]  # the loop's own methods say
+    usage = "HandleMeter(owner: ContextVar, executor, task_type: type, call_soon: callable, call_at: callable, "
+    assert trace[8:] == [
+        ["TypeError", usage + "unattributed)"],
+        ["TypeError", "HandleMeter() takes exactly 6 arguments (5 given)"],
+        ["TypeError", "HandleMeter.__init__ was not called"],
+    ]
+
+
+def test_a_metered_call_is_one_run_alike_on_both_engines() -> None:
+    trace = _same_on_both(_metered_calls)
+    assert trace == [
+        3, (1, 1), True, True, None, (1, 1), ["ZeroDivisionError", "division by zero"], (1, 1),
+        0, ["TypeError", "call(arrived, call, *args)"],
+        ["TypeError", "'float' object cannot be interpreted as an integer"],
+        ["TypeError", "'str' object is not callable"], (1, 1), 0, None, True, 0,
+    ]  # fmt: skip
+
+
 def test_work_is_metered_alike_on_both_engines() -> None:
     trace = _same_on_both(_metering)
     assert trace[:8] == [42, ["the context's"], "set inside", True, (1, 1), (0, 0, 0), True, True]

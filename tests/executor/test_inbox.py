@@ -27,8 +27,10 @@ def test_only_the_inbox_posts_to_a_loop_from_another_thread() -> None:
     """Every module of the container reaches a loop from another thread through
     ``container.executor._inbox`` (``call_soon``, ``run_coroutine``, an ``Inbox``)."""
     offenders = []
+    # _loop is the loop itself: it overrides call_soon_threadsafe (to meter what it runs), posting nothing.
+    exempt = {REPO / "container" / "executor" / "_inbox.py", REPO / "container" / "executor" / "_loop.py"}
     for path in sorted((REPO / "container").rglob("*.py")):
-        if path == REPO / "container" / "executor" / "_inbox.py":
+        if path in exempt:
             continue
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             # ``loop.call_soon_threadsafe``, a bare name, or ``from asyncio import ...``

@@ -36,6 +36,7 @@ import asyncio
 import ctypes
 import functools
 import gc
+import socket
 import sys
 import threading
 import time
@@ -486,6 +487,52 @@ def test_a_task_step_leaves_nothing_behind(executor: AsyncioExecutor, host: Call
         _quiesce(executor, ())
 
     _check("task step", run, {"executor": executor})
+
+
+def test_a_nodes_loop_work_leaves_nothing_behind(executor: AsyncioExecutor, host: Callable[..., Any]) -> None:
+    """A node's loop work, each metered as its (``_loop``, ``HandleMeter``): a loop callback, a
+    timer, a task of two steps and a reader's run, per round."""
+    host(Node, "leak_loop")
+    _spun_once(executor)
+    accounting = executor.accounting
+    assert accounting is not None
+    ours, theirs = socket.socketpair()
+    ours.setblocking(False)
+
+    def run(n: int) -> None:
+        async def work() -> None:
+            loop = asyncio.get_running_loop()
+            with accounting.working_as("/leak_loop"):
+                for _ in range(n):
+                    read: asyncio.Future[None] = loop.create_future()
+
+                    def on_readable(read: asyncio.Future[None] = read) -> None:
+                        ours.recv(16)
+                        if not read.done():
+                            read.set_result(None)
+
+                    timer: asyncio.Future[None] = loop.create_future()
+                    loop.call_soon(len, ())
+                    loop.call_later(0, timer.set_result, None)
+                    loop.add_reader(ours.fileno(), on_readable)
+                    theirs.send(b"x")
+                    await loop.create_task(asyncio.sleep(0))
+                    await timer
+                    await read
+                    loop.remove_reader(ours.fileno())
+
+        executor.spin_until_future_complete(work(), timeout_sec=RUN_TIMEOUT)
+        _quiesce(executor, ())
+
+    owner = accounting.owner_named("/leak_loop")
+    try:
+        watched: dict[str, object] = {"executor": executor, "loop": executor.loop, "owner": owner}
+        run(1)
+        watched |= {f"{account.kind} meter": account.meter for account in owner.accounts()}
+        _check("a node's loop work", run, watched)
+    finally:
+        ours.close()
+        theirs.close()
 
 
 def test_a_node_added_and_removed_leaves_nothing_behind(

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
+import inspect
+import sys
 import threading
+import time
+from typing import Any
 
 import pytest
 from rclpy.context import Context
@@ -61,3 +66,104 @@ def test_a_worker_with_work_handed_to_it_does_not_exit(
         timer.cancel()
         executor.remove_node(node)
         node.destroy_node()
+
+
+class _CountingHandoff:
+    """A hand-over that counts a worker's lingers (and returns from each at once)."""
+
+    spin = True
+
+    def __init__(self) -> None:
+        self.lingers = 0
+
+    def handed(self) -> None:
+        pass
+
+    def started(self) -> None:
+        pass
+
+    def finished(self) -> None:
+        pass
+
+    def linger(self, spin_ns: int) -> bool:
+        self.lingers += 1
+        return False
+
+
+class _LaneHooks:
+    """What a lane asks of its dispatcher, for plain work handed over from "the loop's thread"."""
+
+    carries = False
+
+    def __init__(self, handoff: _CountingHandoff) -> None:
+        self.handoff = handoff
+
+    def on_loop_thread(self) -> bool:
+        return True
+
+    def post(self, callback: Any, *args: Any) -> None:
+        callback(*args)
+
+    def progress(self) -> Any:
+        raise AssertionError("plain work only")
+
+    def defer(self, lane: Any, work: Any) -> bool:
+        return False
+
+    def carry(self) -> None:
+        pass
+
+    def suspended(self) -> None:
+        pass
+
+
+def _in_inbox_get(thread: threading.Thread) -> bool:
+    """Whether ``thread`` waits in its lane's inbox (``_worker``'s ``inbox.get``)."""
+    frame = sys._current_frames().get(thread.ident or 0)
+    if frame is None or frame.f_code is not _lanes.Lane._worker.__code__:
+        return False
+    lines, first = inspect.getsourcelines(_lanes.Lane._worker)
+    return "inbox.get(" in lines[frame.f_lineno - first]
+
+
+def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_woke(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Whether a worker lingers for its next work is decided by how soon the
+    work was handed to it after it was free, not by how long its wait took:
+    once asleep, its own wake-up (here held back by the GIL) made every wait
+    long, and a worker that slept once never lingered again however fast
+    its work came (plain service calls' rate then swung 0.8x-1.2x between
+    equal runs)."""
+    from container.executor._engine import Work
+
+    monkeypatch.setattr(_lanes, "WORKER_LINGER_NS", 200_000_000)  # 200 ms: far above any poll here
+    handoff = _CountingHandoff()
+    loop = asyncio.new_event_loop()
+    lane = _lanes.Lane(name="linger", limit=1, loop=loop, hooks=_LaneHooks(handoff))  # type: ignore[arg-type]
+    done: list[object] = []
+
+    def work() -> Work:
+        return Work(object(), lambda: None, False, 1, lambda work, error: done.append(error))
+
+    try:
+        lane.submit(work())
+        wait_until(lambda: done, "the first work")
+        (worker,) = lane._threads
+        wait_until(lambda: _in_inbox_get(worker), "the worker to wait for work")
+        before = handoff.lingers  # after its first work, handed before the thread started: 1
+        interval = sys.getswitchinterval()
+        sys.setswitchinterval(5.0)
+        try:
+            lane.submit(work())  # at once: well within the bound after the worker was free
+            until = time.monotonic() + 0.4  # the GIL held: the worker's wait ends 400 ms after
+            while time.monotonic() < until:
+                pass
+        finally:
+            sys.setswitchinterval(interval)
+        wait_until(lambda: len(done) == 2, "the second work")
+        wait_until(lambda: handoff.lingers == before + 1, "the worker to linger before its next work", timeout=5.0)
+        assert done == [None, None]
+    finally:
+        lane.close(timeout=2.0)
+        loop.close()

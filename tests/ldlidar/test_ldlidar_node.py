@@ -655,6 +655,40 @@ def test_container_run_example_streams_scans_to_another_process(
     assert "threads left behind" not in output
 
 
+# A container process, and its load read over a few seconds.
+@pytest.mark.slow
+@pytest.mark.timeout(120)  # a container's start-up, the emulator's, then four windows of 1 s
+def test_the_examples_lidar_node_is_credited_its_reading_and_parsing(
+    run_container: Callable[..., ContainerProcess],
+    executor: AsyncioExecutor,
+    host: Callable[..., Any],
+) -> None:
+    """``container top`` on the README's first command: ``/ldlidar`` reads the emulator's
+    pseudo-terminal (a reader on the loop), parses in its own asyncio task and runs its emulator
+    in a thread of its own, all of it its own CPU, not the executor's."""
+    from lifecycle_container_interfaces.msg import ContainerLoad
+
+    if find_serial_ports():
+        pytest.skip("a serial device is attached: 'auto' would use it instead of the emulator")
+    proc = run_container(EXAMPLE.read_text(encoding="utf-8"))
+    proc.wait_for_line("started the built-in LD06 emulator")
+    loads = Recorder(host(Node, "top_observer"), ContainerLoad, "/ComponentManager/load", 5)
+
+    async def scenario() -> None:
+        await wait_until_async(lambda: len(loads) >= 4, "four windows of the container's load", timeout=20)
+
+    run(executor, scenario(), timeout=30)
+    lidar = [next(node for node in load.nodes if node.name == "/ldlidar") for load in loads.messages()[-3:]]
+    cpu = sum(node.cpu for node in lidar) / len(lidar)
+    rows = {c.kind: c for c in lidar[-1].callbacks}
+    assert cpu > 0.005, [(c.kind, c.cpu) for c in lidar[-1].callbacks]
+    assert rows["task"].cpu_seconds_total > 0, "its parsing, in the task it reads in"
+    assert rows["fd"].runs_total > 0 and rows["loop_timer"].runs_total > 0, "its reads: the port's reader, its polls"
+    if "thread" in rows:  # Python 3.12 on: its emulator's writer thread
+        assert rows["thread"].cpu_seconds_total > 0
+    assert proc.stop() == 0
+
+
 # Replays seconds of a real capture at the device's pace.
 @pytest.mark.slow
 @pytest.mark.shared

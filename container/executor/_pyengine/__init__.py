@@ -14,6 +14,7 @@ why, and ``docs/executor/engines.md`` lists it.
 from __future__ import annotations
 
 from .express import Express, first_step
+from .handles import HandleMeter
 from .handoff import Handoff
 from .lanes import KeepLast, Route, Routes, Runner, Slots, Token, Work
 from .lock import Lock
@@ -33,6 +34,7 @@ __all__ = [
     "Caller",
     "Express",
     "FdWatcher",
+    "HandleMeter",
     "Handoff",
     "KeepLast",
     "Lock",

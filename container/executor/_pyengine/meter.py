@@ -33,8 +33,10 @@ each meter has a lock of its own, taken for every change and window.
 
 from __future__ import annotations
 
+import operator
 import threading
 import time
+from typing import Any
 
 __all__ = ["Meter", "begin", "count_dropped", "end", "pause", "resume", "stuck_after"]
 
@@ -134,6 +136,24 @@ class Meter:
         self._stuck_counted = False
         self._late = [0] * METER_BUCKETS
         self._dur = [0] * METER_BUCKETS
+
+    @property
+    def running(self) -> int:
+        """How long the step running now has run (ns; 0: none runs)."""
+        with self._lock:
+            return _monotonic_ns() - self._step_since if self._in_step > 0 else 0
+
+    def call(self, *args: Any) -> Any:
+        """``call(arrived, call, *args)``: ``call(*args)`` as one run of this meter, begun (its
+        lateness from ``arrived``, monotonic ns; 0 unknown) and ended when it returns or raises."""
+        if len(args) < 2:
+            raise TypeError("call(arrived, call, *args)")
+        arrived = operator.index(args[0])
+        start = begin(self, arrived)
+        try:
+            return args[1](*args[2:])
+        finally:
+            end(self, start, start)
 
     def take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
         """``(runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50,

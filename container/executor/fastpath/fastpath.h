@@ -266,6 +266,12 @@ typedef struct {
 } MeterObject;
 
 extern PyTypeObject MeterType;
+
+/* -- handles.c --------------------------------------------------------------- */
+extern PyTypeObject HandleMeterType;
+/* Readies the type (its tp_new is object's, known only at run time). */
+int handle_meter_ready(void);
+
 extern PyMethodDef meter_functions[];
 /* A callback's first step starts (arrived: when its work arrived, 0 unknown): its start (ns). */
 long long meter_begin(MeterObject * self, long long arrived);

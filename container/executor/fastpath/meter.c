@@ -209,11 +209,51 @@ static PyObject * Meter_take(MeterObject * self, PyObject * Py_UNUSED(ignored))
   return figures;
 }
 
+/* call(arrived, call, *args) -> object: call(*args) as one run of this meter, begun
+ * (its lateness from arrived; 0: unknown) and ended when it returns or raises.
+ *
+ * Why here: the event loop's own callbacks (a reader, a call_later handle)
+ * that a node scheduled are timed as its callbacks are, with the same two
+ * clock reads and without a Work per call (see container/executor/_loop.py). */
+static PyObject * Meter_call(MeterObject * self, PyObject * const * args, Py_ssize_t nargs)
+{
+  long long arrived, start;
+  PyObject * result;
+  if (nargs < 2) {
+    PyErr_SetString(PyExc_TypeError, "call(arrived, call, *args)");
+    return NULL;
+  }
+  arrived = PyLong_AsLongLong(args[0]);
+  if (arrived == -1 && PyErr_Occurred()) {
+    return NULL;
+  }
+  start = meter_begin(self, arrived);
+  Py_INCREF(self); /* the call may drop the last other reference to this meter */
+  result = PyObject_Vectorcall(args[1], args + 2, (size_t)(nargs - 2), NULL);
+  meter_end(self, start, start);
+  Py_DECREF(self);
+  return result;
+}
+
 static PyMethodDef Meter_methods[] = {
+  {"call", (PyCFunction)(void (*)(void))Meter_call, METH_FASTCALL,
+   "call(arrived, call, *args) -> object: call(*args) as one run of this meter (arrived: monotonic ns, 0 unknown)"},
   {"take", (PyCFunction)Meter_take, METH_NOARGS,
    "take() -> (runs, finished, busy_ns, cpu_ns, late_p50, late_p99, late_max, duration_p50, duration_p99, "
    "duration_max, dropped, stuck, running_ns): this window's figures (ns), then a new window"},
   {NULL, NULL, 0, NULL},
+};
+
+/* running -> int: how long the step running now has run (ns; 0: none runs). Read by the
+ * watchdog's thread to name which node's loop work holds the loop (container/executor/_loop.py). */
+static PyObject * Meter_get_running(MeterObject * self, void * Py_UNUSED(closure))
+{
+  return PyLong_FromLongLong(self->in_step > 0 ? monotonic_ns() - self->step_since : 0);
+}
+
+static PyGetSetDef Meter_getset[] = {
+  {"running", (getter)Meter_get_running, NULL, "How long the step running now has run (ns; 0: none runs).", NULL},
+  {NULL, NULL, NULL, NULL, NULL},
 };
 
 PyTypeObject MeterType = {
@@ -224,6 +264,7 @@ PyTypeObject MeterType = {
   .tp_flags = Py_TPFLAGS_DEFAULT,
   .tp_new = PyType_GenericNew,
   .tp_methods = Meter_methods,
+  .tp_getset = Meter_getset,
 };
 
 /* stuck_after(ns) -> None: how long a step runs before it counts as stuck (all meters). */

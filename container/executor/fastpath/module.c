@@ -2,7 +2,7 @@
  *
  * One module from one source per job (shared declarations in fastpath.h):
  * held.c, notifier.c, waitset.c, taker.c, service.c, lock.c, lanes.c,
- * express.c, watcher.c, handoff.c, meter.c; this file makes the module and
+ * express.c, watcher.c, handoff.c, meter.c, handles.c; this file makes the module and
  * holds its few free functions. Its pure-Python twin, the executable
  * specification of what it does, is container/executor/_pyengine/.
  *
@@ -48,6 +48,9 @@
  *
  * Meter (meter.c): what one entity's callbacks cost, timed where each step
  * runs, whichever path runs it.
+ *
+ * HandleMeter (handles.c): the event loop's call_soon, which schedules a
+ * node's handles metered as its own (the loop's hottest method, in C).
  *
  * Express: the loop thread's chain of async def subscription callbacks
  * (take, admit to the callback group's lane, first step, release) without
@@ -146,10 +149,13 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     {"Express", &ExpressType}, {"Token", &TokenType}, {"Work", &WorkType}, {"Runner", &RunnerType},
     {"KeepLast", &KeepLastType}, {"Slots", &SlotsType}, {"Route", &RouteType}, {"Routes", &RoutesType},
     {"FdWatcher", &FdWatcherType}, {"Handoff", &HandoffType}, {"Meter", &MeterType},
-    {"Server", &ServerType}, {"Caller", &CallerType},
+    {"Server", &ServerType}, {"Caller", &CallerType}, {"HandleMeter", &HandleMeterType},
   };
   size_t i;
   PyObject * m;
+  if (handle_meter_ready() < 0) {
+    return NULL;
+  }
   for (i = 0; i < sizeof(types) / sizeof(types[0]); ++i) {
     if (PyType_Ready(types[i].type) < 0) {
       return NULL;

@@ -102,6 +102,9 @@ static int FdWatcher_init(FdWatcherObject * self, PyObject * args, PyObject * kw
     PyErr_SetFromErrno(PyExc_OSError);
     return -1;
   }
+  /* Named for the accounting (container/executor/_threads.py): its CPU is the
+   * executor's, and Python, which knows no thread started in C, cannot say so. */
+  (void)pthread_setname_np(self->thread, "fd-watcher");
   self->running = 1;
   return 0;
 }

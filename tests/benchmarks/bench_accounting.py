@@ -290,7 +290,7 @@ def _in_one_process(kind: str, seconds: float, variant: str, turns: int) -> list
 
     def turn(accounting: bool) -> float:
         executor = AsyncioExecutor(accounting=accounting)
-        sample_every_second(executor)
+        stop_sampling = sample_every_second(executor)
         stop.clear()
         rearm()
         for node in nodes:
@@ -316,6 +316,7 @@ def _in_one_process(kind: str, seconds: float, variant: str, turns: int) -> list
             value = 100.0 * cpu / wall
         stop.set()  # the turn's tasks and threads end (the tasks with the executor, at the latest)
         executor.shutdown(timeout_sec=2.0)
+        stop_sampling()
         spinner.join(5.0)
         for node in nodes:
             executor.remove_node(node)

@@ -248,23 +248,28 @@ def _executor(kind: str) -> Any:
     return SingleThreadedExecutor() if kind == "single" else MultiThreadedExecutor()
 
 
-def sample_every_second(executor: Any) -> None:
+def sample_every_second(executor: Any) -> Callable[[], None]:
     """Close an accounting window every second while ``executor`` lives, as a container's
-    load reporter does (``container._load``): what that costs is part of the accounting's cost."""
+    load reporter does (``container._load``): what that costs is part of the accounting's cost.
+
+    Returns what stops it: an executor shut down may live on a while (reference
+    cycles), and its windows would go on being closed in the next executor's turn."""
     accounting = getattr(executor, "accounting", None)
+    stopped = threading.Event()
     if accounting is None:
-        return
+        return stopped.set
     import weakref
 
     alive = weakref.ref(accounting)
 
     def sample() -> None:
-        while (held := alive()) is not None:
+        while not stopped.is_set() and (held := alive()) is not None:
             held.sample()
             del held
-            time.sleep(1.0)
+            stopped.wait(1.0)
 
     threading.Thread(target=sample, name="sampler", daemon=True).start()
+    return stopped.set
 
 
 def _spin_until(

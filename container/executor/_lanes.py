@@ -75,8 +75,8 @@ WORKER_IDLE_S = 3.0
 #: hand-over put it to sleep and its wake-ups then kept every wait above
 #: the bound: it never lingered again while the work came as fast as
 #: before, and which of the two a run settled in decided plain service
-#: calls' rate (0.82x-1.24x between otherwise equal two-second turns;
-#: the accounting's 4.5 us a call tipped it to sleeping).
+#: calls' rate (0.82x-1.24x between otherwise equal 1.5 s turns; the
+#: accounting's few microseconds a call tipped it to sleeping).
 #:
 #: Measured against, on the project's 2-core shared KVM VM: with the loop's
 #: linger (``fastpath/handoff.c``, ``LOOP_LINGER_NS``, commit bc7e731), plain

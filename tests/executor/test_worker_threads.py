@@ -15,6 +15,7 @@ from rclpy.node import Node
 
 from container import AsyncioExecutor
 from container.executor import _lanes
+from container.executor._tasks import TaskLaneHooks
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.timeout(30)
@@ -90,40 +91,31 @@ class _CountingHandoff:
         return False
 
 
-class _LaneHooks:
-    """What a lane asks of its dispatcher, for plain work handed over from "the loop's thread"."""
-
-    carries = False
+class _LaneHooks(TaskLaneHooks):
+    """The plain task lane's hooks, but for work handed over from "the loop's thread" through ``handoff``."""
 
     def __init__(self, handoff: _CountingHandoff) -> None:
-        self.handoff = handoff
+        super().__init__(post=lambda callback, *args: callback(*args), progress=_no_progress)
+        self.handoff = handoff  # type: ignore[assignment]
 
     def on_loop_thread(self) -> bool:
         return True
 
-    def post(self, callback: Any, *args: Any) -> None:
-        callback(*args)
 
-    def progress(self) -> Any:
-        raise AssertionError("plain work only")
-
-    def defer(self, lane: Any, work: Any) -> bool:
-        return False
-
-    def carry(self) -> None:
-        pass
-
-    def suspended(self) -> None:
-        pass
+def _no_progress() -> Any:
+    raise AssertionError("plain work only")
 
 
-def _in_inbox_get(thread: threading.Thread) -> bool:
-    """Whether ``thread`` waits in its lane's inbox (``_worker``'s ``inbox.get``)."""
-    frame = sys._current_frames().get(thread.ident or 0)
-    if frame is None or frame.f_code is not _lanes.Lane._worker.__code__:
-        return False
+def _inbox_get_line() -> int:
+    """The line of ``Lane._worker`` where a worker waits in its lane's inbox (``inbox.get``)."""
     lines, first = inspect.getsourcelines(_lanes.Lane._worker)
-    return "inbox.get(" in lines[frame.f_lineno - first]
+    return first + next(index for index, line in enumerate(lines) if "inbox.get(" in line)
+
+
+def _in_inbox_get(thread: threading.Thread, line: int) -> bool:
+    """Whether ``thread`` waits at ``line`` of ``Lane._worker`` (see :func:`_inbox_get_line`)."""
+    frame = sys._current_frames().get(thread.ident or 0)
+    return frame is not None and frame.f_code is _lanes.Lane._worker.__code__ and frame.f_lineno == line
 
 
 def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_woke(
@@ -140,7 +132,7 @@ def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_wok
     monkeypatch.setattr(_lanes, "WORKER_LINGER_NS", 200_000_000)  # 200 ms: far above any poll here
     handoff = _CountingHandoff()
     loop = asyncio.new_event_loop()
-    lane = _lanes.Lane(name="linger", limit=1, loop=loop, hooks=_LaneHooks(handoff))  # type: ignore[arg-type]
+    lane = _lanes.Lane(name="linger", limit=1, loop=loop, hooks=_LaneHooks(handoff))
     done: list[object] = []
 
     def work() -> Work:
@@ -150,7 +142,8 @@ def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_wok
         lane.submit(work())
         wait_until(lambda: done, "the first work")
         (worker,) = lane._threads
-        wait_until(lambda: _in_inbox_get(worker), "the worker to wait for work")
+        line = _inbox_get_line()
+        wait_until(lambda: _in_inbox_get(worker, line), "the worker to wait for work")
         before = handoff.lingers  # after its first work, handed before the thread started: 1
         interval = sys.getswitchinterval()
         sys.setswitchinterval(5.0)

@@ -191,10 +191,19 @@ def drive(
                 yielded = send(value)
             else:
                 error, thrown = thrown, None
+                if isinstance(error, GeneratorExit) and _closed(coro):
+                    # Collected with the task it ran in, ``coro`` may have been closed
+                    # first: throwing into it would raise "cannot reuse already awaited".
+                    raise error
                 yielded = throw(error)
         except StopIteration as stop:
             finished: T = stop.value
             return finished
+
+
+def _closed(coro: object) -> bool:
+    """Whether ``coro`` (a coroutine, or asyncio's wrapper generator before 3.12) has finished."""
+    return getattr(coro, "cr_frame", getattr(coro, "gi_frame", True)) is None
 
 
 async def _adapted(

@@ -73,6 +73,10 @@ __all__: list[str] = []
 
 _log = logging.getLogger(__name__)
 
+#: Tables built at most per rebuild, when entities keep being destroyed under it.
+_REBUILD_TRIES = 3
+
+
 class Held:
     """The handles one table keeps alive (entered), let go together, the last first.
 
@@ -248,9 +252,24 @@ class EntityWaitSet:
         return self._take_lock
 
     def _rebuild(self) -> None:
-        self._routes.dirty = False
+        for attempt in range(_REBUILD_TRIES):
+            self._routes.dirty = False
+            table = Table()
+            try:
+                self._collect(table)
+            except BaseException as exc:
+                # Never a table's holds left behind: a destroyed entity's handle is
+                # let go only once nothing holds it (its node would stay on the graph).
+                table.close()
+                if isinstance(exc, InvalidHandle) and attempt + 1 < _REBUILD_TRIES:
+                    continue  # destroyed by another thread after it was held here: again, without it
+                raise
+            self._install(table)
+            return
+
+    def _collect(self, table: Table) -> None:
+        """Fill ``table`` with every entity of the dispatcher's nodes, each held; build its wait set."""
         dispatcher = self._dispatcher
-        table = Table()
         held = table.held
         extra = NumberOfEntities()
         for kind in KINDS:
@@ -347,6 +366,10 @@ class EntityWaitSet:
                 len(table.events) + extra.num_events,
                 context.handle,
             )
+
+    def _install(self, table: Table) -> None:
+        """Wait on ``table`` from now on; let go of the one before."""
+        notifier = self._notifier
         old, self._table = self._table, table
         self._routes.subscriptions = table.express
         self._routes.timers = table.express_timers

@@ -31,6 +31,7 @@ from rclpy.validate_node_name import validate_node_name
 from . import checks
 from ._compat import InvalidROSArgsError, is_built, state_machine, state_machine_if_built
 from ._errors import ConfigError, LoadError, TransitionError
+from ._memory import MemoryReturn
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
 from ._statefile import same_parameters
@@ -208,6 +209,8 @@ class ComponentManager(Node):
         self._ignored_arguments: set[str] = set()
         #: Told of every load and unload, if set.
         self.watcher: LoadWatcher | None = None
+        #: What unloaded nodes freed, given back to the system once unloads settle.
+        self.memory = MemoryReturn(log=lambda trimmed: self.get_logger().info(trimmed.describe()))
 
     # -- queries ------------------------------------------------------------------
     def loaded(self) -> list[LoadedNode]:
@@ -513,6 +516,7 @@ class ComponentManager(Node):
             self._spawn(self._destroy_when_idle(node))
         else:
             _destroy(node)
+            self.memory.unloaded()
         log = self.get_logger()
         for note in notes:
             log.warning(f"Unloading '{loaded.full_name}': {note}")
@@ -524,6 +528,7 @@ class ComponentManager(Node):
         while await self._host.retire(node, timeout=1.0):
             pass
         _destroy(node)
+        self.memory.unloaded()
         self.get_logger().info(f"Released '{node.get_fully_qualified_name()}': its last callback returned")
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
@@ -537,6 +542,7 @@ class ComponentManager(Node):
             await self.unload(unique_id)
         for task in list(self._background):
             task.cancel()
+        self.memory.close()
 
 
 def _same_load(

@@ -1,4 +1,4 @@
-"""Worker threads (``_workers``): started when plain work finds none idle, gone once idle or past the pool's size."""
+"""Lane worker threads: started when plain work arrives, gone once idle."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 
 from container import AsyncioExecutor
-from container.executor import _lanes, _workers
+from container.executor import _lanes
 from container.executor._tasks import TaskLaneHooks
 from tests.waiting import wait_until
 
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.timeout(30)
 def test_an_idle_worker_thread_exits_and_work_starts_a_new_one(
     context: Context, executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(_workers, "WORKER_IDLE_S", 0.2)
+    monkeypatch.setattr(_lanes, "WORKER_IDLE_S", 0.2)
     node = Node("idle_worker", context=context)
     ran_on: list[threading.Thread] = []
 
@@ -55,7 +55,7 @@ def test_a_worker_with_work_handed_to_it_does_not_exit(
 ) -> None:
     """Work that arrives every idle period or so keeps its lane's one thread:
     never a second thread, never a lost callback."""
-    monkeypatch.setattr(_workers, "WORKER_IDLE_S", 0.02)
+    monkeypatch.setattr(_lanes, "WORKER_IDLE_S", 0.02)
     node = Node("busy_worker", context=context)
     ran_on: list[threading.Thread] = []
     timer = node.create_timer(0.02, lambda: ran_on.append(threading.current_thread()))
@@ -97,7 +97,6 @@ class _LaneHooks(TaskLaneHooks):
     def __init__(self, handoff: _CountingHandoff) -> None:
         super().__init__(post=lambda callback, *args: callback(*args), progress=_no_progress)
         self.handoff = handoff  # type: ignore[assignment]
-        self.workers = _workers.WorkerPool(name="linger", handoff=handoff, carries=False)  # type: ignore[arg-type]
 
     def on_loop_thread(self) -> bool:
         return True
@@ -108,15 +107,15 @@ def _no_progress() -> Any:
 
 
 def _inbox_get_line() -> int:
-    """The line of ``WorkerPool._work`` where a worker waits in the pool's inbox (``inbox.get``)."""
-    lines, first = inspect.getsourcelines(_workers.WorkerPool._work)
+    """The line of ``Lane._worker`` where a worker waits in its lane's inbox (``inbox.get``)."""
+    lines, first = inspect.getsourcelines(_lanes.Lane._worker)
     return first + next(index for index, line in enumerate(lines) if "inbox.get(" in line)
 
 
 def _in_inbox_get(thread: threading.Thread, line: int) -> bool:
-    """Whether ``thread`` waits at ``line`` of ``WorkerPool._work`` (see :func:`_inbox_get_line`)."""
+    """Whether ``thread`` waits at ``line`` of ``Lane._worker`` (see :func:`_inbox_get_line`)."""
     frame = sys._current_frames().get(thread.ident or 0)
-    return frame is not None and frame.f_code is _workers.WorkerPool._work.__code__ and frame.f_lineno == line
+    return frame is not None and frame.f_code is _lanes.Lane._worker.__code__ and frame.f_lineno == line
 
 
 def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_woke(
@@ -130,11 +129,10 @@ def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_wok
     equal runs)."""
     from container.executor._engine import Work
 
-    monkeypatch.setattr(_workers, "WORKER_LINGER_NS", 200_000_000)  # 200 ms: far above any poll here
+    monkeypatch.setattr(_lanes, "WORKER_LINGER_NS", 200_000_000)  # 200 ms: far above any poll here
     handoff = _CountingHandoff()
     loop = asyncio.new_event_loop()
-    hooks = _LaneHooks(handoff)
-    lane = _lanes.Lane(name="linger", limit=1, loop=loop, hooks=hooks)
+    lane = _lanes.Lane(name="linger", limit=1, loop=loop, hooks=_LaneHooks(handoff))
     done: list[object] = []
 
     def work() -> Work:
@@ -143,7 +141,7 @@ def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_wok
     try:
         lane.submit(work())
         wait_until(lambda: done, "the first work")
-        (worker,) = hooks.workers.threads
+        (worker,) = lane._threads
         line = _inbox_get_line()
         wait_until(lambda: _in_inbox_get(worker, line), "the worker to wait for work")
         before = handoff.lingers  # after its first work, handed before the thread started: 1
@@ -161,5 +159,4 @@ def test_a_worker_handed_work_soon_after_it_was_free_lingers_however_late_it_wok
         assert done == [None, None]
     finally:
         lane.close(timeout=2.0)
-        hooks.workers.close(timeout=2.0)
         loop.close()

@@ -38,7 +38,7 @@ def test_entities_destroyed_while_the_wait_set_is_built_leave_the_graph(
     node = Node("rebuilt", context=context)
     peer = Node("rebuild_peer", context=context)  # not spun: it only looks at the graph
     timer = node.create_timer(0.5, lambda: None)
-    service = node.create_service(Trigger, "rebuilt_service", lambda request, response: response)
+    service: Any = node.create_service(Trigger, "rebuilt_service", lambda request, response: response)
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()

@@ -35,6 +35,7 @@ sys.path.insert(0, str(REPO))
 
 from container._runtime import use_fast_discovery  # noqa: E402
 from tests.benchmarks import cpus  # noqa: E402
+from tests.benchmarks.container_client import smaps_rollup  # noqa: E402
 
 use_fast_discovery()
 
@@ -98,11 +99,8 @@ class Result:
     seconds_to_active: float
 
 
-def smaps_rollup(pid: int) -> tuple[int, int]:
-    fields = {}
-    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:]:
-        key, value = line.split(":", 1)
-        fields[key] = int(value.split()[0])
+def pss_and_rss(pid: int) -> tuple[int, int]:
+    fields = smaps_rollup(pid)
     return fields["Pss"], fields["Rss"]
 
 
@@ -159,7 +157,7 @@ def measure(
         executor.spin_until_future_complete(asyncio.sleep(3.0))
         pss = rss = 0
         for process in processes:
-            process_pss, process_rss = smaps_rollup(process.pid)
+            process_pss, process_rss = pss_and_rss(process.pid)
             pss += process_pss
             rss += process_rss
         return Result(layout, len(processes), pss, rss, elapsed)

@@ -38,33 +38,13 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))  # tests.benchmarks
 
 from tests.benchmarks import cpus  # noqa: E402
+from tests.benchmarks.container_client import CLIENT_PRELUDE, smaps_rollup  # noqa: E402
 
 #: Load/unload client of the container: one line per phase on stdout, then waits for a line on stdin.
-CONTAINER_CLIENT = r"""
-import sys
-import rclpy
-from rclpy.node import Node
-from composition_interfaces.srv import LoadNode, UnloadNode
+CONTAINER_CLIENT = CLIENT_PRELUDE + r"""
 from rcl_interfaces.msg import Parameter, ParameterValue, ParameterType
 
-from container import AsyncioExecutor
-
 nodes, cycles = int(sys.argv[1]), int(sys.argv[2])
-rclpy.init()
-node = Node("_cycles_client")
-executor = AsyncioExecutor()
-executor.add_node(node)
-load = node.create_client(LoadNode, "/ComponentManager/_container/load_node")
-unload = node.create_client(UnloadNode, "/ComponentManager/_container/unload_node")
-for client in (load, unload):
-    assert client.wait_for_service(timeout_sec=30.0)
-
-def call(client, request):
-    future = client.call_async(request)
-    executor.spin_until_future_complete(future, timeout_sec=60.0)
-    if not future.done():
-        sys.exit(f"no answer from {client.srv_name}")
-    return future.result()
 
 autostart = Parameter(name="autostart", value=ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=True))
 print("ready", flush=True); sys.stdin.readline()
@@ -75,13 +55,13 @@ for cycle in range(cycles):
             package_name="lifecycle_container", plugin_name="lifecycle_container::Talker",
             node_name=f"talker_{index}", extra_arguments=[autostart],
         )
-        response = call(load, request)
+        response = call(load, request, 60.0)
         if not response.success:
             sys.exit(response.error_message)
         ids.append(response.unique_id)
     print("loaded", flush=True); sys.stdin.readline()
     for unique_id in ids:
-        if not call(unload, UnloadNode.Request(unique_id=unique_id)).success:
+        if not call(unload, UnloadNode.Request(unique_id=unique_id), 60.0).success:
             sys.exit("unload failed")
     print("unloaded", flush=True); sys.stdin.readline()
 executor.shutdown()
@@ -145,10 +125,7 @@ rclpy.shutdown()
 
 def memory_kb(pid: int) -> tuple[int, int]:
     """PSS and RSS of ``pid``, kB."""
-    fields: dict[str, int] = {}
-    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:]:
-        key, value = line.split(":", 1)
-        fields[key] = int(value.split()[0])
+    fields = smaps_rollup(pid)
     return fields["Pss"], fields["Rss"]
 
 

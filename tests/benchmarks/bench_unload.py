@@ -32,36 +32,16 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))  # tests.benchmarks
 
 from tests.benchmarks import cpus  # noqa: E402
+from tests.benchmarks.container_client import CLIENT_PRELUDE, smaps_rollup  # noqa: E402
 
-CLIENT = r"""
-import sys, time
-import rclpy
-from rclpy.node import Node
+CLIENT = CLIENT_PRELUDE + r"""
+import time
 from rclpy.parameter import Parameter
-from composition_interfaces.srv import LoadNode, UnloadNode
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 
-from container import AsyncioExecutor
-
 cycles, tds = int(sys.argv[1]), sys.argv[2] == "on"
-rclpy.init()
-node = Node("_soak_client")
-# rclpy's SingleThreadedExecutor spent 85% of a core here and set the pace.
-executor = AsyncioExecutor()
-executor.add_node(node)
-load = node.create_client(LoadNode, "/ComponentManager/_container/load_node")
-unload = node.create_client(UnloadNode, "/ComponentManager/_container/unload_node")
 change = node.create_client(ChangeState, "/talker/change_state")
-for client in (load, unload):
-    assert client.wait_for_service(timeout_sec=30.0)
-
-def call(client, request):
-    future = client.call_async(request)
-    executor.spin_until_future_complete(future, timeout_sec=30.0)
-    if not future.done():
-        sys.exit(f"no answer from {client.srv_name}")
-    return future.result()
 
 extra = [Parameter("start_type_description_service", value=True).to_parameter_msg()] if tds else []
 started = time.monotonic()
@@ -91,10 +71,7 @@ rclpy.shutdown()
 
 
 def memory_kb(pid: int) -> tuple[int, int]:
-    fields: dict[str, int] = {}
-    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:]:
-        key, value = line.split(":", 1)
-        fields[key] = int(value.split()[0])
+    fields = smaps_rollup(pid)
     return fields["Private_Clean"] + fields["Private_Dirty"], fields["Rss"]
 
 

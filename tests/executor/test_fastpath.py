@@ -1107,8 +1107,10 @@ def test_a_plain_subscriber_keeps_pace_beside_a_busy_async_publisher(
     finally:
         for made in (a, b):
             made.destroy_node()
-    # Measured: 92-100% of the frames, median 0.05-0.11 ms; before: 0.3-6%.
-    assert len(received) > published / 3, f"{len(received)} of {published} frames"
+    # Measured: 92-100% of the frames on a quiet machine, median 0.05-0.11 ms; 60-74% on the
+    # Python engine beside a process spinning on one core; once 28% in CI (Kilted, Python
+    # engine, 13,469 frames). Starved, before: 0.3-6%. A fifth keeps three times the margin.
+    assert len(received) > published / 5, f"{len(received)} of {published} frames"
     assert sorted(received)[len(received) // 2] < 5.0, f"median {sorted(received)[len(received) // 2]:.2f} ms"
     assert hand_overs > 0
 

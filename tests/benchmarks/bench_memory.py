@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 
 from container._runtime import use_fast_discovery  # noqa: E402
 from tests.benchmarks import cpus  # noqa: E402
-from tests.benchmarks.container_client import smaps_rollup  # noqa: E402
+from tests.benchmarks.container_client import pss_and_rss  # noqa: E402
 
 use_fast_discovery()
 
@@ -97,11 +97,6 @@ class Result:
     pss_kb: int
     rss_kb: int
     seconds_to_active: float
-
-
-def pss_and_rss(pid: int) -> tuple[int, int]:
-    fields = smaps_rollup(pid)
-    return fields["Pss"], fields["Rss"]
 
 
 async def wait_all_active(node: Node, names: list[str], *, timeout: float) -> None:

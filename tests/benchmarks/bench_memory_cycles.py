@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))  # tests.benchmarks
 
 from tests.benchmarks import cpus  # noqa: E402
-from tests.benchmarks.container_client import CLIENT_PRELUDE, smaps_rollup  # noqa: E402
+from tests.benchmarks.container_client import CLIENT_PRELUDE, pss_and_rss  # noqa: E402
 
 #: Load/unload client of the container: one line per phase on stdout, then waits for a line on stdin.
 CONTAINER_CLIENT = CLIENT_PRELUDE + r"""
@@ -123,25 +123,19 @@ rclpy.shutdown()
 """
 
 
-def memory_kb(pid: int) -> tuple[int, int]:
-    """PSS and RSS of ``pid``, kB."""
-    fields = smaps_rollup(pid)
-    return fields["Pss"], fields["Rss"]
-
-
 def settled(pid: int, *, quiet: float = 2.0, timeout: float = 30.0) -> tuple[int, int]:
     """``pid``'s memory once its RSS has moved less than 1% for ``quiet`` seconds."""
     deadline = time.monotonic() + timeout
-    last = memory_kb(pid)
+    last = pss_and_rss(pid)
     since = time.monotonic()
     while time.monotonic() < deadline:
         time.sleep(0.25)
-        now = memory_kb(pid)
+        now = pss_and_rss(pid)
         if abs(now[1] - last[1]) > last[1] / 100:
             last, since = now, time.monotonic()
         elif time.monotonic() - since >= quiet:
             return now
-    return memory_kb(pid)
+    return pss_and_rss(pid)
 
 
 def run(layout: str, nodes: int, cycles: int) -> list[tuple[str, int, int]]:

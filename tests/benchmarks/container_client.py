@@ -42,3 +42,9 @@ def smaps_rollup(pid: int) -> dict[str, int]:
         key, value = line.split(":", 1)
         fields[key] = int(value.split()[0])
     return fields
+
+
+def pss_and_rss(pid: int) -> tuple[int, int]:
+    """PSS and RSS of ``pid``, kB."""
+    fields = smaps_rollup(pid)
+    return fields["Pss"], fields["Rss"]

@@ -85,7 +85,7 @@ def test_failed_entries_are_named_and_summed_up_and_the_rest_still_runs(
     )
     proc.wait_for_line("[typo]: Unknown parameter 'rat' ignored: this node does not read it (did you mean 'rate'?)")
     proc.wait_for_line("I heard: [Hello World:")
-    assert proc.stop() == 0
+    assert proc.stop() == 0, proc.output()
 
 
 def test_the_summary_at_ready_repeats_the_warnings_of_the_files_loads(
@@ -118,7 +118,7 @@ def test_the_summary_at_ready_repeats_the_warnings_of_the_files_loads(
     )
     # Still in the log as they happened, each once.
     assert sum("[typo]: Unknown parameter 'rat'" in line for line in proc.lines[:ready]) == 1, proc.output()
-    assert proc.stop() == 0
+    assert proc.stop() == 0, proc.output()
 
 
 def test_on_failure_exit_takes_the_container_down_with_exit_1(
@@ -158,7 +158,7 @@ nodes:
 """
     )
     proc.wait_for_line("I heard: [From the file:")
-    assert proc.stop() == 0
+    assert proc.stop() == 0, proc.output()
 
 
 #: Ten levels of nine aliases each: 449 bytes that a plain YAML load expands
@@ -246,7 +246,7 @@ def test_without_a_file_an_empty_container_takes_its_ros_arguments_like_rclcpps(
             timeout=20.0,
             executor=executor,
         )
-        assert proc.stop() == 0
+        assert proc.stop() == 0, proc.output()
     finally:
         proc.close()
 

@@ -163,18 +163,24 @@ def _in_graph(node: Node, srv: Any, guid: bytes) -> bool:
 
     A first answer to a client not known yet: ``ros2 service call`` and every
     new client (tens of microseconds). Where the graph does not say so (not
-    discovered yet, an incompatible QoS), the resender sends it.
+    discovered yet, an incompatible QoS, the service or its node destroyed
+    meanwhile), the resender sends it.
     """
     try:
-        with srv.handle:
-            topic = f"rr{srv.handle.name}Reply"  # rmw's name for the service's response topic
-        readers = node.get_subscriptions_info_by_topic(topic, no_mangle=True)
-        reader = next((info for info in readers if bytes(info.endpoint_gid[:_GUID_SIZE]) == guid), None)
-        if reader is None:
-            return False
-        writers = node.get_publishers_info_by_topic(topic, no_mangle=True)
+        return _graph_knows(node, srv, guid)
     except InvalidHandle:
         return False
+
+
+def _graph_knows(node: Node, srv: Any, guid: bytes) -> bool:
+    """:func:`_in_graph`, raising rclpy's ``InvalidHandle`` for a service or node destroyed."""
+    with srv.handle:
+        topic = f"rr{srv.handle.name}Reply"  # rmw's name for the service's response topic
+    readers = node.get_subscriptions_info_by_topic(topic, no_mangle=True)
+    reader = next((info for info in readers if bytes(info.endpoint_gid[:_GUID_SIZE]) == guid), None)
+    if reader is None:
+        return False
+    writers = node.get_publishers_info_by_topic(topic, no_mangle=True)
     return bool(writers) and all(
         info.topic_type == reader.topic_type
         and qos_check_compatible(info.qos_profile, reader.qos_profile)[0] == QoSCompatibility.OK
@@ -395,6 +401,12 @@ class _Resender:
                 entry = client.answers[0]
                 holding = (client.srv, client.server, client.node)
             outcome = self._try(client, entry, *holding)
+            # Not held past the try: the last exit of a service destroyed
+            # meanwhile destroys it, under the GIL (Fast DDS deletes its
+            # endpoints: 200-300 ms of the whole process on a busy machine).
+            # Held by this frame, that was whenever the next answer came,
+            # seconds later, in the middle of other nodes' work.
+            del holding
             with self._wake:
                 now = idle_since = time.monotonic()
                 if not client.answers or client.answers[0] is not entry:
@@ -470,11 +482,11 @@ class _Resender:
         """
         _, response, header = entry
         holds_gil = server is None or _engine.ENGINE != "compiled"
-        if holds_gil and node is not None and client.guid is not None and not _in_graph(node, srv, client.guid):
-            client.stalled = False
-            return None
-        client.stalled = holds_gil
         try:
+            if holds_gil and node is not None and client.guid is not None and not _graph_knows(node, srv, client.guid):
+                client.stalled = False
+                return None
+            client.stalled = holds_gil
             if _sent(srv, server, response, header, let_go=True):
                 return True
         except InvalidHandle:

@@ -219,8 +219,12 @@ def test_what_is_remembered_of_clients_keeps_no_service_or_node_alive(
 ) -> None:
     """A client answered (remembered as matched) and a client given up on (remembered
     for its later answers) hold their service weakly: an unloaded node goes, with its
-    services and what their callbacks hold."""
+    services and what their callbacks hold; the resender's thread, idle, holds
+    nothing either (its last try once kept the service, and the node, until its
+    next answer: the service was then destroyed on that thread, under the GIL,
+    200-300 ms of the whole process in the middle of other nodes' work)."""
     monkeypatch.setattr(_answers, "RETRY_S", 0.3)
+    monkeypatch.setattr(_answers, "IDLE_S", 60.0)  # the thread outlives the node
 
     class Served(Node):
         def __init__(self) -> None:
@@ -252,6 +256,8 @@ def test_what_is_remembered_of_clients_keeps_no_service_or_node_alive(
         server.destroy_node()
         del server
         wait_until(lambda: gc.collect() >= 0 and gone() is None, "the unloaded node collected", timeout=5.0)
+        assert resender._thread is not None, "the resender ended: nothing here is tested"
     finally:
         executor.shutdown(timeout_sec=5.0)
         thread.join(5.0)
+        _answers.end_resender(timeout=2.0)

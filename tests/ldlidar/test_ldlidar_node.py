@@ -686,7 +686,7 @@ def test_the_examples_lidar_node_is_credited_its_reading_and_parsing(
     assert rows["fd"].runs_total > 0 and rows["loop_timer"].runs_total > 0, "its reads: the port's reader, its polls"
     if "thread" in rows:  # Python 3.12 on: its emulator's writer thread
         assert rows["thread"].cpu_seconds_total > 0
-    assert proc.stop() == 0
+    assert proc.stop() == 0, proc.output()
 
 
 # Replays seconds of a real capture at the device's pace.

@@ -598,7 +598,7 @@ class AsyncioExecutor(Executor):
             joined = self._task_lane.close(timeout=timeout) and joined
         super().shutdown(timeout_sec=0)
         if not self._loop.is_running() and not self._loop.is_closed():
-            self._drain_owned_loop()
+            self._drain_owned_loop(timeout)
             self._loop.close()
         self._inbox.clear()
         return joined
@@ -895,8 +895,9 @@ class AsyncioExecutor(Executor):
         timeout = None if timeout_sec is None or timeout_sec < 0 else timeout_sec
         await asyncio.wait(waits, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
 
-    def _drain_owned_loop(self) -> None:
-        """Let the owned loop's leftover tasks see their cancellation."""
+    def _drain_owned_loop(self, timeout: float) -> None:
+        """Let the owned loop's leftover tasks see their cancellation, and join its
+        default thread pool, as ``asyncio.run`` ends (waiting up to ``timeout``)."""
         self._selector.attach(None)
         pending = [t for t in asyncio.all_tasks(self._loop) if not t.done()]
         for task in pending:
@@ -908,6 +909,12 @@ class AsyncioExecutor(Executor):
         if pending:
             self._loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
         self._loop.run_until_complete(self._loop.shutdown_asyncgens())
+        # Joined, not told to end at close(): its idle threads (a plugin's
+        # to_thread) then ended some time after the process counted the
+        # threads it left behind, and a container stopped cleanly exited 1.
+        # A job still running past the timeout is left, and reported so.
+        with contextlib.suppress(TimeoutError):
+            self._loop.run_until_complete(asyncio.wait_for(self._loop.shutdown_default_executor(), timeout))
 
     # -- stop / progress signalling --------------------------------------------
     def _stopped_future(self) -> asyncio.Future[None]:

@@ -925,6 +925,29 @@ def test_shutdown_leaves_no_thread_behind(
     assert leftover == []
 
 
+def test_shutdown_joins_the_loops_default_thread_pool(context: Context) -> None:
+    """A task's ``asyncio.to_thread`` starts a thread of the loop's default pool
+    (the LiDAR plugin opens its port so); shutdown joins it, as ``asyncio.run``
+    ends: a container that counts the threads it leaves found it still ending
+    and exited 1 after a clean stop. Only told to end, the thread is gone a
+    moment later in about half the tries: ten tries, each checked at once."""
+    before = {t.ident for t in threading.enumerate()}
+
+    async def job() -> int:
+        return await asyncio.to_thread(threading.get_ident)
+
+    for _ in range(10):
+        executor = AsyncioExecutor(context=context)
+        try:
+            task = executor.create_task(job)
+            executor.spin_until_future_complete(task, timeout_sec=10.0)
+            assert task.result() not in before  # a thread of the pool, started here
+        finally:
+            assert executor.shutdown(timeout_sec=5.0)
+        leftover = [t.name for t in threading.enumerate() if t.ident not in before and t.is_alive()]
+        assert leftover == []
+
+
 def test_removed_node_gets_no_more_callbacks_and_its_lane_ends(
     executor: AsyncioExecutor, make_node: Callable[[str], Node]
 ) -> None:

@@ -57,6 +57,7 @@ from ._lanes import Lane, Retired
 from ._owners import executor_work
 from ._tasks import DoneCallbacks
 from ._waitset import EntityWaitSet, is_hot_waitable
+from ._workers import WorkerPool
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -107,6 +108,8 @@ class Dispatcher:
         # Counted once, here, as the executor is made: a process moved to
         # other CPUs later keeps what its executor was made with.
         self.handoff = Handoff(spin=usable_cpus() > 1)
+        #: The threads every lane's plain callbacks run on (:class:`LaneHooks`).
+        self.workers = WorkerPool(name="lane", handoff=self.handoff, carries=self.carries)
         #: Whether the loop's own thread waits in rcl (the executor's loop);
         #: on a loop of the user's (``spin_async``) a waiter thread does.
         self._loop_waits = loop_waits
@@ -640,6 +643,7 @@ class Dispatcher:
             lanes = [lane for _, lane in self._lanes.values()]
             self._lanes.clear()
         joined = all([lane.close(timeout=timeout) for lane in lanes])
+        joined = self.workers.close(timeout=timeout) and joined
         self._hot.close(timeout=timeout)
         self._active.set()
         with contextlib.suppress(InvalidHandle):

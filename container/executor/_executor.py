@@ -208,6 +208,8 @@ class AsyncioExecutor(Executor):
         #: Guards ``_state``; notified whenever it changes.
         self._state_changed = threading.Condition()
         self._task_lane: Lane | None = None
+        #: What the lane of plain tasks asks of the executor, with the threads it runs them on.
+        self._task_hooks = TaskLaneHooks(post=self._inbox.post, progress=self._progress_future)
         #: The outcome of releasing resources, once released.
         self._released: bool | None = None
         self._release_lock = threading.Lock()
@@ -596,6 +598,7 @@ class AsyncioExecutor(Executor):
         joined = self._dispatcher.close(timeout=timeout)
         if self._task_lane is not None:
             joined = self._task_lane.close(timeout=timeout) and joined
+        joined = self._task_hooks.workers.close(timeout=timeout) and joined
         super().shutdown(timeout_sec=0)
         if not self._loop.is_running() and not self._loop.is_closed():
             self._drain_owned_loop(timeout)
@@ -607,7 +610,7 @@ class AsyncioExecutor(Executor):
         current = threading.current_thread()
         if current.ident == self._dispatcher.loop_thread:
             return True
-        return any(current in lane.threads for lane in self._all_lanes())
+        return current in self.threads()
 
     def _all_lanes(self) -> list[Lane]:
         lanes = self._dispatcher.lanes()
@@ -616,10 +619,10 @@ class AsyncioExecutor(Executor):
         return lanes
 
     def threads(self) -> list[threading.Thread]:
-        """Worker threads currently alive in this executor's lanes."""
-        threads = [t for lane in self._dispatcher.lanes() for t in lane.threads]
+        """Worker threads currently alive in this executor (plain callbacks and tasks)."""
+        threads = self._dispatcher.workers.threads
         if self._task_lane is not None:
-            threads.extend(self._task_lane.threads)
+            threads.extend(self._task_hooks.workers.threads)
         return threads
 
     def tasks(self) -> set[asyncio.Task[object]]:
@@ -980,7 +983,7 @@ class AsyncioExecutor(Executor):
                     name="executor:tasks",
                     limit=self._reentrant_limit,
                     loop=self.loop,
-                    hooks=TaskLaneHooks(post=self._inbox.post, progress=self._progress_future),
+                    hooks=self._task_hooks,
                 )
             return self._task_lane
 

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
 
     from ._engine import Handoff, Work
     from ._lanes import Lane
+    from ._workers import WorkerPool
 
 __all__: list[str] = []
 
@@ -68,6 +69,9 @@ class LaneHooks(Protocol):
 
     #: Whether worker threads carry on to the plain callbacks their callbacks' publishes reach.
     carries: bool
+    #: The threads plain callbacks run on (every lane of the dispatcher shares them).
+    workers: WorkerPool
+
     @property
     def handoff(self) -> Handoff | None:
         """Where the loop's thread counts the workers it wakes (``None``: it never waits for them)."""

@@ -24,19 +24,19 @@ around every step.
 A worker thread that finished a plain callback *carries* on: what that
 callback published to another plain callback of this process is taken on
 the same thread, and if that callback's lane is free it runs there too,
-rather than the event loop waking to wake the lane's own thread (two thread
+rather than the event loop waking to wake another worker (two thread
 switches per hand-over, each costing more than the callback); the loop is
 not even woken for such a message while it wakes soon anyway (see
-``_fastpath``'s ``mark_carrier``). Meanwhile the
-worker's own lane counts it as away, so its next work gets a thread of its
-own: a carried callback that blocks delays nobody else.
+``_fastpath``'s ``mark_carrier``). Meanwhile the worker is busy to the
+pool, so other work goes to another worker (a new thread, should every
+worker be blocked): a carried callback that blocks delays nobody else for
+more than the pool's :data:`~._workers.STUCK_S`.
 
-A worker thread left idle for :data:`WORKER_IDLE_S` exits, and the next
-plain work of its lane starts a new one: a container of a hundred nodes
-keeps threads only for the groups that ran plain callbacks lately, not one
-per group that ever did. Nothing caps how many threads a lane may start
-up to its limit, so a callback that blocks for good never holds up another
-group's work.
+The threads are not the lane's: every lane of a dispatcher hands its plain
+work to one pool (``_workers``), which starts a thread past its size only
+while every worker is blocked, so a callback that blocks for good never
+holds up another group's work for long, and a hundred nodes share a few
+threads.
 
 Work waiting for a busy lane is kept per entity with a bound, like a DDS
 keep-last history: a subscription keeps its QoS depth of messages, a timer
@@ -47,49 +47,20 @@ callback that blocks for seconds would let the queue grow without limit.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextvars
-import queue
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from .._compat import enter_task, leave_task
 from ._bridge import drive
-from ._engine import Handoff, Lock, Runner, Slots, Work, first_step, mark_carrier
+from ._engine import Lock, Runner, Slots, Work, first_step
 from ._hooks import LaneHooks
-from ._owners import OWNER, Owner, executor_work
+from ._owners import OWNER, Owner
 
 __all__: list[str] = []
-
-#: Seconds a lane's worker thread waits for more work before it exits.
-WORKER_IDLE_S = 3.0
-#: How long a worker whose work comes quickly stays awake for more (see
-#: ``Handoff.linger``): it lingers only while its last work was handed to
-#: it sooner than this after it was free for it.
-#:
-#: Sooner after it was *free*, from the hand-over's own time: not from how
-#: long its wait took, which once the worker sleeps includes its own
-#: wake-up (50-200 us on a virtual machine). Measured that way, one late
-#: hand-over put it to sleep and its wake-ups then kept every wait above
-#: the bound: it never lingered again while the work came as fast as
-#: before, and which of the two a run settled in decided plain service
-#: calls' rate (0.82x-1.24x between otherwise equal 1.5 s turns; the
-#: accounting's few microseconds a call tipped it to sleeping).
-#:
-#: Measured against, on the project's 2-core shared KVM VM: with the loop's
-#: linger (``fastpath/handoff.c``, ``LOOP_LINGER_NS``, commit bc7e731), plain
-#: service calls 7,430-7,614/s before and 19,770-20,200/s after, the code
-#: before side by side (``bench_executor.py --only services``), the
-#: ten-node load's CPU with plain callbacks 1.01x, ping-pong 0.98x; in
-#: ``bench_busy.py`` the plain intra-process subscriber then got 3,171
-#: frames a second at 177% CPU, where the run before lingering got 2,490 at
-#: one core. 250 us itself was not measured against other values. Never
-#: used on one CPU: the worker does not linger (``Handoff.spin`` is false),
-#: since the loop it waits for needs that CPU to hand work over.
-WORKER_LINGER_NS = 250_000
-
 
 class _Carrier(threading.local):
     """Per thread: where plain work submitted while a worker carries goes (one item at most)."""
@@ -98,6 +69,11 @@ class _Carrier(threading.local):
 
 
 _carrier = _Carrier()
+
+#: The lane whose callback runs now, set once in each lane's context (which
+#: every callback's is a copy of): how :meth:`Lane.close` knows it is called
+#: from one of its own plain callbacks, at no cost per callback.
+_LANE: contextvars.ContextVar[Lane | None] = contextvars.ContextVar("container_lane", default=None)
 
 
 class Retired(Exception):
@@ -156,26 +132,26 @@ class Lane:
             # Everything its callbacks start (tasks, loop callbacks, readers,
             # threads) carries the node along: see ``_owners``.
             self._context.run(OWNER.set, owner)
+        self._context.run(_LANE.set, self)
         self._carries = hooks.carries
         self._post = hooks.post
         self._progress = hooks.progress
         self._loop = loop
         self._on_loop_thread = hooks.on_loop_thread
-        #: Told of each worker the loop's thread wakes, and by the worker when
-        #: it starts (see ``_fastpath.Handoff``).
-        self._handoff: Handoff | None = hooks.handoff
+        #: The threads its plain work runs on (shared with the dispatcher's other lanes).
+        self._workers = hooks.workers
         #: The admission state (running, limit, waiting work, idle runners),
         #: which the compiled path reads too; its lock guards the rest here.
         self._slots = Slots(limit)
         self._lock: Lock = self._slots.lock
-        # Plain side: worker threads fed through an inbox.
-        self._idle_threads = 0
-        #: Threads away running another lane's work (see :meth:`_carry_on`).
-        self._away = 0
-        self._threads: list[threading.Thread] = []
-        #: Work for the workers, and whether the loop's thread handed it (and waits for its start).
-        #: (work, handed by the loop thread, when it was handed: monotonic ns)
-        self._inbox: queue.SimpleQueue[tuple[Work, bool, int] | None] = queue.SimpleQueue()
+        #: Plain side: one item per run of its plain work on a pool thread now
+        #: (:meth:`_run_plain`), a deque for its atomic append and pop (no lock);
+        #: once :meth:`close` waits for them, for how few and on what. Counted,
+        #: not kept by thread: a dict of threads under a Condition around every
+        #: callback cost plain ping-pong 15% (``bench_executor.py``, side by side).
+        self._plain_runs: collections.deque[None] = collections.deque()
+        self._drained_at = 0
+        self._drained: threading.Event | None = None
         # Async side, touched on the loop thread only (the idle runners are parked in the slots).
         self._runners: dict[asyncio.Task[None], Runner] = {}
 
@@ -265,75 +241,28 @@ class Lane:
 
     # -- plain callbacks: worker threads ---------------------------------------
     def _hand_to_thread(self, work: Work) -> None:
-        with self._lock:
-            # A negative count means work is queued for a thread about to idle.
-            spawn = self._idle_threads <= 0 and len(self._threads) - self._away < self.limit
-            if spawn:
-                thread = threading.Thread(
-                    target=self._worker, name=f"lane:{self.name}", daemon=True
-                )
-                self._threads.append(thread)
-            else:
-                self._idle_threads -= 1
-        handed = False
-        handoff = self._handoff
-        if handoff is not None and self._on_loop_thread():
-            handoff.handed()
-            handed = True
-        self._inbox.put((work, handed, time.monotonic_ns()))
-        if spawn:
-            with executor_work():  # started in a node's callback maybe, but the executor's thread
-                thread.start()
+        self._workers.hand(self, work, from_loop=self._on_loop_thread())
 
-    def _worker(self) -> None:
+    def run_handed(self, work: Work) -> None:
+        """Run plain ``work`` the pool handed this thread, then what its publishes made ready."""
+        self._run_plain(work)
         if self._carries:
-            mark_carrier()  # its publishes to plain callbacks need not wake the loop
-        inbox = self._inbox
-        # Never on one CPU (Handoff's spin: see Dispatcher), where lingering
-        # keeps the loop thread it waits for off the CPU.
-        lingering = self._handoff if self._handoff is not None and self._handoff.spin else None
-        quick = False  # the last work came soon after this thread was free: linger before the next
-        while True:
-            free_from = time.monotonic_ns()
-            if quick and lingering is not None and inbox.empty():
-                lingering.linger(WORKER_LINGER_NS)
-            try:
-                item = inbox.get(timeout=WORKER_IDLE_S)
-            except queue.Empty:
-                if self._retire_idle_thread():
-                    return
-                continue
-            if item is None:
-                return
-            work, handed, handed_at = item
-            quick = handed_at - free_from < WORKER_LINGER_NS
-            handoff = self._handoff if handed else None
-            if handoff is not None:
-                handoff.started()
-            try:
-                self._run_plain(work)
-                if self._carries:
-                    self._carry_on(self._hooks.carry)
-            finally:
-                if handoff is not None:
-                    handoff.finished()
-            with self._lock:
-                if self._closed:
-                    return
-                self._idle_threads += 1
-
-    def _retire_idle_thread(self) -> bool:
-        """This worker waited :data:`WORKER_IDLE_S` for nothing: end it, unless
-        work was handed to it meanwhile (the count says so under the lock)."""
-        with self._lock:
-            if self._idle_threads <= 0:
-                return False  # work is on its way to this thread: take it
-            self._idle_threads -= 1
-            self._threads.remove(threading.current_thread())
-            return True
+            self._carry_on(self._hooks.carry)
 
     def _run_plain(self, work: Work | None) -> None:
         """Run plain ``work`` (its slot taken) and the lane's pending work after it, on this thread."""
+        runs = self._plain_runs
+        runs.append(None)
+        try:
+            self._run_pending(work)
+        finally:
+            runs.pop()
+            # Read after the pop, as close sets it before it counts: one of the two sees the other.
+            drained = self._drained
+            if drained is not None and len(runs) <= self._drained_at:
+                drained.set()
+
+    def _run_pending(self, work: Work | None) -> None:
         while work is not None:
             error: BaseException | None = None
             if _retired(work):
@@ -352,27 +281,21 @@ class Lane:
 
     def _carry_on(self, carry: Callable[[], None]) -> None:
         """Run, on this worker thread, plain work its callbacks' publishes made ready."""
-        with self._lock:
-            self._away += 1
-        try:
-            while True:
-                slot: list[tuple[Lane, Work]] = []
-                _carrier.slot = slot
-                try:
-                    carry()
-                except BaseException:
-                    for lane, work in slot:
-                        lane._hand_to_thread(work)  # its slot is taken: it must still run
-                    raise
-                finally:
-                    _carrier.slot = None
-                if not slot:
-                    return
-                lane, work = slot[0]
-                lane._run_plain(work)
-        finally:
-            with self._lock:
-                self._away -= 1
+        while True:
+            slot: list[tuple[Lane, Work]] = []
+            _carrier.slot = slot
+            try:
+                carry()
+            except BaseException:
+                for lane, work in slot:
+                    lane._hand_to_thread(work)  # its slot is taken: it must still run
+                raise
+            finally:
+                _carrier.slot = None
+            if not slot:
+                return
+            lane, work = slot[0]
+            lane._run_plain(work)
 
     # -- async callbacks: runner tasks -----------------------------------------
     def _hand_to_runner(self, item: Work | _Resume) -> None:
@@ -578,34 +501,27 @@ class Lane:
 
     # -- closing --------------------------------------------------------------
     def close(self, *, timeout: float) -> bool:
-        """Drop pending work, cancel runners, and join threads.
+        """Drop pending work, cancel runners, and wait for its plain callbacks running.
 
-        :return: ``False`` if a thread was still running a callback when
-            ``timeout`` ran out (it is a daemon thread and cannot be killed).
+        :return: ``False`` if one was still running when ``timeout`` ran out
+            (on a daemon thread, which cannot be killed).
         """
         with self._lock:
             self._slots.close()
-            threads = list(self._threads)
         for runner in list(self._runners):
             if self._on_loop_thread() or not self._loop.is_running():
                 runner.cancel()
             else:
                 self._post(runner.cancel)
-        for _ in threads:
-            self._inbox.put(None)
-        deadline = time.monotonic() + timeout
-        joined = True
-        for thread in threads:
-            if thread is threading.current_thread():
-                continue  # closing from one of our own callbacks
-            thread.join(max(0.0, deadline - time.monotonic()))
-            joined = joined and not thread.is_alive()
-        return joined
-
-    @property
-    def threads(self) -> list[threading.Thread]:
-        with self._lock:
-            return [t for t in self._threads if t.is_alive()]
+        # Closed from one of its own plain callbacks: that one is not waited for.
+        own = 1 if _LANE.get() is self and not self._on_loop_thread() else 0
+        self._drained_at = own
+        drained = self._drained
+        if drained is None:
+            drained = self._drained = threading.Event()
+        if len(self._plain_runs) <= own:
+            return True
+        return drained.wait(max(0.0, timeout))
 
     @property
     def tasks(self) -> set[asyncio.Task[None]]:

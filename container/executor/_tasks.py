@@ -24,6 +24,7 @@ from .._errors import ExecutorError
 from ._engine import Work
 from ._inbox import Post
 from ._owners import OWNER, Owner
+from ._workers import WorkerPool
 
 if TYPE_CHECKING:
     from ._gate import Gate
@@ -121,6 +122,7 @@ class TaskLaneHooks:
     def __init__(self, *, post: Post, progress: Callable[[], asyncio.Future[None]]) -> None:
         self.post = post
         self.progress = progress
+        self.workers = WorkerPool(name="executor:tasks", handoff=None, carries=False)
 
     def on_loop_thread(self) -> bool:
         return False

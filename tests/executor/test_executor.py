@@ -135,6 +135,8 @@ def test_callback_carried_to_another_lanes_thread_that_blocks_delays_nobody(
     blocking = threading.Event()
     ticks: list[float] = []
     enough = threading.Event()
+    #: Per thread: what it ran last (a worker's threads are shared by every lane).
+    last = threading.local()
 
     def tick() -> None:
         sender.publish(Int64(data=len(ticks)))
@@ -142,11 +144,14 @@ def test_callback_carried_to_another_lanes_thread_that_blocks_delays_nobody(
             ticks.append(time.monotonic())
             if len(ticks) >= 15:
                 enough.set()
+        last.ran = "a"
 
     def receive(msg: Int64) -> None:
         with b_seen:
-            b_threads.append(threading.current_thread().name)
-            if threading.current_thread().name.startswith("lane:/carrier_a") and not blocking.is_set():
+            carried = getattr(last, "ran", None) == "a"
+            last.ran = "b"
+            b_threads.append(f"{threading.current_thread().name}{' after A' if carried else ''}")
+            if carried and not blocking.is_set():
                 ticks.append(time.monotonic())  # the gaps count from here
                 blocking.set()
                 time.sleep(1.5)  # carried onto A's thread, and stuck there

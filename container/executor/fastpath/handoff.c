@@ -248,7 +248,7 @@ static PyObject * Handoff_linger(HandoffObject * self, PyObject * arg)
  *
  * Measured against (commit bc7e731, on the 2-core shared KVM VM, the
  * code before side by side through bench_executor.py --pythons): the four
- * together with the worker's linger (_lanes.py WORKER_LINGER_NS) took
+ * together with the worker's linger (_workers.py WORKER_LINGER_NS) took
  * plain service calls from 7,430-7,614/s to 19,770-20,200/s (--only
  * services --kinds asyncio-plain single --rounds 4 --seconds 3); the same
  * comparison of the ten-node load (--only load: the backoff is for plain

@@ -612,12 +612,6 @@ class AsyncioExecutor(Executor):
             return True
         return current in self.threads()
 
-    def _all_lanes(self) -> list[Lane]:
-        lanes = self._dispatcher.lanes()
-        if self._task_lane is not None:
-            lanes.append(self._task_lane)
-        return lanes
-
     def threads(self) -> list[threading.Thread]:
         """Worker threads currently alive in this executor (plain callbacks and tasks)."""
         threads = self._dispatcher.workers.threads

@@ -460,18 +460,24 @@ def load(kind: str, seconds: float) -> float:
     return result[0] if result else float("nan")
 
 
-def load_nodes(kind: str) -> tuple[list[Any], list[int]]:
-    """The ten nodes of :func:`load` (rclpy initialised), and the count their subscriptions raise."""
+def load_nodes(kind: str, *, count: int = 10) -> tuple[list[Any], list[int]]:
+    """The nodes of :func:`load` (rclpy initialised), and the counts their callbacks raise:
+    messages received, timer firings.
+
+    ``count`` nodes, each firing every ``count`` ms: 1,000 firings and 1,000
+    messages a second in all, whatever the count (bench_scale.py's curve).
+    """
     from rclpy.node import Node
     from std_msgs.msg import Int64
 
-    nodes = [Node(f"bench_load_{i}") for i in range(10)]
-    received = [0]
+    nodes = [Node(f"bench_load_{i}") for i in range(count)]
+    received = [0, 0]
     is_async = kind == "asyncio-async"
     for i, node in enumerate(nodes):
         pub = node.create_publisher(Int64, f"load_{i}", 10)
 
         def fire(pub: Any = pub) -> None:
+            received[1] += 1
             pub.publish(Int64(data=1))
 
         def got(msg: Int64) -> None:
@@ -484,8 +490,8 @@ def load_nodes(kind: str) -> tuple[list[Any], list[int]]:
             got(msg)
 
         # rclpy 9 annotates timer callbacks as plain; the executors run async ones.
-        node.create_timer(0.01, fire_async if is_async else fire)  # type: ignore[arg-type, unused-ignore]
-        node.create_subscription(Int64, f"load_{(i + 1) % 10}", got_async if is_async else got, 10)  # type: ignore[arg-type]
+        node.create_timer(count / 1000, fire_async if is_async else fire)  # type: ignore[arg-type, unused-ignore]
+        node.create_subscription(Int64, f"load_{(i + 1) % count}", got_async if is_async else got, 10)  # type: ignore[arg-type]
     return nodes, received
 
 

@@ -8,7 +8,7 @@ costs at 500 nodes within 1.25x of what it costs at 10, for plain and
 ``async def`` callbacks, beside rclpy's executors. Each of N nodes has a
 timer publishing every N ms to the next node's subscription: 1,000 timer
 firings and 1,000 messages a second whatever N is (bench_executor.py's
-ten-node load is N = 10). An executor whose wait, take or dispatch walks
+``load_nodes``; its ten-node load is N = 10). An executor whose wait, take or dispatch walks
 every entity on every wake-up pays more per callback as N grows.
 
 Each figure is one process (a child of this script, a random
@@ -34,52 +34,24 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.benchmarks
 
 from tests.benchmarks import cpus
-from tests.benchmarks.bench_executor import _engine_env, _executor, _spin_until
+from tests.benchmarks.bench_executor import KINDS, _engine_env, _executor, _spin_until, load_nodes
 
-#: What each kind is, as printed.
-KINDS = {
-    "asyncio-plain": "AsyncioExecutor, plain callbacks",
-    "asyncio-async": "AsyncioExecutor, async def callbacks",
-    "single": "rclpy SingleThreadedExecutor",
-    "events": "rclpy EventsExecutor",
-}
-#: Timer firings a second, in all, whatever the node count (and as many messages).
+#: The executors compared (bench_executor.py's kinds).
+SCALE_KINDS = ("asyncio-plain", "asyncio-async", "single", "events")
+#: Timer firings a second, in all, whatever the node count (and as many messages: ``load_nodes``).
 RATE = 1000
 
 
 def measure(kind: str, count: int, seconds: float) -> dict[str, float]:
     """One process's figures: CPU % of a core, callbacks a second, CPU microseconds per callback."""
     import rclpy
-    from rclpy.node import Node
-    from std_msgs.msg import Int64
 
     rclpy.init()
-    is_async = kind == "asyncio-async"
-    counts = [0, 0]  # firings, messages
-    nodes = [Node(f"bench_scale_{i}") for i in range(count)]
-    for i, node in enumerate(nodes):
-        pub = node.create_publisher(Int64, f"scale_{i}", 10)
-
-        def fire(pub: Any = pub) -> None:
-            counts[0] += 1
-            pub.publish(Int64(data=1))
-
-        def got(msg: Int64) -> None:
-            counts[1] += 1
-
-        async def fire_async(pub: Any = pub) -> None:
-            fire(pub)
-
-        async def got_async(msg: Int64) -> None:
-            got(msg)
-
-        node.create_timer(count / RATE, fire_async if is_async else fire)  # type: ignore[arg-type, unused-ignore]
-        node.create_subscription(Int64, f"scale_{(i + 1) % count}", got_async if is_async else got, 10)  # type: ignore[arg-type]
+    nodes, counts = load_nodes(kind, count=count)  # counts: messages, firings
     executor = _executor(kind)
     for node in nodes:
         executor.add_node(node)
@@ -90,9 +62,9 @@ def measure(kind: str, count: int, seconds: float) -> dict[str, float]:
         # Until every subscription matched: a second's messages at the full rate.
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
-            before, start = counts[1], time.perf_counter()
+            before, start = counts[0], time.perf_counter()
             time.sleep(1.0)
-            if (counts[1] - before) / (time.perf_counter() - start) >= 0.95 * RATE:
+            if (counts[0] - before) / (time.perf_counter() - start) >= 0.95 * RATE:
                 break
         cpu0, wall0, calls0 = time.process_time(), time.perf_counter(), sum(counts)
         time.sleep(seconds)
@@ -135,7 +107,7 @@ def _median(values: list[float]) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--nodes", type=int, nargs="+", default=[10, 50, 100, 200, 500])
-    parser.add_argument("--kinds", nargs="+", choices=list(KINDS), default=list(KINDS))
+    parser.add_argument("--kinds", nargs="+", choices=SCALE_KINDS, default=list(SCALE_KINDS))
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=3.0)
     parser.add_argument("--child", nargs=3, metavar=("KIND", "NODES", "SECONDS"))

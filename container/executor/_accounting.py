@@ -37,7 +37,7 @@ import weakref
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 from rclpy.node import Node
 
@@ -165,6 +165,8 @@ class _Metered:
     meter: Meter
     runs_total: int = 0
     cpu_ns_total: int = 0
+    #: Its row of the last window, kept while nothing of it ran (see :data:`_IDLE`).
+    idle: CallbackLoad | None = None
 
 
 def _reference(entity: object) -> Callable[[], object | None]:
@@ -182,6 +184,9 @@ _UNATTRIBUTED_LOOP = {
     "fd": "file descriptors",
     "thread_call": "calls on threads",
 }
+#: A meter's figures over a window in which nothing of its ran, nothing was dropped and
+#: nothing runs (``Meter.take``): its row is all zeros but for its totals, which did not move.
+_IDLE: Final = (0,) * 13
 #: Kinds of a node's work that are handles on the loop.
 _LOOP_HANDLES = frozenset({"loop_callback", "loop_timer", "fd"})
 
@@ -406,23 +411,34 @@ class Accounting:
             return None
         return cpu - last[1]
 
+    # Most rows of a container are idle (a node's parameter services): a window in which
+    # nothing of one ran gives the row the last such window gave, not a new one.
     def _figures(self, item: _Metered, period_ns: int) -> CallbackLoad:
         figures = item.meter.take()
+        if figures == _IDLE and item.idle is not None:
+            return item.idle
         item.runs_total += figures[0]
         item.cpu_ns_total += figures[3]
-        return self._load(
+        row = self._load(
             figures, period_ns, node=item.node, group=item.group, kind=item.kind, name=item.name,
             runs_total=item.runs_total, cpu_ns_total=item.cpu_ns_total,
         )  # fmt: skip
+        item.idle = row if figures == _IDLE else None
+        return row
 
     def _account_figures(self, account: Account, period_ns: int) -> CallbackLoad:
         figures = account.meter.take()
+        if figures == _IDLE and account.idle is not None:
+            idle: CallbackLoad = account.idle
+            return idle
         account.runs_total += figures[0]
         account.cpu_ns_total += figures[3]
-        return self._load(
+        row = self._load(
             figures, period_ns, node=account.owner.name, group=KINDS[account.kind][0], kind=account.kind,
             name=account.name, runs_total=account.runs_total, cpu_ns_total=account.cpu_ns_total,
         )  # fmt: skip
+        account.idle = row if figures == _IDLE else None
+        return row
 
     def _load(
         self,
@@ -483,13 +499,25 @@ def _row(account: Account, *, name: str, cpu: float, cpu_seconds_total: float) -
 
 def _summed(members: list[CallbackLoad]) -> dict[str, Any]:
     """What a group and a node add up alike from their callbacks: sums, and the worst lateness and stuck time."""
+    # One pass, not one generator per figure: a sample adds up every group and node each second.
+    cpu = rate = lateness_p99 = stuck_for = 0.0
+    dropped = stuck = 0
+    for c in members:
+        cpu += c.cpu
+        rate += c.rate
+        dropped += c.dropped
+        stuck += c.stuck
+        if c.lateness_p99 > lateness_p99:
+            lateness_p99 = c.lateness_p99
+        if c.stuck_for > stuck_for:
+            stuck_for = c.stuck_for
     return {
-        "cpu": sum(c.cpu for c in members),
-        "rate": sum(c.rate for c in members),
-        "lateness_p99": max(c.lateness_p99 for c in members),
-        "dropped": sum(c.dropped for c in members),
-        "stuck": sum(c.stuck for c in members),
-        "stuck_for": max(c.stuck_for for c in members),
+        "cpu": cpu,
+        "rate": rate,
+        "lateness_p99": lateness_p99,
+        "dropped": dropped,
+        "stuck": stuck,
+        "stuck_for": stuck_for,
     }
 
 

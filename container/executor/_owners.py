@@ -113,7 +113,7 @@ def executor_work() -> Iterator[None]:
 class Account:
     """One kind of work of one owner: its meter, and its totals across windows."""
 
-    __slots__ = ("call", "cpu_ns_total", "kind", "meter", "owner", "runs_total")
+    __slots__ = ("call", "cpu_ns_total", "idle", "kind", "meter", "owner", "runs_total")
 
     def __init__(self, owner: Owner, kind: str, meter: Any) -> None:
         self.owner = owner
@@ -125,6 +125,8 @@ class Account:
         self.call: Callable[..., Any] = meter.call
         self.runs_total = 0
         self.cpu_ns_total = 0
+        #: Its row of the last window, kept while nothing of it ran (the accounting's).
+        self.idle: Any = None
 
     @property
     def name(self) -> str:

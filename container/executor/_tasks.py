@@ -171,15 +171,24 @@ class DoneCallbacks:
         self._post = post
         self._on_loop_thread = on_loop_thread
         self._gate = gate
+        #: The node whose client's response completes the future now (``_takes.take_response``):
+        #: its done-callbacks are that node's work (``None``: the executor's, or the caller's).
+        self.owner: Owner | None = None
         #: Whether a function is a coroutine function, by the function (a
         #: bound method's ``__func__``): ``inspect`` asks in several calls.
         self._coroutine: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
 
     def create_task(self, callback: Callable[..., Any], *args: Any, **kwargs: Any) -> RclFuture[Any] | None:
+        owner = self.owner
         if kwargs or self._gate.permits is not None or not self._on_loop_thread() or self._is_coroutine(callback):
-            return self._executor.create_task(callback, *args, **kwargs)
-        owner = OWNER.get()
-        if isinstance(owner, Owner):  # the client's node (``_takes.take_response``)
+            if owner is None:
+                return self._executor.create_task(callback, *args, **kwargs)
+            reset = OWNER.set(owner)  # the executor's create_task credits the caller's node
+            try:
+                return self._executor.create_task(callback, *args, **kwargs)
+            finally:
+                OWNER.reset(reset)
+        if owner is not None:
             self._post(owner.account("loop_callback").call, 0, _run_done_callback, callback, args)
         else:
             self._post(_run_done_callback, callback, args)

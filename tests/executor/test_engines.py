@@ -379,6 +379,55 @@ def test_a_loops_handles_are_metered_as_whose_alike_on_both_engines() -> None:
     ]
 
 
+def _kept_accounts(engine: ModuleType) -> Trace:
+    """Ten owners' handles in turn, three rounds, then a seventeenth owner's: who was asked for
+    an account, in order."""
+    owner_var: contextvars.ContextVar[object] = contextvars.ContextVar("engines_owner", default=None)
+    owners = [_Owner(engine, f"n{index}") for index in range(17)]
+    asked: list[str] = []
+
+    class Loop(engine.HandleMeter, asyncio.SelectorEventLoop):  # type: ignore[misc, name-defined]
+        def __init__(self) -> None:
+            soon, at = asyncio.SelectorEventLoop.call_soon, asyncio.SelectorEventLoop.call_at
+            engine.HandleMeter.__init__(self, owner_var, object(), asyncio.Task, soon, at, _Owner(engine, "nobody"))
+            asyncio.SelectorEventLoop.__init__(self)
+
+    loop = Loop()
+    contexts = []
+    for owner in owners:
+        context = contextvars.copy_context()
+        context.run(owner_var.set, owner)
+        contexts.append(context)
+
+    def schedule(indexes: range) -> None:
+        for index in indexes:
+            loop.call_soon(len, "", context=contexts[index])
+            loop.call_at(loop.time(), len, "", context=contexts[index])
+        for owner in owners:
+            asked.extend(owner.asked)
+            owner.asked.clear()
+
+    for _ in range(3):
+        schedule(range(10))
+    trace: Trace = [list(asked)]
+    asked.clear()
+    schedule(range(10, 17))  # sixteen kept: the seventeenth lets the oldest (n0) go
+    schedule(range(2))  # n0 is asked again, and lets n1 go
+    trace.append(list(asked))
+    loop.close()
+    return trace
+
+
+def test_each_of_the_last_sixteen_owners_is_asked_for_its_account_once_alike_on_both_engines() -> None:
+    """Ten nodes' tasks sleeping in turn each hit the kept accounts: no Python call a handle."""
+    trace = _same_on_both(_kept_accounts)
+    assert trace[0] == [f"n{index} {kind}" for index in range(10) for kind in ("loop_callback", "loop_timer")]
+    assert trace[1] == [
+        *(f"n{index} {kind}" for index in range(10, 17) for kind in ("loop_callback", "loop_timer")),
+        "n0 loop_callback", "n0 loop_timer", "n1 loop_callback", "n1 loop_timer",
+    ]  # fmt: skip
+
+
 def test_a_metered_call_is_one_run_alike_on_both_engines() -> None:
     trace = _same_on_both(_metered_calls)
     assert trace == [

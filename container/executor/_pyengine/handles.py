@@ -18,8 +18,9 @@ asyncio task (its ``__self__`` is a task). Otherwise it is scheduled as
 owner's account of ``loop_callback`` (``call_soon``; ``arrived`` now) or
 ``loop_timer`` (``call_at``; ``arrived`` its due time in ns, 0 when it is
 no finite number), of the node's owner, or of the unattributed owner when
-the context names nobody or is not a ``contextvars.Context``. The last
-owner's account is kept per kind.
+the context names nobody or is not a ``contextvars.Context``. The accounts
+of the last :data:`KEPT` owners seen are kept per kind, the oldest let go
+first.
 
 Difference: none in what it does; it costs a Python call more per handle.
 """
@@ -35,21 +36,23 @@ from typing import Any
 __all__ = ["HandleMeter"]
 
 _monotonic_ns = time.monotonic_ns
+#: Owners whose account's call is kept, per kind (the compiled engine's ``KEPT_SLOTS``).
+KEPT = 16
 _USAGE = (
     "HandleMeter(owner: ContextVar, executor, task_type: type, call_soon: callable, call_at: callable, unattributed)"
 )
 
 
 class _State:
-    """What ``__init__`` was given, and the last owner's account's call per kind."""
+    """What ``__init__`` was given, and the owners' accounts' calls kept per kind."""
 
     __slots__ = ("at", "call_at", "call_soon", "executor", "owner", "soon", "task_type", "unattributed")
 
     def __init__(self, *args: Any) -> None:
         (self.owner, self.executor, self.task_type, self.call_soon, self.call_at, self.unattributed) = args
-        #: (owner, its account's call) last seen, per kind.
-        self.soon: tuple[object, Callable[..., Any]] | None = None
-        self.at: tuple[object, Callable[..., Any]] | None = None
+        #: Owner -> its account's call, per kind, oldest first (held: the call stays its owner's).
+        self.soon: dict[object, Callable[..., Any]] = {}
+        self.at: dict[object, Callable[..., Any]] = {}
 
 
 def _owner_in(state: _State, context: object) -> Any:
@@ -93,13 +96,13 @@ class HandleMeter:
         if owner is None:
             owner = state.unattributed
         kept = state.soon if kind == "loop_callback" else state.at
-        if kept is not None and kept[0] is owner:
-            return kept[1]
+        found = kept.get(owner)
+        if found is not None:
+            return found
         call: Callable[..., Any] = owner.account(kind).call  # type: ignore[attr-defined]
-        if kind == "loop_callback":
-            state.soon = (owner, call)
-        else:
-            state.at = (owner, call)
+        if len(kept) >= KEPT:
+            del kept[next(iter(kept))]  # the oldest
+        kept[owner] = call
         return call
 
     def call_soon(self, *args: Any, **kwargs: Any) -> Any:

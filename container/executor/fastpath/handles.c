@@ -23,18 +23,48 @@
  * "loop_timer" and its due time as arrived (the loop's clock is
  * time.monotonic(); 0 when it is no finite number).
  *
- * The last owner's account is kept per kind (most handles of a window are
- * one node's): its call is then found without asking the owner. */
+ * The accounts of the last KEPT_SLOTS owners seen are kept per kind, the
+ * oldest let go first (ten nodes' tasks sleeping in turn missed a cache of
+ * one, a Python call each): an owner's call is then found, by a look along
+ * at most KEPT_SLOTS pointers, without asking it. */
 #include "fastpath.h"
 
 #include <math.h>
 
-/* One kind of handle: its account's name, and the last owner's account's call. */
+#define KEPT_SLOTS 16
+
+/* One owner seen, and its account's call. */
+typedef struct {
+  PyObject * owner; /* held: its account's call stays its */
+  PyObject * call;  /* that owner's account.call */
+} KeptSlot;
+
+/* One kind of handle: its account's name, and the calls of the owners seen last. */
 typedef struct {
   const char * kind;
-  PyObject * owner; /* the last owner seen (held: its account's call stays its) */
-  PyObject * call;  /* that owner's account.call */
+  KeptSlot slots[KEPT_SLOTS];
+  int next; /* the slot filled next: the oldest */
 } Kept;
+
+static int kept_traverse(Kept * kept, visitproc visit, void * arg)
+{
+  int i;
+  for (i = 0; i < KEPT_SLOTS; ++i) {
+    Py_VISIT(kept->slots[i].owner);
+    Py_VISIT(kept->slots[i].call);
+  }
+  return 0;
+}
+
+static void kept_clear(Kept * kept)
+{
+  int i;
+  kept->next = 0;
+  for (i = 0; i < KEPT_SLOTS; ++i) {
+    Py_CLEAR(kept->slots[i].owner);
+    Py_CLEAR(kept->slots[i].call);
+  }
+}
 
 typedef struct {
   PyObject_HEAD
@@ -75,10 +105,8 @@ static int HandleMeter_init(HandleMeterObject * self, PyObject * args, PyObject 
   Py_XSETREF(self->unattributed, Py_NewRef(unattributed));
   self->soon.kind = "loop_callback";
   self->at.kind = "loop_timer";
-  Py_CLEAR(self->soon.owner);
-  Py_CLEAR(self->soon.call);
-  Py_CLEAR(self->at.owner);
-  Py_CLEAR(self->at.call);
+  kept_clear(&self->soon);
+  kept_clear(&self->at);
   return 0;
 }
 
@@ -90,11 +118,10 @@ static int HandleMeter_traverse(HandleMeterObject * self, visitproc visit, void 
   Py_VISIT(self->call_soon);
   Py_VISIT(self->call_at);
   Py_VISIT(self->unattributed);
-  Py_VISIT(self->soon.owner);
-  Py_VISIT(self->soon.call);
-  Py_VISIT(self->at.owner);
-  Py_VISIT(self->at.call);
-  return 0;
+  {
+    int visited = kept_traverse(&self->soon, visit, arg);
+    return visited != 0 ? visited : kept_traverse(&self->at, visit, arg);
+  }
 }
 
 static int HandleMeter_clear(HandleMeterObject * self)
@@ -105,22 +132,24 @@ static int HandleMeter_clear(HandleMeterObject * self)
   Py_CLEAR(self->call_soon);
   Py_CLEAR(self->call_at);
   Py_CLEAR(self->unattributed);
-  Py_CLEAR(self->soon.owner);
-  Py_CLEAR(self->soon.call);
-  Py_CLEAR(self->at.owner);
-  Py_CLEAR(self->at.call);
+  kept_clear(&self->soon);
+  kept_clear(&self->at);
   return 0;
 }
 
 /* owner's account of kept's kind: its call (a new reference), kept for next time. */
 static PyObject * account_call(HandleMeterObject * self, Kept * kept, PyObject * owner)
 {
-  PyObject * account, * call;
+  PyObject * account, * call, * old_owner, * old_call;
+  KeptSlot * slot;
+  int i;
   if (owner == Py_None) {
     owner = self->unattributed;
   }
-  if (kept->owner == owner && kept->call != NULL) {
-    return Py_NewRef(kept->call);
+  for (i = 0; i < KEPT_SLOTS; ++i) {
+    if (kept->slots[i].owner == owner && kept->slots[i].call != NULL) {
+      return Py_NewRef(kept->slots[i].call);
+    }
   }
   account = PyObject_CallMethod(owner, "account", "s", kept->kind);
   if (account == NULL) {
@@ -131,8 +160,16 @@ static PyObject * account_call(HandleMeterObject * self, Kept * kept, PyObject *
   if (call == NULL) {
     return NULL;
   }
-  Py_XSETREF(kept->owner, Py_NewRef(owner));
-  Py_XSETREF(kept->call, Py_NewRef(call));
+  /* owner.account ran Python code: the slot is chosen only now, and filled whole before
+   * the pair it held is let go (which may run code that looks here again). */
+  slot = &kept->slots[kept->next];
+  kept->next = (kept->next + 1) % KEPT_SLOTS;
+  old_owner = slot->owner;
+  old_call = slot->call;
+  slot->owner = Py_NewRef(owner);
+  slot->call = Py_NewRef(call);
+  Py_XDECREF(old_owner);
+  Py_XDECREF(old_call);
   return call;
 }
 

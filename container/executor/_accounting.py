@@ -194,9 +194,10 @@ _LOOP_HANDLES = frozenset({"loop_callback", "loop_timer", "fd"})
 class Accounting:
     """Every entity's meter, every node's other work, and the windows they are read in.
 
-    Always on: a step costs two clock reads and a few additions (the
-    executor benchmarks with it on stay within 3% of the same code with it
-    off, see ``tests/benchmarks/bench_accounting.py``). Thread-safe: meters
+    Always on: a step costs two clock reads and a few additions (its budget
+    is 3% of the work; what it costs on each measure, side by side with the
+    same code with it off: ``tests/benchmarks/bench_accounting.py``, and
+    ``docs/benchmarks.md``). Thread-safe: meters
     are handed out under a lock and read with the GIL held, as they are
     written.
 

@@ -78,8 +78,18 @@ CHAINS = ("pingpong", "services")
 KINDS = ("asyncio-async", "asyncio-plain")
 #: Pairs of turns for each measure and kind (``--pairs``).
 PAIRS = 12
+#: Tries of a turn whose work does not settle.
+TRIES = 3
 #: The accounting's budget: CPU per unit of work on/off.
 BUDGET = 1.03
+
+
+def _stale(kind: str, node: Any) -> bool:
+    """Whether an ``async def`` callback runs on the last turn's loop, which is shutting down (a
+    task it started would end with it, and the turn's own callback would find the node armed)."""
+    import asyncio
+
+    return kind == "asyncio-async" and asyncio.get_running_loop() is not node.executor.loop
 
 
 def _stream_nodes(kind: str, stop: threading.Event) -> tuple[list[Any], list[int], Callable[[], None]]:
@@ -111,7 +121,7 @@ def _stream_nodes(kind: str, stop: threading.Event) -> tuple[list[Any], list[int
     for index, (node, run) in enumerate(((echoer, echo), (pinger, ping))):
 
         def start(index: int = index, node: Any = node, run: Any = run) -> None:
-            if armed[index]:
+            if armed[index] or _stale(kind, node):
                 return
             armed[index] = True
             if kind == "asyncio-async":
@@ -253,7 +263,7 @@ def _source_nodes(kind: str, variant: str, stop: threading.Event) -> tuple[list[
                 pub.publish(Int64(data=1))
 
         def start(i: int = i, node: Any = node, in_task: Any = in_task, in_thread: Any = in_thread) -> None:
-            if armed[i]:
+            if armed[i] or _stale(kind, node):
                 return
             armed[i] = True
             if variant == "threadload":
@@ -398,11 +408,20 @@ def _crossover(
             a_on_first = index % 2 == 0
             for a_on in (a_on_first, not a_on_first):
                 states = ("on", "off") if a_on else ("off", "on")
-                for child, state in zip(children, states, strict=True):
-                    child.send(f"turn {'off' if null else state}")
-                for child in children:
-                    if child.reply() != "ready":
-                        raise RuntimeError(f"{variant} ({kind}): a child's work did not settle")
+                for attempt in range(1, TRIES + 1):
+                    for child, state in zip(children, states, strict=True):
+                        child.send(f"turn {'off' if null else state}")
+                    if all([child.reply() == "ready" for child in children]):
+                        break
+                    # Seen about once in 50 turns of streams, two processes on one CPU: said, and
+                    # the turn made again (not diagnosed; see docs/benchmarks.md).
+                    sys.stderr.write(f"  {variant} ({kind}): a turn's work did not settle in 30 s (try {attempt})\n")
+                    for child in children:
+                        child.send("end")
+                    for child in children:
+                        child.reply()
+                else:
+                    raise RuntimeError(f"{variant} ({kind}): a turn's work did not settle in {TRIES} tries")
                 marks = []
                 for _ in range(2):
                     for child in children:

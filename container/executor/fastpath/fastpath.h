@@ -101,7 +101,14 @@ static inline PyObject * rcl_failed(const char * call)
 
 /* Set on lane worker threads that, after every plain callback, take what it
  * published for other plain callbacks themselves (Notifier.carry). */
-extern _Thread_local int carrier_thread;
+/* A thread-local of this module: initial-exec, a plain %fs-relative access. The default
+ * model for a shared object (general-dynamic) calls __tls_get_addr at every access: 0.65% of
+ * the CPU of a round trip between two nodes' asyncio tasks went there, from the meter's three
+ * (perf, bench_accounting.py's streams). The module's few bytes fit the static TLS surplus
+ * glibc keeps for objects loaded later (dlopen). */
+#define THREAD_LOCAL _Thread_local __attribute__((tls_model("initial-exec")))
+
+extern THREAD_LOCAL int carrier_thread;
 /* Whether any thread was ever marked: until then no publish can be deferred,
  * and a wait need not work out when it ends (an async-only process). */
 extern atomic_int carriers_exist;

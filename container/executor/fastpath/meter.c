@@ -40,9 +40,9 @@
 
 static long long stuck_after_ns = 1000000000LL;
 
-static _Thread_local long long cpu_read_at;  /* monotonic ns of this thread's last CPU read */
-static _Thread_local long long cpu_at_read;  /* its CPU clock then */
-static _Thread_local long long cpu_credited; /* wall time credited to steps since */
+static THREAD_LOCAL long long cpu_read_at;  /* monotonic ns of this thread's last CPU read */
+static THREAD_LOCAL long long cpu_at_read;  /* its CPU clock then */
+static THREAD_LOCAL long long cpu_credited; /* wall time credited to steps since */
 
 static inline long long thread_cpu_ns(void)
 {

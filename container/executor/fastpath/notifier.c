@@ -1,7 +1,7 @@
 /* Notifier: event-driven readiness for rcl subscriptions, clients and services (see module.c). */
 #include "fastpath.h"
 
-_Thread_local int carrier_thread = 0;
+THREAD_LOCAL int carrier_thread = 0;
 atomic_int carriers_exist = 0;
 
 static void trigger(rcl_guard_condition_t * guard)

@@ -414,7 +414,7 @@ def _crossover(
                     if all([child.reply() == "ready" for child in children]):
                         break
                     # Seen about once in 50 turns of streams, two processes on one CPU: said, and
-                    # the turn made again (its tasks were collected while pending; see
+                    # the turn made again (a task collected while pending; see
                     # docs/benchmarks.md, "What the accounting costs").
                     sys.stderr.write(f"  {variant} ({kind}): a turn's work did not settle in 30 s (try {attempt})\n")
                     for child in children:

@@ -171,6 +171,8 @@ class AsyncioExecutor(Executor):
         self._watchdog_reports = watchdog_reports
         #: Which plugin callback each task on the loop came from, for the watchdog.
         self._origins = TaskOrigins(self._runner_work)
+        #: Every task this executor's task factory made, until it is done (see :meth:`_hold`).
+        self._held_tasks: set[asyncio.Task[Any]] = set()
         #: The loop watchdog while the owned loop spins (see ``watchdog``).
         self._watchdog: LoopWatchdog | None = None
         #: Its thread, started by the first spin and parked between spins.
@@ -771,6 +773,7 @@ class AsyncioExecutor(Executor):
         if is_adapted(coro) or not (isinstance(coro, types.CoroutineType) or wraps_an_awaitable(coro)):
             task = asyncio.Task(coro, loop=loop, **kwargs)
             self._origins.note(task, asyncio.current_task(loop))
+            self._hold(task)
             return task
         # Each step of a node's task is metered as its (the context it runs in names it).
         context = kwargs.get("context")
@@ -782,7 +785,21 @@ class AsyncioExecutor(Executor):
         # which would then warn "coroutine ... was never awaited": closed
         # here (a no-op once it ran).
         task.add_done_callback(lambda _: coro.close())
+        self._hold(task)
         return task
+
+    def _hold(self, task: asyncio.Task[Any]) -> None:
+        """Keep ``task`` until it is done, as rclpy's executors keep theirs.
+
+        asyncio keeps only weak references to tasks, and a task waiting on a
+        future that nothing but the task reaches is garbage (a client's
+        ``asyncio.open_connection``: its protocol holds the stream reader,
+        whose future the task awaits, weakly). A caller that let go of what
+        ``create_task`` returned, or a plugin's ``asyncio.create_task`` not
+        kept, then lost its task to the next collection, mid-await.
+        """
+        self._held_tasks.add(task)
+        task.add_done_callback(self._held_tasks.discard)
 
     def _describe_loop_work(self) -> Culprit:
         """What the loop thread runs now: which node's which callback, and whether a plugin's."""
@@ -902,6 +919,7 @@ class AsyncioExecutor(Executor):
         if running_loop() is not None:
             # Released from inside another loop (spin_async on a foreign
             # loop): the owned loop cannot run here, and has nothing to finish.
+            self._held_tasks.clear()
             return
         if pending:
             self._loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
@@ -912,6 +930,7 @@ class AsyncioExecutor(Executor):
         # A job still running past the timeout is left, and reported so.
         with contextlib.suppress(TimeoutError):
             self._loop.run_until_complete(asyncio.wait_for(self._loop.shutdown_default_executor(), timeout))
+        self._held_tasks.clear()  # what cancelling left pending is let go with the loop
 
     # -- stop / progress signalling --------------------------------------------
     def _stopped_future(self) -> asyncio.Future[None]:

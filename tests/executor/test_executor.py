@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 import warnings
+import weakref
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -1218,3 +1219,43 @@ def test_an_answer_its_client_cannot_match_is_retried_off_the_loop_then_dropped(
     finally:
         executor.shutdown(timeout_sec=5.0)
         thread.join(5.0)
+
+
+@pytest.mark.parametrize("started_by", ["executor.create_task", "asyncio.create_task"])
+def test_a_task_whose_caller_let_go_of_it_is_not_collected_while_it_waits(
+    executor: AsyncioExecutor, started_by: str
+) -> None:
+    """rclpy's executors hold the tasks they run: ``executor.create_task(coro)`` runs to its end
+    whether or not its caller keeps what it returns. A task waiting on a future that only the
+    task holds (a client's ``asyncio.open_connection``: its protocol holds the stream reader
+    weakly) is a cycle nothing else reaches; a garbage collection then closed it mid-await."""
+    held: list[Any] = []
+    finished = threading.Event()
+
+    async def waits() -> None:
+        future = asyncio.get_running_loop().create_future()
+        held.append(weakref.ref(future))
+        await future
+        finished.set()
+
+    async def starts() -> None:
+        if started_by == "asyncio.create_task":
+            asyncio.get_running_loop().create_task(waits())  # not kept, as a plugin might
+        else:
+            executor.create_task(waits())
+
+    thread = spin_in_thread(executor)
+    executor.create_task(starts())
+    deadline = time.monotonic() + 5.0
+    while not held and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert held, "the task never started"
+    for _ in range(3):
+        gc.collect()
+    future = held[0]()
+    assert future is not None, "the waiting task and its future were collected"
+    executor.loop.call_soon_threadsafe(future.set_result, None)
+    del future
+    assert finished.wait(5.0), "the task did not run to its end"
+    executor.shutdown()
+    thread.join(5.0)

@@ -413,9 +413,8 @@ def _crossover(
                         child.send(f"turn {'off' if null else state}")
                     if all([child.reply() == "ready" for child in children]):
                         break
-                    # Seen about once in 50 turns of streams, two processes on one CPU: said, and
-                    # the turn made again (a task collected while pending; see
-                    # docs/benchmarks.md, "What the accounting costs").
+                    # Seen about once in 50 turns of streams until the executor held its tasks
+                    # (docs/benchmarks.md, "What the accounting costs"): said, and made again.
                     sys.stderr.write(f"  {variant} ({kind}): a turn's work did not settle in 30 s (try {attempt})\n")
                     for child in children:
                         child.send("end")

@@ -412,33 +412,34 @@ class Accounting:
             return None
         return cpu - last[1]
 
-    # Most rows of a container are idle (a node's parameter services): a window in which
-    # nothing of one ran gives the row the last such window gave, not a new one.
     def _figures(self, item: _Metered, period_ns: int) -> CallbackLoad:
+        return self._window_row(item, period_ns, node=item.node, group=item.group, kind=item.kind, name=item.name)
+
+    def _account_figures(self, account: Account, period_ns: int) -> CallbackLoad:
+        return self._window_row(
+            account, period_ns, node=account.owner.name, group=KINDS[account.kind][0], kind=account.kind,
+            name=account.name,
+        )  # fmt: skip
+
+    def _window_row(
+        self, item: _Metered | Account, period_ns: int, *, node: str, group: str, kind: str, name: str
+    ) -> CallbackLoad:
+        """The window's row of ``item`` (an entity's or a node's other work), its totals carried on.
+
+        Most rows of a container are idle (a node's parameter services): a
+        window in which nothing of one ran gives the row the last such window
+        gave, not a new one."""
         figures = item.meter.take()
         if figures == _IDLE and item.idle is not None:
-            return item.idle
+            idle: CallbackLoad = item.idle
+            return idle
         item.runs_total += figures[0]
         item.cpu_ns_total += figures[3]
         row = self._load(
-            figures, period_ns, node=item.node, group=item.group, kind=item.kind, name=item.name,
+            figures, period_ns, node=node, group=group, kind=kind, name=name,
             runs_total=item.runs_total, cpu_ns_total=item.cpu_ns_total,
         )  # fmt: skip
         item.idle = row if figures == _IDLE else None
-        return row
-
-    def _account_figures(self, account: Account, period_ns: int) -> CallbackLoad:
-        figures = account.meter.take()
-        if figures == _IDLE and account.idle is not None:
-            idle: CallbackLoad = account.idle
-            return idle
-        account.runs_total += figures[0]
-        account.cpu_ns_total += figures[3]
-        row = self._load(
-            figures, period_ns, node=account.owner.name, group=KINDS[account.kind][0], kind=account.kind,
-            name=account.name, runs_total=account.runs_total, cpu_ns_total=account.cpu_ns_total,
-        )  # fmt: skip
-        account.idle = row if figures == _IDLE else None
         return row
 
     def _load(

@@ -173,6 +173,8 @@ class DoneCallbacks:
         self._gate = gate
         #: The node whose client's response completes the future now (``_takes.take_response``):
         #: its done-callbacks are that node's work (``None``: the executor's, or the caller's).
+        #: Set and cleared by the response's taker, under the wait set's take lock (clients are
+        #: taken by the hot wait set only): one taker at a time.
         self.owner: Owner | None = None
         #: Whether a function is a coroutine function, by the function (a
         #: bound method's ``__func__``): ``inspect`` asks in several calls.

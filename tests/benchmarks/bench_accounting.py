@@ -332,7 +332,7 @@ def _serve(kind: str, variant: str) -> None:
                 time.sleep(0.02)
             answer("ready" if received[0] >= settled else "stalled")
         elif command[0] == "mark":
-            answer(f"mark {time.process_time_ns()} {time.perf_counter_ns()} {received[0]}")
+            answer(f"mark {time.process_time_ns()} {received[0]}")
         elif command[0] == "end":
             stop.set()  # the turn's tasks and threads end (the tasks with the executor, at the latest)
             executor.shutdown(timeout_sec=2.0)
@@ -382,6 +382,13 @@ class _Child:
             self.process.wait()
 
 
+def _ask_all(children: list[_Child], command: str) -> list[str]:
+    """``command`` to every child at once (their answers then come from one moment), and their replies."""
+    for child in children:
+        child.send(command)
+    return [child.reply() for child in children]
+
+
 def _crossover(
     kind: str, variant: str, seconds: float, pairs: int, *, null: bool = False
 ) -> tuple[list[float], list[float], list[float]]:
@@ -411,32 +418,21 @@ def _crossover(
                 for attempt in range(1, TRIES + 1):
                     for child, state in zip(children, states, strict=True):
                         child.send(f"turn {'off' if null else state}")
-                    if all([child.reply() == "ready" for child in children]):
+                    if all(reply == "ready" for reply in [child.reply() for child in children]):
                         break
                     # Seen about once in 50 turns of streams until the executor held its tasks
                     # (docs/benchmarks.md, "What the accounting costs"): said, and made again.
                     sys.stderr.write(f"  {variant} ({kind}): a turn's work did not settle in 30 s (try {attempt})\n")
-                    for child in children:
-                        child.send("end")
-                    for child in children:
-                        child.reply()
+                    _ask_all(children, "end")
                 else:
                     raise RuntimeError(f"{variant} ({kind}): a turn's work did not settle in {TRIES} tries")
-                marks = []
-                for _ in range(2):
-                    for child in children:
-                        child.send("mark")
-                    marks.append([child.reply().split()[1:] for child in children])
-                    if len(marks) == 1:
-                        time.sleep(seconds)
+                first = _ask_all(children, "mark")
+                time.sleep(seconds)
                 costs = []
-                for before, after in zip(marks[0], marks[1], strict=True):
-                    cpu_ns, units = int(after[0]) - int(before[0]), int(after[2]) - int(before[2])
-                    costs.append(cpu_ns / 1000 / max(units, 1))
-                for child in children:
-                    child.send("end")
-                for child in children:
-                    child.reply()
+                for before, after in zip(first, _ask_all(children, "mark"), strict=True):
+                    (_, cpu0, units0), (_, cpu1, units1) = before.split(), after.split()
+                    costs.append((int(cpu1) - int(cpu0)) / 1000 / max(int(units1) - int(units0), 1))
+                _ask_all(children, "end")
                 on, off = (costs[0], costs[1]) if a_on else (costs[1], costs[0])
                 on_costs.append(on)
                 off_costs.append(off)

@@ -185,6 +185,9 @@ class WaitSet:
         handoff: Handoff | None = None,
     ) -> None: ...
     def wait(self, timeout_ns: int, poll: bool = False, /) -> Ready: ...
+    @property
+    def timers_waited(self) -> int:
+        """How many timers the last wait gave ``rcl_wait`` (the others wait for their deadline apart)."""
     def close(self) -> None:
         """Let every handle go; a wait after this raises ``RuntimeError``."""
 

@@ -21,14 +21,19 @@ from typing import Any
 
 import pytest
 import rclpy
+from builtin_interfaces.msg import Time
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.client import Client
+from rclpy.clock import Clock as RclClock
+from rclpy.clock_type import ClockType
 from rclpy.context import Context
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.task import Future
 from rclpy.waitable import NumberOfEntities, Waitable
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Int64
 from std_srvs.srv import Trigger
 
@@ -572,6 +577,104 @@ def test_a_cancelled_timer_stops_and_a_reset_one_goes_on(executor_of: Callable[[
 
     node.create_timer(0.02, tick_again)
     spin_for_result(executor, again)
+
+
+def test_a_cancelled_timer_reset_from_another_thread_fires_while_the_executor_sleeps(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    """Nothing else is due: the reset itself must wake the executor, as rcl's reset does by
+    triggering the timer's guard condition (the compiled wait set keeps cancelled timers out
+    of its waits, and has their resets wake it instead)."""
+    executor = executor_of()
+    executor.add_node(node)
+    fired: Future[Any] = Future()
+    reset_at: list[float] = []
+
+    def tick() -> None:
+        if not fired.done():
+            fired.set_result(time.monotonic())
+
+    timer = node.create_timer(0.05, tick)
+    timer.cancel()
+
+    def reset() -> None:
+        reset_at.append(time.monotonic())
+        timer.reset()
+
+    threading.Timer(0.3, reset).start()
+    fired_at = spin_for_result(executor, fired)
+    assert 0.05 - 0.005 <= fired_at - reset_at[0] < 2.0
+
+
+def test_a_timer_reset_before_its_deadline_fires_a_period_after_the_reset(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    """rcl's reset moves the next call to a period from now: not at the old deadline."""
+    executor = executor_of()
+    executor.add_node(node)
+    fired: Future[Any] = Future()
+    reset_at: list[float] = []
+
+    def tick() -> None:
+        if not fired.done():
+            fired.set_result(time.monotonic())
+
+    timer = node.create_timer(1.0, tick)
+
+    def reset() -> None:
+        reset_at.append(time.monotonic())
+        timer.reset()
+
+    threading.Timer(0.2, reset).start()
+    fired_at = spin_for_result(executor, fired)
+    assert reset_at, "fired before the reset"
+    assert 1.0 - 0.005 <= fired_at - reset_at[0] < 3.0
+
+
+def test_a_timer_on_simulated_time_follows_the_clock_topic(
+    executor_of: Callable[[], Executor], context: Context
+) -> None:
+    """With ``use_sim_time``, a timer's period is in the ``/clock`` topic's time: a hundred
+    times faster than the wall clock here, so a 1 s timer fires at every clock message, 10 ms
+    apart. Its deadline read as wall-clock time means nothing: the executor must wake on the
+    clock's jumps (rcl triggers such a timer's guard condition on each), also beside a timer
+    on the steady clock that is due sooner."""
+    sim = Node("sim_timer", context=context, parameter_overrides=[Parameter("use_sim_time", value=True)])
+    source = Node("sim_clock", context=context)
+    publisher = source.create_publisher(Clock, "/clock", 10)
+    stop = threading.Event()
+
+    def publish_clock() -> None:
+        sim_ns = 1_000_000_000
+        while not stop.wait(0.01):  # 10 ms of wall clock: 1 s of simulated time
+            sim_ns += 1_000_000_000
+            publisher.publish(Clock(clock=Time(sec=sim_ns // 1_000_000_000, nanosec=sim_ns % 1_000_000_000)))
+
+    executor = executor_of()
+    executor.add_node(sim)
+    fired: list[float] = []
+    ten: Future[Any] = Future()
+
+    def tick() -> None:
+        fired.append(time.monotonic())
+        if len(fired) == 10 and not ten.done():
+            ten.set_result(None)
+
+    sim.create_timer(1.0, tick)
+    # Sooner by the wall clock than the simulated timer's deadline read as wall-clock time.
+    sim.create_timer(0.05, lambda: None, clock=RclClock(clock_type=ClockType.STEADY_TIME))
+    clock = threading.Thread(target=publish_clock, daemon=True)
+    clock.start()
+    try:
+        spin_for_result(executor, ten)
+    finally:
+        stop.set()
+        clock.join(2.0)
+        sim.destroy_node()
+        source.destroy_node()
+    # 10 ms apart at this rate (0.09 s for ten); a timer waited on by its deadline read as
+    # wall-clock time fired 0.1-0.9 s apart (measured: 1.8 s for five).
+    assert fired[-1] - fired[0] < 2.0, [round(t - fired[0], 3) for t in fired]
 
 
 # -- waitables -------------------------------------------------------------------------------

@@ -175,6 +175,60 @@ def test_armed_notifier_wakes_a_wait_only_while_armed(context: Context, node: No
         notifier.unwatch(sub.handle)
 
 
+@compiled_only("a heap of timer deadlines (a wait gives rcl only the timers due next)")
+def test_a_wait_gives_rcl_only_the_timers_due_next_and_a_reset_wakes_it(
+    context: Context, node: Node, guard: GuardCondition
+) -> None:
+    """rcl_wait reads every timer it is given, and Fast DDS attaches each one's guard
+    condition, on every wait: what made a wait's cost grow with the node count. Here a
+    hundred timers due in 30 s stay out of the waits of one due every 10 ms; a cancelled
+    one stays out too, until its reset (from another thread, while the wait blocks) wakes
+    the wait through the notifier's guard."""
+    slow = [node.create_timer(30.0, lambda: None) for _ in range(100)]
+    fast = node.create_timer(0.01, lambda: None)
+    later = node.create_timer(0.01, lambda: None)
+    later.cancel()
+    engine: ModuleType = _fastpath  # typed by what it is given, as the engines' tests do
+    wait_set = engine.WaitSet(
+        context.handle,
+        guard_conditions=[guard.handle],
+        timers=[timer.handle for timer in (*slow, fast, later)],
+        notifier=Notifier(guard=guard.handle),
+    )
+
+    def fired(timer: Any, ready: tuple[list[int], ...]) -> bool:
+        if not ready or timer.handle.pointer not in ready[2]:
+            return False
+        with timer.handle:
+            timer.handle.call_timer()
+        return True
+
+    try:
+        waited: list[int] = []
+        runs = 0
+        deadline = time.monotonic() + TIMEOUT
+        while runs < 5 and time.monotonic() < deadline:
+            ready = wait_set.wait(1_000_000_000)
+            waited.append(wait_set.timers_waited)
+            assert not fired(later, ready), "a cancelled timer was reported"
+            runs += fired(fast, ready)
+        assert runs == 5
+        assert set(waited) == {1}, waited  # the fast one alone
+
+        fast.cancel()
+        threading.Timer(0.2, later.reset).start()
+        started = time.monotonic()
+        ready = wait_set.wait(5_000_000_000)
+        assert time.monotonic() - started < 2.0, "the reset did not wake the wait"
+        assert ready and guard.handle.pointer in ready[1]
+        deadline = time.monotonic() + TIMEOUT
+        while not fired(later, wait_set.wait(1_000_000_000)):
+            assert time.monotonic() < deadline, "the reset timer never fired"
+        assert wait_set.timers_waited == 1
+    finally:
+        wait_set.close()
+
+
 @pytest.mark.parametrize("engine", engines())
 def test_fd_watcher_wakes_a_wait_once_per_arming_while_a_descriptor_is_readable(
     engine: ModuleType, context: Context, guard: GuardCondition

@@ -169,6 +169,8 @@ typedef struct NotifierObject {
 
 /* -- notifier.c ------------------------------------------------------------ */
 extern PyTypeObject NotifierType;
+/* Trigger the notifier's guard, armed or not (a timer's reset: see waitset.c). */
+void notifier_wake(NotifierObject * self);
 /* How many reported entities notifier_take_reported moves without allocating. */
 #define REPORTED_INLINE 16
 Py_ssize_t notifier_take_reported(

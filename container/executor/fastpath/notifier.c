@@ -70,6 +70,17 @@ static void on_event(const void * user_data, size_t number_of_events)
   }
 }
 
+/* Wake the waiter whether it is armed or not (a guard triggered before its wait makes that wait return at
+ * once): for a timer's reset (waitset.c), from any thread, with or without the GIL. */
+void notifier_wake(NotifierObject * self)
+{
+  pthread_mutex_lock(&self->lock);
+  if (self->guard != NULL) {
+    trigger(self->guard);
+  }
+  pthread_mutex_unlock(&self->lock);
+}
+
 static rcl_ret_t set_callback(int kind, uintptr_t key, rcl_event_callback_t callback, const void * data)
 {
   switch (kind) {

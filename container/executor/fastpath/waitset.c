@@ -1,10 +1,64 @@
-/* WaitSet: an rcl wait set over fixed entities, filled, waited on and read in one call (see module.c). */
+/* WaitSet: an rcl wait set over fixed entities, filled, waited on and read in one call (see module.c).
+ *
+ * Timers: only those due next go into the rcl wait set. rcl_wait walks
+ * every timer it is given (each one's next deadline, a clock read, a ROS
+ * time override check) and Fast DDS attaches and detaches each timer's guard
+ * condition, on every wait: with 500 nodes' timers that walk was over half
+ * of the process's CPU (perf, bench_scale.py's 500-node async process),
+ * and the cost per callback grew with the node count. Here the timers wait
+ * in a min-heap of their deadlines (CLOCK_MONOTONIC ns, from rcl's own
+ * time until the next call), and each wait adds to the rcl wait set only
+ * those due within HEAP_SLACK_NS of the soonest (or now), which rcl then
+ * times exactly as before. A timer so added is read again at the next wait
+ * (called by then, or not: then it is due still) and goes back to the heap.
+ *
+ * What rcl told apart by waiting on every timer, told apart here:
+ * - A reset moves a deadline later (never earlier: now + period), or
+ *   restarts a cancelled timer. A deadline later than the heap's wakes the
+ *   wait early once, finds the timer not due and puts it back. Cancelled
+ *   timers wait apart, and are read again only after some timer was reset:
+ *   every timer's on-reset callback counts resets (timer_resets), and wakes
+ *   each wait set that has cancelled timers through its notifier's guard,
+ *   as rcl's reset woke a wait through the timer's own guard condition.
+ *   Without a notifier (nothing to wake), cancelled timers stay in every
+ *   wait, as in rcl.
+ * - A ROS-time timer whose clock's ROS time override is on (simulated
+ *   time) is woken by its clock's jumps, through its guard condition: it
+ *   goes into every wait, as in rcl. A timer whose override is switched on
+ *   while it waits in the heap is found so at its system-time deadline,
+ *   one period late at most.
+ */
 #include "fastpath.h"
 
 /* ------------------------------------------------------------------------ */
 enum { WS_SUBSCRIPTIONS, WS_GUARDS, WS_TIMERS, WS_CLIENTS, WS_SERVICES, WS_EVENTS, WS_KINDS };
 
+/* Timers due within this much of the soonest go into the same wait: one
+ * wake-up for timers whose deadlines are that close, as rcl's wait gave. */
+#define HEAP_SLACK_NS 1000000LL
+
+/* One timer in the heap: its deadline, and its index among the wait set's timers. */
 typedef struct {
+  long long due;
+  size_t index;
+} TimerDue;
+
+/* The timers of one wait set, by where each waits (each index in one place). */
+typedef struct {
+  TimerDue * heap;    /* by deadline */
+  size_t heap_n;
+  size_t * armed;     /* in the rcl wait set of the last wait: read again at the next */
+  size_t armed_n;
+  size_t * always;    /* ROS time overridden (or unreadable): in every wait, read again at each */
+  size_t always_n;
+  size_t * cancelled; /* read again once some timer was reset */
+  size_t cancelled_n;
+  unsigned long resets_seen; /* timer_resets when cancelled was last read */
+} Timers;
+
+typedef struct WaitSetObject WaitSetObject;
+
+struct WaitSetObject {
   PyObject_HEAD
   rcl_wait_set_t wait_set;
   int initialised;
@@ -14,7 +68,249 @@ typedef struct {
   size_t counts[WS_KINDS];
   NotifierObject * notifier; /* told when each wait ends at the latest, or NULL */
   HandoffObject * handoff;   /* the loop's hand-overs to workers (with a notifier only), or NULL */
-} WaitSetObject;
+  Timers timers;             /* touched by the thread in wait() only (one at a time) */
+  size_t timers_waited;      /* how many timers the last wait gave rcl_wait */
+  int registered;            /* in the list that timer resets wake (see on_timer_reset) */
+  WaitSetObject * next_registered;
+};
+
+/* -- timer resets ------------------------------------------------------------ */
+/* Resets of any timer a wait set was given, and the wait sets (with a
+ * notifier and timers) that a reset wakes: registered at init, let go at
+ * close, under reset_lock, which the callback holds while it wakes them. */
+static atomic_ulong timer_resets = 0;
+static pthread_mutex_t reset_lock = PTHREAD_MUTEX_INITIALIZER;
+static WaitSetObject * reset_waiters = NULL;
+
+/* rcl's on-reset callback of every timer given to a wait set, from
+ * whichever thread resets it (the GIL may not be held). No user data: it
+ * stays valid after its wait set is gone (a later wait set sets it again). */
+static void on_timer_reset(const void * Py_UNUSED(user_data), size_t Py_UNUSED(count))
+{
+  WaitSetObject * waiter;
+  atomic_fetch_add(&timer_resets, 1);
+  pthread_mutex_lock(&reset_lock);
+  /* Every one: which of them has cancelled timers is their waiting thread's to know. Resets are few. */
+  for (waiter = reset_waiters; waiter != NULL; waiter = waiter->next_registered) {
+    notifier_wake(waiter->notifier);
+  }
+  pthread_mutex_unlock(&reset_lock);
+}
+
+static void register_for_resets(WaitSetObject * self)
+{
+  pthread_mutex_lock(&reset_lock);
+  self->next_registered = reset_waiters;
+  reset_waiters = self;
+  self->registered = 1;
+  pthread_mutex_unlock(&reset_lock);
+}
+
+static void unregister_for_resets(WaitSetObject * self)
+{
+  WaitSetObject ** link;
+  if (!self->registered) {
+    return;
+  }
+  pthread_mutex_lock(&reset_lock);
+  for (link = &reset_waiters; *link != NULL; link = &(*link)->next_registered) {
+    if (*link == self) {
+      *link = self->next_registered;
+      break;
+    }
+  }
+  self->registered = 0;
+  pthread_mutex_unlock(&reset_lock);
+}
+
+/* -- the timer heap ------------------------------------------------------------ */
+static void heap_push(Timers * timers, long long due, size_t index)
+{
+  size_t at = timers->heap_n++;
+  while (at > 0) {
+    size_t parent = (at - 1) / 2;
+    if (timers->heap[parent].due <= due) {
+      break;
+    }
+    timers->heap[at] = timers->heap[parent];
+    at = parent;
+  }
+  timers->heap[at].due = due;
+  timers->heap[at].index = index;
+}
+
+static TimerDue heap_pop(Timers * timers)
+{
+  TimerDue top = timers->heap[0];
+  TimerDue last = timers->heap[--timers->heap_n];
+  size_t at = 0, n = timers->heap_n;
+  for (;;) {
+    size_t child = 2 * at + 1;
+    if (child >= n) {
+      break;
+    }
+    if (child + 1 < n && timers->heap[child + 1].due < timers->heap[child].due) {
+      ++child;
+    }
+    if (last.due <= timers->heap[child].due) {
+      break;
+    }
+    timers->heap[at] = timers->heap[child];
+    at = child;
+  }
+  if (n > 0) {
+    timers->heap[at] = last;
+  }
+  return top;
+}
+
+enum { TIMER_DUE, TIMER_CANCELLED, TIMER_ALWAYS };
+
+/* Where timer ``index`` waits now: TIMER_DUE with its deadline in *due,
+ * cancelled, or in every wait (ROS time overridden; or unreadable: rcl_wait
+ * reports the error as before). */
+static int timer_state(WaitSetObject * self, size_t index, long long now, long long * due)
+{
+  const rcl_timer_t * timer = self->entities[WS_TIMERS][index].pointer;
+  rcl_clock_t * clock = NULL;
+  int64_t until = 0;
+  rcl_ret_t ret = rcl_timer_clock((rcl_timer_t *)timer, &clock);
+  if (ret == RCL_RET_OK && clock->type == RCL_ROS_TIME) {
+    bool overridden = false;
+    ret = rcl_is_enabled_ros_time_override(clock, &overridden);
+    if (ret == RCL_RET_OK && overridden) {
+      return TIMER_ALWAYS;
+    }
+  }
+  if (ret == RCL_RET_OK) {
+    ret = rcl_timer_get_time_until_next_call(timer, &until);
+  }
+  if (ret == RCL_RET_TIMER_CANCELED) {
+    rcl_reset_error();
+    /* Without a notifier no reset wakes a wait: it waits in every one, as in rcl. */
+    return self->notifier != NULL ? TIMER_CANCELLED : TIMER_ALWAYS;
+  }
+  if (ret != RCL_RET_OK) {
+    rcl_reset_error();
+    return TIMER_ALWAYS;
+  }
+  *due = now + until;
+  return TIMER_DUE;
+}
+
+/* Put timer ``index`` where it waits now (back into the heap, or apart). */
+static void timer_place(WaitSetObject * self, size_t index, long long now)
+{
+  Timers * timers = &self->timers;
+  long long due = 0;
+  switch (timer_state(self, index, now, &due)) {
+    case TIMER_DUE:
+      heap_push(timers, due, index);
+      break;
+    case TIMER_CANCELLED:
+      timers->cancelled[timers->cancelled_n++] = index;
+      break;
+    default:
+      timers->always[timers->always_n++] = index;
+      break;
+  }
+}
+
+/* Choose the timers of the next wait (self->timers.armed): the last wait's
+ * read again, the cancelled ones too after a reset, and those the heap has
+ * due first. */
+static void timers_choose(WaitSetObject * self)
+{
+  Timers * timers = &self->timers;
+  long long now = monotonic_ns(), horizon = 0;
+  int have_horizon = 0;
+  size_t i, n;
+  unsigned long resets = atomic_load(&timer_resets);
+  n = timers->armed_n;
+  timers->armed_n = 0;
+  for (i = 0; i < n; ++i) {
+    timer_place(self, timers->armed[i], now);
+  }
+  n = timers->always_n;
+  timers->always_n = 0;
+  for (i = 0; i < n; ++i) {
+    timer_place(self, timers->always[i], now);
+  }
+  if (resets != timers->resets_seen) {
+    timers->resets_seen = resets;
+    n = timers->cancelled_n;
+    timers->cancelled_n = 0;
+    for (i = 0; i < n; ++i) {
+      timer_place(self, timers->cancelled[i], now);
+    }
+  }
+  /* The soonest, and those due within HEAP_SLACK_NS of it. A deadline read
+   * again that moved (a reset since) goes back, at its place. */
+  while (timers->heap_n > 0 && (!have_horizon || timers->heap[0].due <= horizon)) {
+    TimerDue top = heap_pop(timers);
+    long long due = 0;
+    switch (timer_state(self, top.index, now, &due)) {
+      case TIMER_DUE:
+        if (due > top.due && (!have_horizon || due > horizon)) {
+          heap_push(timers, due, top.index);
+          continue;
+        }
+        timers->armed[timers->armed_n++] = top.index;
+        if (!have_horizon) {
+          horizon = (due > now ? due : now) + HEAP_SLACK_NS;
+          have_horizon = 1;
+        }
+        break;
+      case TIMER_CANCELLED:
+        timers->cancelled[timers->cancelled_n++] = top.index;
+        break;
+      default:
+        timers->always[timers->always_n++] = top.index;
+        break;
+    }
+  }
+}
+
+static void waitset_close(WaitSetObject * self);
+
+/* Every timer starts as read at the next wait; each gets the on-reset callback. */
+static int timers_init(WaitSetObject * self)
+{
+  Timers * timers = &self->timers;
+  size_t count = self->counts[WS_TIMERS], i;
+  if (count == 0) {
+    return 0;
+  }
+  timers->heap = PyMem_RawCalloc(count, sizeof(TimerDue));
+  timers->armed = PyMem_RawCalloc(count, sizeof(size_t));
+  timers->always = PyMem_RawCalloc(count, sizeof(size_t));
+  timers->cancelled = PyMem_RawCalloc(count, sizeof(size_t));
+  if (timers->heap == NULL || timers->armed == NULL || timers->always == NULL || timers->cancelled == NULL) {
+    PyErr_NoMemory();
+    return -1;
+  }
+  for (i = 0; i < count; ++i) {
+    timers->armed[timers->armed_n++] = i;
+    if (rcl_timer_set_on_reset_callback(self->entities[WS_TIMERS][i].pointer, on_timer_reset, NULL) != RCL_RET_OK) {
+      rcl_failed("rcl_timer_set_on_reset_callback");
+      return -1;
+    }
+  }
+  timers->resets_seen = atomic_load(&timer_resets);
+  if (self->notifier != NULL) {
+    register_for_resets(self);
+  }
+  return 0;
+}
+
+static void timers_free(Timers * timers)
+{
+  PyMem_RawFree(timers->heap);
+  PyMem_RawFree(timers->armed);
+  PyMem_RawFree(timers->always);
+  PyMem_RawFree(timers->cancelled);
+  memset(timers, 0, sizeof(*timers));
+}
 
 static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs)
 {
@@ -82,6 +378,10 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
     }
   }
   self->initialised = 1;
+  if (timers_init(self) < 0) {
+    waitset_close(self);
+    return -1;
+  }
   return 0;
 }
 
@@ -89,6 +389,8 @@ static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs
 static void waitset_close(WaitSetObject * self)
 {
   int kind;
+  unregister_for_resets(self);
+  timers_free(&self->timers);
   if (self->initialised) {
     self->initialised = 0;
     if (rcl_wait_set_fini(&self->wait_set) != RCL_RET_OK) {
@@ -130,8 +432,23 @@ static rcl_ret_t fill(WaitSetObject * self)
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_GUARDS]; ++i) {
     ret = rcl_wait_set_add_guard_condition(ws, self->entities[WS_GUARDS][i].pointer, NULL);
   }
-  for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_TIMERS]; ++i) {
-    ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][i].pointer, NULL);
+  if (self->counts[WS_TIMERS] > 0) {
+    Timers * timers = &self->timers;
+    timers_choose(self);
+    for (i = 0; ret == RCL_RET_OK && i < timers->armed_n; ++i) {
+      ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][timers->armed[i]].pointer, NULL);
+    }
+    /* Read again at the next wait as well (their override, their errors). */
+    for (i = 0; ret == RCL_RET_OK && i < timers->always_n; ++i) {
+      ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][timers->always[i]].pointer, NULL);
+    }
+    self->timers_waited = timers->armed_n + timers->always_n;
+    if (self->notifier == NULL) {
+      for (i = 0; ret == RCL_RET_OK && i < timers->cancelled_n; ++i) {
+        ret = rcl_wait_set_add_timer(ws, self->entities[WS_TIMERS][timers->cancelled[i]].pointer, NULL);
+      }
+      self->timers_waited += timers->cancelled_n;
+    }
   }
   for (i = 0; ret == RCL_RET_OK && i < self->counts[WS_CLIENTS]; ++i) {
     ret = rcl_wait_set_add_client(ws, self->entities[WS_CLIENTS][i].pointer, NULL);
@@ -175,8 +492,9 @@ static long long wake_deadline(WaitSetObject * self, long long timeout)
 {
   long long soonest = timeout >= 0 ? timeout : LLONG_MAX;
   size_t i;
-  for (i = 0; i < self->counts[WS_TIMERS]; ++i) {
-    const rcl_timer_t * timer = self->entities[WS_TIMERS][i].pointer;
+  /* The timers in this wait are the soonest (the others are later, cancelled, or overridden). */
+  for (i = 0; i < self->timers.armed_n; ++i) {
+    const rcl_timer_t * timer = self->entities[WS_TIMERS][self->timers.armed[i]].pointer;
     rcl_clock_t * clock = NULL;
     int64_t until = 0;
     rcl_ret_t ret = rcl_timer_clock((rcl_timer_t *)timer, &clock);
@@ -313,6 +631,18 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
     ready_of((const void * const *)ws->events, ws->size_of_events));
 }
 
+/* timers_waited -> int: how many timers the last wait gave rcl_wait (tests: the others wait in the heap). */
+static PyObject * WaitSet_get_timers_waited(WaitSetObject * self, void * Py_UNUSED(closure))
+{
+  return PyLong_FromSize_t(self->timers_waited);
+}
+
+static PyGetSetDef WaitSet_getset[] = {
+  {"timers_waited", (getter)WaitSet_get_timers_waited, NULL,
+   "How many timers the last wait gave rcl_wait (the others wait for their deadline apart).", NULL},
+  {NULL, NULL, NULL, NULL, NULL},
+};
+
 static PyMethodDef WaitSet_methods[] = {
   {"wait", (PyCFunction)(void (*)(void))WaitSet_wait, METH_FASTCALL,
    "wait(timeout_ns, poll=False) -> () on timeout, else the ready addresses: (subscriptions, guard_conditions, "
@@ -331,5 +661,6 @@ PyTypeObject WaitSetType = {
   .tp_init = (initproc)WaitSet_init,
   .tp_dealloc = (destructor)WaitSet_dealloc,
   .tp_methods = WaitSet_methods,
+  .tp_getset = WaitSet_getset,
 };
 

@@ -36,7 +36,7 @@ from __future__ import annotations
 import operator
 import threading
 import time
-from typing import Any
+from typing import Any, Final
 
 __all__ = ["Meter", "begin", "count_dropped", "end", "pause", "resume", "stuck_after"]
 
@@ -162,6 +162,11 @@ class Meter:
             return self._take()
 
     def _take(self) -> tuple[int, int, int, int, int, int, int, int, int, int, int, int, int]:
+        if not (
+            self._in_step or self._runs or self._finished or self._busy_ns or self._cpu_ns or self._late_n
+            or self._dur_n or self._dropped or self._stuck
+        ):  # fmt: skip
+            return _IDLE_FIGURES  # nothing ran: nothing to build or clear (most meters' windows)
         now = _monotonic_ns()
         running = now - self._step_since if self._in_step > 0 else 0
         if running >= _Limits.stuck_after_ns and not self._stuck_counted:
@@ -180,6 +185,10 @@ class Meter:
         self._late = [0] * METER_BUCKETS
         self._dur = [0] * METER_BUCKETS
         return figures
+
+
+#: What :meth:`Meter.take` gives for a window in which nothing ran or runs.
+_IDLE_FIGURES: Final = (0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
 
 
 def _record_late(meter: Meter, value: int) -> None:

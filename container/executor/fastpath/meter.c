@@ -183,12 +183,31 @@ void meter_end(MeterObject * self, long long step_start, long long started)
   record(self->dur, &self->dur_n, &self->dur_max, now - started);
 }
 
-/* take() -> tuple: this window's figures, then a new window. */
+/* What take() gives for a window in which nothing ran: made once, then shared (the module holds it). */
+static PyObject * idle_figures = NULL;
+
+/* take() -> tuple: this window's figures, then a new window.
+ *
+ * A window in which nothing ran, and nothing runs, is the same zeros every
+ * time, and most meters' windows are so (a node's parameter services): 500
+ * nodes' 7,500 meters, each window built and cleared anew, were most of a
+ * sample's 26 ms, once a second. */
 static PyObject * Meter_take(MeterObject * self, PyObject * Py_UNUSED(ignored))
 {
   long long now = monotonic_ns();
   long long running = self->in_step > 0 ? now - self->step_since : 0;
   PyObject * figures;
+  if (self->in_step == 0 && self->runs == 0 && self->finished == 0 && self->busy_ns == 0 && self->cpu_ns == 0 &&
+      self->late_n == 0 && self->dur_n == 0 && self->dropped == 0 && self->stuck == 0)
+  {
+    if (idle_figures == NULL) {
+      idle_figures = Py_BuildValue("(iiiiiiiiiiiii)", 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0);
+      if (idle_figures == NULL) {
+        return NULL;
+      }
+    }
+    return Py_NewRef(idle_figures);
+  }
   if (running >= stuck_after_ns && !self->stuck_counted) {
     self->stuck++;
     self->stuck_counted = 1;

@@ -336,16 +336,7 @@ class Accounting:
             self._window_start, self._process_at = now, process
             loop_cpu_ns = self._loop_cpu(now)
         threads = self._threads.sample(loop_threads=self._loop_tids)
-        # Written out, not through _figures: most of a big container's rows are idle, and
-        # this loop runs over every one of them each second.
-        callbacks: list[CallbackLoad] = []
-        for item in metered:
-            figures = item.meter.take()
-            idle = item.idle
-            if idle is not None and figures == _IDLE:
-                callbacks.append(idle)
-            else:
-                callbacks.append(self._figures(item, period_ns, figures))
+        callbacks = [self._figures(item, period_ns) for item in metered]
         entities = sum(c.cpu for c in callbacks)
         for owner in owners:
             callbacks += self._owner_rows(owner, threads, period_ns)
@@ -421,10 +412,8 @@ class Accounting:
             return None
         return cpu - last[1]
 
-    def _figures(self, item: _Metered, period_ns: int, figures: tuple[int, ...]) -> CallbackLoad:
-        return self._window_row(
-            item, period_ns, node=item.node, group=item.group, kind=item.kind, name=item.name, figures=figures
-        )
+    def _figures(self, item: _Metered, period_ns: int) -> CallbackLoad:
+        return self._window_row(item, period_ns, node=item.node, group=item.group, kind=item.kind, name=item.name)
 
     def _account_figures(self, account: Account, period_ns: int) -> CallbackLoad:
         return self._window_row(
@@ -433,26 +422,14 @@ class Accounting:
         )  # fmt: skip
 
     def _window_row(
-        self,
-        item: _Metered | Account,
-        period_ns: int,
-        *,
-        node: str,
-        group: str,
-        kind: str,
-        name: str,
-        figures: tuple[int, ...] | None = None,
+        self, item: _Metered | Account, period_ns: int, *, node: str, group: str, kind: str, name: str
     ) -> CallbackLoad:
         """The window's row of ``item`` (an entity's or a node's other work), its totals carried on.
 
         Most rows of a container are idle (a node's parameter services): a
         window in which nothing of one ran gives the row the last such window
-        gave, not a new one.
-
-        :param figures: what ``item.meter.take()`` gave, when the caller took it.
-        """
-        if figures is None:
-            figures = item.meter.take()
+        gave, not a new one."""
+        figures = item.meter.take()
         if figures == _IDLE and item.idle is not None:
             idle: CallbackLoad = item.idle
             return idle

@@ -579,13 +579,12 @@ def test_a_cancelled_timer_stops_and_a_reset_one_goes_on(executor_of: Callable[[
     spin_for_result(executor, again)
 
 
-def test_a_cancelled_timer_reset_from_another_thread_fires_while_the_executor_sleeps(
-    executor_of: Callable[[], Executor], node: Node
-) -> None:
-    """Nothing else is due: the reset itself must wake the executor, as rcl's reset does by
-    triggering the timer's guard condition (the compiled wait set keeps cancelled timers out
-    of its waits, and has their resets wake it instead)."""
-    executor = executor_of()
+def _fired_after_reset(
+    executor: Executor, node: Node, *, period: float, cancelled: bool, reset_after: float
+) -> tuple[float, list[float]]:
+    """Spin ``executor`` until a timer of ``period`` on ``node`` (cancelled at once, or not),
+    reset from another thread ``reset_after`` s later, first fires: when it fired, and when the
+    reset was made (empty: not yet)."""
     executor.add_node(node)
     fired: Future[Any] = Future()
     reset_at: list[float] = []
@@ -594,15 +593,25 @@ def test_a_cancelled_timer_reset_from_another_thread_fires_while_the_executor_sl
         if not fired.done():
             fired.set_result(time.monotonic())
 
-    timer = node.create_timer(0.05, tick)
-    timer.cancel()
+    timer = node.create_timer(period, tick)
+    if cancelled:
+        timer.cancel()
 
     def reset() -> None:
         reset_at.append(time.monotonic())
         timer.reset()
 
-    threading.Timer(0.3, reset).start()
-    fired_at = spin_for_result(executor, fired)
+    threading.Timer(reset_after, reset).start()
+    return spin_for_result(executor, fired), reset_at
+
+
+def test_a_cancelled_timer_reset_from_another_thread_fires_while_the_executor_sleeps(
+    executor_of: Callable[[], Executor], node: Node
+) -> None:
+    """Nothing else is due: the reset itself must wake the executor, as rcl's reset does by
+    triggering the timer's guard condition (the compiled wait set keeps cancelled timers out
+    of its waits, and has their resets wake it instead)."""
+    fired_at, reset_at = _fired_after_reset(executor_of(), node, period=0.05, cancelled=True, reset_after=0.3)
     assert 0.05 - 0.005 <= fired_at - reset_at[0] < 2.0
 
 
@@ -610,23 +619,7 @@ def test_a_timer_reset_before_its_deadline_fires_a_period_after_the_reset(
     executor_of: Callable[[], Executor], node: Node
 ) -> None:
     """rcl's reset moves the next call to a period from now: not at the old deadline."""
-    executor = executor_of()
-    executor.add_node(node)
-    fired: Future[Any] = Future()
-    reset_at: list[float] = []
-
-    def tick() -> None:
-        if not fired.done():
-            fired.set_result(time.monotonic())
-
-    timer = node.create_timer(1.0, tick)
-
-    def reset() -> None:
-        reset_at.append(time.monotonic())
-        timer.reset()
-
-    threading.Timer(0.2, reset).start()
-    fired_at = spin_for_result(executor, fired)
+    fired_at, reset_at = _fired_after_reset(executor_of(), node, period=1.0, cancelled=False, reset_after=0.2)
     assert reset_at, "fired before the reset"
     assert 1.0 - 0.005 <= fired_at - reset_at[0] < 3.0
 

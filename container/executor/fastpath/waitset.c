@@ -54,6 +54,7 @@ typedef struct {
   size_t * cancelled; /* read again once some timer was reset */
   size_t cancelled_n;
   unsigned long resets_seen; /* timer_resets when cancelled was last read */
+  long long soonest;         /* the earliest deadline among armed (LLONG_MAX: none) */
 } Timers;
 
 typedef struct WaitSetObject WaitSetObject;
@@ -226,6 +227,7 @@ static void timers_choose(WaitSetObject * self)
   int have_horizon = 0;
   size_t i, n;
   unsigned long resets = atomic_load(&timer_resets);
+  timers->soonest = LLONG_MAX;
   n = timers->armed_n;
   timers->armed_n = 0;
   for (i = 0; i < n; ++i) {
@@ -256,6 +258,9 @@ static void timers_choose(WaitSetObject * self)
           continue;
         }
         timers->armed[timers->armed_n++] = top.index;
+        if (due < timers->soonest) {
+          timers->soonest = due;
+        }
         if (!have_horizon) {
           horizon = (due > now ? due : now) + HEAP_SLACK_NS;
           have_horizon = 1;
@@ -278,6 +283,7 @@ static int timers_init(WaitSetObject * self)
 {
   Timers * timers = &self->timers;
   size_t count = self->counts[WS_TIMERS], i;
+  timers->soonest = LLONG_MAX;
   if (count == 0) {
     return 0;
   }
@@ -310,6 +316,7 @@ static void timers_free(Timers * timers)
   PyMem_RawFree(timers->always);
   PyMem_RawFree(timers->cancelled);
   memset(timers, 0, sizeof(*timers));
+  timers->soonest = LLONG_MAX;
 }
 
 static int WaitSet_init(WaitSetObject * self, PyObject * args, PyObject * kwargs)
@@ -487,40 +494,18 @@ static PyObject * ready_of(const void * const * slots, size_t count)
 /* When an rcl_wait with this timeout (ns, negative: none) returns at the
  * latest, on CLOCK_MONOTONIC: rcl_wait's own rule (the timeout or the soonest
  * timer, skipping cancelled timers and ROS-time timers under a time
- * override, which only their clock's jumps wake); LLONG_MAX when unknown. */
+ * override, which only their clock's jumps wake). The soonest timer's
+ * deadline is the one timers_choose read for this wait (the timers it gave
+ * rcl_wait are the soonest; the others are later, cancelled, or overridden). */
 static long long wake_deadline(WaitSetObject * self, long long timeout)
 {
-  long long soonest = timeout >= 0 ? timeout : LLONG_MAX;
-  size_t i;
-  /* The timers in this wait are the soonest (the others are later, cancelled, or overridden). */
-  for (i = 0; i < self->timers.armed_n; ++i) {
-    const rcl_timer_t * timer = self->entities[WS_TIMERS][self->timers.armed[i]].pointer;
-    rcl_clock_t * clock = NULL;
-    int64_t until = 0;
-    rcl_ret_t ret = rcl_timer_clock((rcl_timer_t *)timer, &clock);
-    if (ret == RCL_RET_OK && clock->type == RCL_ROS_TIME) {
-      bool overridden = false;
-      ret = rcl_is_enabled_ros_time_override(clock, &overridden);
-      if (ret == RCL_RET_OK && overridden) {
-        continue;
-      }
-    }
-    if (ret == RCL_RET_OK) {
-      ret = rcl_timer_get_time_until_next_call(timer, &until);
-    }
-    if (ret == RCL_RET_TIMER_CANCELED) {
-      rcl_reset_error();
-      continue;
-    }
-    if (ret != RCL_RET_OK) {
-      rcl_reset_error();
-      return LLONG_MAX;
-    }
-    if (until < soonest) {
-      soonest = until > 0 ? until : 0;
-    }
+  long long now = monotonic_ns();
+  long long by = timeout >= 0 ? now + timeout : LLONG_MAX;
+  long long soonest = self->timers.soonest;
+  if (soonest < by) {
+    by = soonest > now ? soonest : now;
   }
-  return soonest == LLONG_MAX ? LLONG_MAX : monotonic_ns() + soonest;
+  return by;
 }
 
 /* The longest a poll may hold the GIL in rcl_wait, should its guard

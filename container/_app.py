@@ -45,7 +45,7 @@ from .lifecycle import LifecycleManager, ManagerSettings, contain_fault, is_life
 if TYPE_CHECKING:
     from rclpy.impl.rcutils_logger import RcutilsLogger
 
-__all__ = ["ContainerApp", "manager_extension", "run_container", "run_manager"]
+__all__ = ["ContainerApp", "manager_extension", "reload_extension", "run_container", "run_manager"]
 
 #: Extensions started after the configured nodes load (the lifecycle manager);
 #: each returns a coroutine to await on shutdown.
@@ -437,6 +437,17 @@ def manager_extension(settings: ManagerSettings) -> Callable[[ContainerApp], Awa
             finally:
                 app.executor.remove_node(manager)
                 manager.destroy_node()
+
+    return run
+
+
+def reload_extension() -> Callable[[ContainerApp], Awaitable[None]]:
+    """A container extension reloading a plugin's nodes when its code changes (``container run --reload``)."""
+
+    async def run(app: ContainerApp) -> None:
+        from ._watch import SourceWatcher
+
+        await SourceWatcher(app.services.reloader, app.registry, app.manager.get_logger()).run()
 
     return run
 

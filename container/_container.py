@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.exceptions import (
     InvalidNamespaceException,
     InvalidNodeNameException,
@@ -39,17 +39,31 @@ from ._text import clip
 from ._warnings import LoadWarning
 from .executor import Escaped, format_plugin_frames, in_thread
 from .intra import intra_process_class
-from .lifecycle import LifecycleNode, bring_down, bring_up, is_lifecycle
+from .lifecycle import LifecycleNode, bring_down, bring_up, is_lifecycle, transition
 
 if TYPE_CHECKING:
     from rclpy.context import Context
 
     from .executor import AsyncioExecutor
 
-__all__ = ["ComponentManager", "LoadRequest", "LoadWatcher", "LoadedNode", "Restore", "entry_label", "type_label"]
+__all__ = [
+    "RELOAD_STATE",
+    "Carry",
+    "ComponentManager",
+    "LoadRequest",
+    "LoadWatcher",
+    "LoadedNode",
+    "Restore",
+    "entry_label",
+    "type_label",
+]
 
 #: The rclpy parameter that starts a node's ~/get_type_description service.
 TYPE_DESCRIPTION_SERVICE = "start_type_description_service"
+
+#: The attribute a reloaded node's dict of kept state is handed over in
+#: (``LifecycleNode.reload_state``; any node class may read it).
+RELOAD_STATE = "reload_state"
 
 #: Extra arguments accepted, with their expected type: rclcpp's container's
 #: (``use_intra_process_comms``, see :mod:`container.intra`;
@@ -127,6 +141,46 @@ class Restore:
     changed_parameters: Sequence[Parameter[Any]] = ()
 
 
+@dataclass(frozen=True, slots=True)
+class Carry:
+    """What a node reloaded in place of another takes over from it (:mod:`container._reload`).
+
+    :param changed_parameters: the parameters set on the old node since it
+        was loaded, at their current values; they override the request's,
+        as a restored node's do.
+    :param state: the old node's ``reload_state`` dict, handed to the new
+        node before its constructor runs.
+    """
+
+    changed_parameters: Sequence[Parameter[Any]] = ()
+    state: dict[str, Any] = field(default_factory=dict)
+
+
+class _SetSince:
+    """An on-set-parameters callback that notes which declared parameters are set after construction.
+
+    A name set on a node that already has it is a change (a ``set_parameters``
+    call, from a peer or from the node); a declaration is not. What the
+    value became is read when it is wanted, so a set another callback
+    rejects costs nothing but a read of the unchanged value.
+    """
+
+    __slots__ = ("_node", "names")
+
+    def __init__(self, node: Node) -> None:
+        self._node = node
+        self.names: dict[str, None] = {}
+
+    def __call__(self, parameters: list[Parameter[Any]]) -> SetParametersResult:
+        for parameter in parameters:
+            if self._node.has_parameter(parameter.name):
+                self.names[parameter.name] = None
+        return SetParametersResult(successful=True)
+
+    def current(self) -> list[Parameter[Any]]:
+        return [self._node.get_parameter(name) for name in self.names if self._node.has_parameter(name)]
+
+
 @dataclass(eq=False, slots=True)
 class LoadedNode:
     """A node living in the container."""
@@ -147,6 +201,12 @@ class LoadedNode:
     #: Restored from a state file, and no load has asked for it since (see
     #: ``ComponentManager.load``).
     restored: bool = False
+    #: Which of its parameters were set since it was constructed.
+    _set_since: _SetSince | None = None
+
+    def changed_parameters(self) -> list[Parameter[Any]]:
+        """The parameters set on the node since it was loaded, at their current values."""
+        return [] if self._set_since is None else self._set_since.current()
 
 
 class LoadWatcher(Protocol):
@@ -209,6 +269,9 @@ class ComponentManager(Node):
         self._ignored_arguments: set[str] = set()
         #: Told of every load and unload, if set.
         self.watcher: LoadWatcher | None = None
+        #: Held by whatever changes the set of loaded nodes from outside
+        #: (the container services, a reload), so that they apply one at a time.
+        self.changing = asyncio.Lock()
         #: What unloaded nodes freed, given back to the system once unloads settle.
         self.memory = MemoryReturn(log=lambda trimmed: self.get_logger().info(trimmed.describe()))
 
@@ -227,6 +290,13 @@ class ComponentManager(Node):
         except KeyError:
             raise LoadError(f"No node found with unique_id: {unique_id}") from None
 
+    def find_named(self, full_name: str) -> LoadedNode:
+        """The loaded node whose full name is ``full_name``."""
+        for loaded in self._loaded.values():
+            if loaded.full_name == full_name:
+                return loaded
+        raise LoadError(f"No node found named {clip(full_name, quote=True)}")
+
     @property
     def next_unique_id(self) -> int:
         """The unique id the next load gets: ids count from 1 and are never reused, as rclcpp's."""
@@ -237,7 +307,14 @@ class ComponentManager(Node):
         self._next_id = max(self._next_id, next_id)
 
     # -- load -------------------------------------------------------------------
-    async def load(self, request: LoadRequest, *, serve: bool = True, restore: Restore | None = None) -> LoadedNode:
+    async def load(
+        self,
+        request: LoadRequest,
+        *,
+        serve: bool = True,
+        restore: Restore | None = None,
+        carry: Carry | None = None,
+    ) -> LoadedNode:
         """Construct a registered node type and start running it.
 
         The constructor runs on a thread of its own, bounded by
@@ -317,8 +394,12 @@ class ComponentManager(Node):
             self.get_logger().warning(forwarded)
             warnings.append(LoadWarning(own, forwarded))
         overrides = [*loaded_with]
-        if restore is not None and restore.changed_parameters:
-            changed = {parameter.name: parameter for parameter in restore.changed_parameters}
+        set_since_load = [
+            *(restore.changed_parameters if restore is not None else ()),
+            *(carry.changed_parameters if carry is not None else ()),
+        ]
+        if set_since_load:
+            changed = {parameter.name: parameter for parameter in set_since_load}
             overrides = [*(p for p in overrides if p.name not in changed), *changed.values()]
         if not any(parameter.name == TYPE_DESCRIPTION_SERVICE for parameter in overrides):
             # rclpy 7.1 (Jazzy) never releases what starting a node's
@@ -341,6 +422,9 @@ class ComponentManager(Node):
             # way still leaves us the object to destroy.
             node = node_class.__new__(node_class)
             built.append(node)
+            if carry is not None:
+                # Before the constructor, so that it reads what the old node kept.
+                setattr(node, RELOAD_STATE, carry.state)
             node.__init__(  # type: ignore[misc]
                 name,
                 namespace=namespace,
@@ -390,9 +474,14 @@ class ComponentManager(Node):
             raise LoadError(f"Component constructor threw an exception: {_one_line(error)}") from exc
         unique_id = self._next_id if restore is None else restore.unique_id
         self._next_id = max(self._next_id, unique_id + 1)
+        set_since = _SetSince(node)
+        # What a previous life of the node had set counts as set on this one.
+        set_since.names.update(dict.fromkeys(parameter.name for parameter in set_since_load))
+        node.add_on_set_parameters_callback(set_since)
         loaded = LoadedNode(
             unique_id, node, node_type, request, node.get_fully_qualified_name(), served=serve,
             warnings=warnings, parameters=tuple(loaded_with), restored=restore is not None,
+            _set_since=set_since,
         )
         self._loaded[loaded.unique_id] = loaded
         if serve:
@@ -460,6 +549,14 @@ class ComponentManager(Node):
                 await bring_up(self._host, loaded.node, timeout=timeout, until=until)
             finally:
                 self._collect_configure_warnings(loaded)
+
+    async def shut_down(self, loaded: LoadedNode, *, timeout: float) -> None:
+        """Shut a loaded lifecycle node down for good (``finalized``), from the state it is in.
+
+        :raises TransitionError: the shutdown failed.
+        """
+        if is_lifecycle(loaded.node):
+            await transition(self._host, loaded.node, "shutdown", timeout=timeout)
 
     @staticmethod
     def _collect_configure_warnings(loaded: LoadedNode) -> None:

@@ -7,6 +7,7 @@
     ├── ConfigError                a configuration value (file, setting, parameter) is wrong
     ├── PluginError                a plugin distribution could not be used
     ├── LoadError                  a node could not be loaded into the container
+    │   └── ReloadError            a node could not be reloaded with new code
     ├── TransitionError            a lifecycle transition could not be carried out
     ├── DeviceError                a device (serial port, capture file) failed
     ├── SecurityError              DDS security was asked for and cannot be had
@@ -32,6 +33,7 @@ __all__ = [
     "ExecutorError",
     "LoadError",
     "PluginError",
+    "ReloadError",
     "SecurityError",
     "StateFileError",
     "TransitionError",
@@ -94,6 +96,21 @@ class PluginError(ContainerError):
 
 class LoadError(ContainerError):
     """A node could not be loaded; the message is what a LoadNode caller sees."""
+
+
+class ReloadError(LoadError):
+    """A reload failed; the message says why and what runs now.
+
+    :param distribution: the distribution whose code was to be reloaded.
+    :param location: ``file:line`` of the new code's failure, if it is known.
+    :param old_code_running: whether the nodes run (again) on the old code.
+    """
+
+    def __init__(self, message: str, *, distribution: str, location: str = "", old_code_running: bool) -> None:
+        super().__init__(message)
+        self.distribution = distribution
+        self.location = location
+        self.old_code_running = old_code_running
 
 
 class TransitionError(ContainerError):

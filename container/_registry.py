@@ -15,7 +15,10 @@ can be done without restarting Python: a request for a type the table does
 not know makes the registry look at the installed entry points again (a
 distribution installed after start loads), and a type whose distribution was
 uninstalled or replaced since it was imported is refused (its code may be
-gone or changed; only a restart imports the new code).
+gone or changed; only a restart imports the new code). A distribution's
+code can be imported afresh in place (:meth:`PluginRegistry.reimport`, for
+``container reload``): its modules are imported again and its types
+registered from the new code, or, if that fails, left as they were.
 """
 
 from __future__ import annotations
@@ -24,19 +27,21 @@ import importlib.metadata
 import logging
 import os
 import types
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Final
 
 import pluggy
 from rclpy.node import Node
 
 from . import _hookspecs
-from ._errors import LoadError, PluginError
+from ._errors import LoadError, PluginError, ReloadError
 from ._hookspecs import ros_package_name
+from ._reimport import DistributionModules, Reimport, distribution_modules, failure_location, import_afresh
 from ._text import clip
 
-__all__ = ["ENTRY_POINT_GROUP", "NodeType", "PluginRegistry", "ros_package_name"]
+__all__ = ["ENTRY_POINT_GROUP", "NodeType", "PluginRegistry", "Reimported", "ros_package_name"]
 
 #: The entry point group plugin distributions declare their plugins under.
 ENTRY_POINT_GROUP: Final = "container.plugins"
@@ -69,6 +74,23 @@ class NodeType:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "full_name", f"{self.package}::{self.name}")
+
+
+@dataclass(eq=False, slots=True)
+class Reimported:
+    """A distribution whose code :meth:`PluginRegistry.reimport` imported afresh.
+
+    The registry hands out the new code's types from then on; :meth:`undo`
+    puts the old code (modules, hook implementations, types) back.
+    """
+
+    distribution: str
+    #: The new code's node types, by full name.
+    types: Mapping[str, NodeType]
+    _undo: Callable[[], None]
+
+    def undo(self) -> None:
+        self._undo()
 
 
 class _Registrar:
@@ -358,6 +380,102 @@ class PluginRegistry:
         del self._sources[distribution]
         self._stale[distribution] = reason
         logger.warning("Node types of %s: %s", distribution, reason)
+
+    @property
+    def distributions(self) -> tuple[str, ...]:
+        """The distributions whose plugins were loaded through entry points, in load order."""
+        return tuple(self._sources)
+
+    def modules_of(self, distribution: str) -> DistributionModules:
+        """The module trees of a distribution loaded through entry points.
+
+        :raises LoadError: it was not loaded from entry points, or it is the
+            container's own.
+        """
+        if distribution not in self._sources:
+            raise LoadError(f"distribution {distribution!r} was not loaded from an installed entry point")
+        return distribution_modules(distribution, self._entry_points_of(distribution))
+
+    def reloadable_sources(self) -> dict[str, list[Path]]:
+        """The files and directories holding the code of every distribution that can be reimported."""
+        found: dict[str, list[Path]] = {}
+        entry_points = importlib.metadata.entry_points(group=self._group)
+        for distribution in self._sources:
+            try:
+                modules = distribution_modules(distribution, self._entry_points_of(distribution, entry_points))
+            except LoadError:
+                continue
+            found[distribution] = modules.sources()
+        return found
+
+    def _entry_points_of(
+        self, distribution: str, entry_points: Iterable[importlib.metadata.EntryPoint] | None = None
+    ) -> list[importlib.metadata.EntryPoint]:
+        if entry_points is None:
+            entry_points = importlib.metadata.entry_points(group=self._group)
+        return [
+            entry_point
+            for entry_point in entry_points
+            if entry_point.dist is not None and entry_point.dist.name == distribution
+        ]
+
+    def reimport(self, distribution: str) -> Reimported:
+        """Import ``distribution``'s modules afresh and register its node types from the new code.
+
+        Blocking (it imports): call it off the event loop. Nodes already
+        constructed keep their classes; loads from now on get the new ones.
+
+        :raises LoadError: the distribution cannot be reimported (not from
+            entry points, the container's own, uninstalled or replaced).
+        :raises ReloadError: its new code fails to import or to register
+            (the message starts with the failure's ``file:line``); the old
+            code stays in place.
+        """
+        modules = self.modules_of(distribution)
+        reason = self._check_stale(distribution)
+        if reason is not None:
+            raise LoadError(f"Cannot reload {distribution!r}: {reason}")
+        entry_points = self._entry_points_of(distribution)
+        prefix = f"{distribution}:"
+        old_plugins = [(name, plugin) for name, plugin in self._pm.list_name_plugin() if name.startswith(prefix)]
+        old_types = {name: t for name, t in self._types.items() if t.distribution == distribution}
+
+        def take_out() -> None:
+            for name, plugin in list(self._pm.list_name_plugin()):
+                if name.startswith(prefix):
+                    self._pm.unregister(plugin)
+            for full_name in [name for name, t in self._types.items() if t.distribution == distribution]:
+                del self._types[full_name]
+
+        def put_back(reimport: Reimport | None) -> None:
+            take_out()
+            if reimport is not None:
+                reimport.undo()
+            for name, plugin in old_plugins:
+                self._pm.register(plugin, name=name)
+            self._types.update(old_types)
+
+        def load_all() -> None:
+            for entry_point in entry_points:
+                plugin = self._import(entry_point, distribution)
+                self._add(plugin, distribution=distribution, entry_point=entry_point.name)
+
+        take_out()
+        try:
+            _, reimport = import_afresh(modules, load_all)
+        except PluginError as exc:
+            put_back(None)
+            where = failure_location(exc.__cause__ or exc, modules)
+            raise ReloadError(
+                f"{where + ': ' if where else ''}{exc.reason}",
+                distribution=distribution, location=where, old_code_running=True,
+            ) from exc
+        except BaseException:
+            put_back(None)
+            raise
+        new_types = {name: t for name, t in self._types.items() if t.distribution == distribution}
+        logger.info("Imported %s afresh: %s", distribution, ", ".join(sorted(new_types)) or "no node type")
+        return Reimported(distribution, types.MappingProxyType(new_types), lambda: put_back(reimport))
 
     def add_plugin(self, plugin: object, *, distribution: str) -> None:
         """Load an in-process plugin object as if ``distribution`` shipped it.

@@ -1,4 +1,4 @@
-"""The container services: ``~/_container/load_node``, ``unload_node``, ``list_nodes``.
+"""The container services: ``~/_container/load_node``, ``unload_node``, ``list_nodes``, ``reload_node``.
 
 They are what makes a node a component container to ``ros2 component`` and
 ``container load``: any client of ``composition_interfaces`` can drive this
@@ -9,9 +9,14 @@ paths ``container run`` uses, and a bad request only ever costs its own
 arguments hold ``autostart: true`` also configures and activates the node
 before it is answered, so that launch files bring nodes up on any launch_ros.
 
-Load and unload are ``async def`` so they run on the executor's loop
+``reload_node`` (``lifecycle_container_interfaces/srv/ReloadNode``, this
+container's own) reloads a node with its plugin distribution's code imported
+afresh (:mod:`container._reload`), for ``container reload`` and any client.
+
+Load, unload and reload are ``async def`` so they run on the executor's loop
 thread, where the container's bookkeeping lives, and share one mutually
-exclusive group so that requests apply in the order they arrive;
+exclusive group so that requests apply in the order they arrive (and the
+manager's ``changing`` lock, which a ``--reload`` watcher's reloads take too);
 ``list_nodes`` is plain, in a group of its own, and answers even during a
 slow unload or while a plugin's callback blocks the loop.
 
@@ -26,6 +31,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+from lifecycle_container_interfaces.srv import ReloadNode
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.parameter import Parameter
@@ -33,6 +39,7 @@ from rclpy.parameter import Parameter
 from ._container import LoadRequest, type_label
 from ._errors import ContainerError, LoadError
 from ._qos import SERVICE_QOS
+from ._reload import Reloader
 from ._text import MESSAGE_LIMIT, clip
 from ._warnings import encode
 
@@ -49,6 +56,7 @@ __all__ = ["SERVICE_QOS", "ContainerServices", "load_request_from_msg"]
 LOAD_NODE = "~/_container/load_node"
 UNLOAD_NODE = "~/_container/unload_node"
 LIST_NODES = "~/_container/list_nodes"
+RELOAD_NODE = "~/_container/reload_node"
 
 
 def load_request_from_msg(msg: LoadNode.Request) -> LoadRequest:
@@ -82,18 +90,24 @@ def _parameters(messages: Sequence[ParameterMsg], *, what: str) -> tuple[Paramet
 
 
 class ContainerServices:
-    """Serve LoadNode, UnloadNode and ListNodes on a :class:`ComponentManager`.
+    """Serve LoadNode, UnloadNode, ListNodes and ReloadNode on a :class:`ComponentManager`.
 
     The services live as long as the container node, or until :meth:`destroy`.
+
+    :param reloader: what reloads nodes (by default one of its own).
     """
 
-    def __init__(self, manager: ComponentManager) -> None:
+    def __init__(self, manager: ComponentManager, *, reloader: Reloader | None = None) -> None:
         self._manager = manager
+        self._reloader = Reloader(manager) if reloader is None else reloader
         changes = MutuallyExclusiveCallbackGroup()
         self._services: list[Service[Any, Any]] = [
             manager.create_service(LoadNode, LOAD_NODE, self._load, callback_group=changes, qos_profile=SERVICE_QOS),
             manager.create_service(
                 UnloadNode, UNLOAD_NODE, self._unload, callback_group=changes, qos_profile=SERVICE_QOS
+            ),
+            manager.create_service(
+                ReloadNode, RELOAD_NODE, self._reload, callback_group=changes, qos_profile=SERVICE_QOS
             ),
             manager.create_service(
                 ListNodes,
@@ -103,6 +117,11 @@ class ContainerServices:
                 qos_profile=SERVICE_QOS,
             ),
         ]
+
+    @property
+    def reloader(self) -> Reloader:
+        """What the reload service reloads nodes with (a ``--reload`` watcher uses it too)."""
+        return self._reloader
 
     def destroy(self) -> None:
         """Stop serving (idempotent); the container node stays."""
@@ -115,7 +134,8 @@ class ContainerServices:
         what = clip(type_label(request.package_name, request.plugin_name), quote=True)
         try:
             load = load_request_from_msg(request)
-            loaded = await self._manager.load(load)
+            async with self._manager.changing:
+                loaded = await self._manager.load(load)
         except ContainerError as exc:
             log.error(f"Refused to load {what}: {clip(str(exc), limit=MESSAGE_LIMIT)}")
             response.success = False
@@ -148,7 +168,8 @@ class ContainerServices:
 
     async def _unload(self, request: UnloadNode.Request, response: UnloadNode.Response) -> Any:
         try:
-            _, notes = await self._manager.unload(request.unique_id)
+            async with self._manager.changing:
+                _, notes = await self._manager.unload(request.unique_id)
         except ContainerError as exc:
             self._manager.get_logger().error(f"Refused to unload: {clip(str(exc), limit=MESSAGE_LIMIT)}")
             response.success = False
@@ -157,6 +178,20 @@ class ContainerServices:
         response.success = True
         # rclcpp leaves it empty on success; here it says what was cut short.
         response.error_message = "; ".join(notes)
+        return response
+
+    async def _reload(self, request: ReloadNode.Request, response: ReloadNode.Response) -> Any:
+        try:
+            reloaded = await self._reloader.reload_node(request.node_name or request.unique_id)
+        except ContainerError as exc:
+            self._manager.get_logger().error(clip(str(exc), limit=MESSAGE_LIMIT))
+            response.success = False
+            response.error_message = clip(str(exc), limit=MESSAGE_LIMIT)
+            return response
+        response.success = True
+        response.unique_ids = [loaded.unique_id for loaded in reloaded.nodes]
+        response.full_node_names = [loaded.full_name for loaded in reloaded.nodes]
+        response.error_message = clip("; ".join(reloaded.notes), limit=MESSAGE_LIMIT)
         return response
 
     def _list(self, request: ListNodes.Request, response: ListNodes.Response) -> Any:

@@ -772,3 +772,68 @@ def test_add_plugin_raises_and_keeps_nothing_when_broken(group: str) -> None:
     assert registry.failures == []
     registry.add_plugin(BuiltinPlugin(), distribution="lifecycle-container")
     assert list(registry.types) == ["lifecycle_container::Builtin"]
+
+
+# -- importing a distribution afresh (container reload) ------------------------
+
+
+def test_a_reimport_registers_the_new_code_and_undo_puts_the_old_back(
+    registry: PluginRegistry,
+) -> None:
+    old_class = registry.types["demo_nodes::Talker"].node_class
+    old_module = sys.modules["demo_nodes"]
+    source = Path(old_module.__file__ or "")
+    new = textwrap.dedent(GOOD).replace("class Talker(LifecycleNode):", "class Talker(LifecycleNode):\n    NEW = 1")
+    source.write_text(new)
+
+    swap = registry.reimport("demo-nodes")
+
+    new_class = registry.types["demo_nodes::Talker"].node_class
+    assert new_class is not old_class and getattr(new_class, "NEW", None) == 1
+    assert set(swap.types) == {"demo_nodes::Talker", "demo_nodes::Listener"}
+    assert sys.modules["demo_nodes"] is not old_module
+    assert registry.types["other::Talker"].distribution == "other"  # the others' untouched
+    swap.undo()
+    assert registry.types["demo_nodes::Talker"].node_class is old_class
+    assert sys.modules["demo_nodes"] is old_module
+    assert registry.resolve("demo_nodes", "Listener").node_class.__module__ == "demo_nodes"
+
+
+@pytest.mark.parametrize(
+    ("new_source", "words"),
+    [
+        ("def broken(:\n", r"demo_nodes\.py:1: cannot import 'demo_nodes': SyntaxError"),
+        (GOOD + "\nraise RuntimeError('at import')\n", r"demo_nodes\.py:\d+: cannot import .*RuntimeError: at import"),
+        (
+            GOOD.replace('register(FastListener, name="Listener")', "register(FastListener, name='not valid')"),
+            r"demo_nodes\.py:\d+: cannot register FastListener as 'not valid'",
+        ),
+    ],
+    ids=["syntax error", "raises at import", "invalid registration"],
+)
+def test_a_reimport_that_fails_names_the_file_and_line_and_changes_nothing(
+    registry: PluginRegistry, new_source: str, words: str
+) -> None:
+    before = dict(registry.types)
+    old_module = sys.modules["demo_nodes"]
+    Path(old_module.__file__ or "").write_text(textwrap.dedent(new_source))
+
+    with pytest.raises(LoadError, match=words):
+        registry.reimport("demo-nodes")
+
+    assert dict(registry.types) == before
+    assert sys.modules["demo_nodes"] is old_module
+    # The old code's hook is registered again: a rescan or another reimport still works.
+    Path(old_module.__file__ or "").write_text(textwrap.dedent(GOOD))
+    assert set(registry.reimport("demo-nodes").types) == {"demo_nodes::Talker", "demo_nodes::Listener"}
+
+
+def test_what_was_not_loaded_from_an_entry_point_cannot_be_reimported(registry: PluginRegistry) -> None:
+    class Plugin:
+        @hookimpl
+        def register_node_types(self, register: Callable[..., None]) -> None:
+            register(LifecycleNode, name="Inline")
+
+    registry.add_plugin(Plugin(), distribution="inline")
+    with pytest.raises(LoadError, match="'inline' was not loaded from an installed entry point"):
+        registry.reimport("inline")

@@ -1,4 +1,4 @@
-"""``container load|unload|list|types``: the ``ros2 component`` verbs.
+"""``container load|unload|list|types``: the ``ros2 component`` verbs; and ``container reload``.
 
 Same arguments, output and exit codes as ros2cli's ``ros2 component``, against
 any container on the ROS domain: a node is a container if it serves the three
@@ -16,6 +16,11 @@ those waits, so a container that is gone but still in discovery, or stuck,
 costs a one-line error naming the service, exit code 1. An unload runs the
 node's lifecycle down, each step bounded by the container's
 ``unload_timeout``: give a node with slow transitions a longer ``--timeout``.
+
+``container reload NODE`` has no ``ros2 component`` twin: it asks the
+container that holds NODE (found through ``list_nodes``, or named with
+``--container``) to reload it with its plugin's code imported afresh, over
+the container's ``~/_container/reload_node`` service.
 """
 
 from __future__ import annotations
@@ -110,6 +115,24 @@ def add_parser(subparsers: SubParsers) -> None:
     listing.add_argument("--containers-only", action="store_true", help="list container nodes only")
     _add_spin_time(listing)
     listing.set_defaults(handler=_run_list)
+
+    reload = subparsers.add_parser(
+        "reload",
+        help="reload a loaded node with its plugin's code imported afresh",
+        description=(
+            "Reload a node in a running container: its plugin distribution's modules are imported afresh, and "
+            "every loaded node of that distribution is taken down, loaded again from the new code under the "
+            "same name, remap rules and current parameters, and driven back to the state it was in. If the new "
+            "code fails, the old code's nodes run on (docs/guide/reload.md)."
+        ),
+    )
+    reload.add_argument("node", help="full name of the node (e.g. /talker); or its unique ID, with --container")
+    reload.add_argument(
+        "--container", default=None, help="the container node holding it (default: looked up on the ROS domain)"
+    )
+    reload.add_argument("-q", "--quiet", action="store_true", help="only print the new unique IDs and node names")
+    _add_spin_time(reload)
+    reload.set_defaults(handler=_run_reload, finish_without_output=True)
 
     types = subparsers.add_parser(
         "types",
@@ -239,6 +262,49 @@ def _run_list(args: argparse.Namespace) -> int:
         return 0
 
     return _with_node(listing, ros_args=getattr(args, "ros_args", ()))
+
+
+def _run_reload(args: argparse.Namespace) -> int:
+    from composition_interfaces.srv import ListNodes
+    from lifecycle_container_interfaces.srv import ReloadNode
+
+    target: str = args.node
+    by_id = target.isdigit()
+    if by_id and args.container is None:
+        print("container reload: a unique ID needs --container (or give the node's full name)", file=sys.stderr)
+        return 2
+    request = ReloadNode.Request(unique_id=int(target)) if by_id else ReloadNode.Request(node_name=_full_name(target))
+
+    async def holder(node: Node) -> str | None:
+        """The container whose list_nodes names the node."""
+        for container in await _settled_containers(node, args.spin_time):
+            client: Client[Any, Any] = node.create_client(ListNodes, f"{container}/_container/list_nodes")
+            try:
+                listed = await _call(client, ListNodes.Request(), timeout=args.timeout)
+            finally:
+                node.destroy_client(client)
+            if request.node_name in listed.full_node_names:
+                return container
+        return None
+
+    async def reload(node: Node) -> int:
+        container = args.container if args.container is not None else await holder(node)
+        if container is None:
+            return _fail(f"No container on the ROS domain holds a node named '{request.node_name}'")
+        client = await _container_client(node, container, "reload_node", ReloadNode, args.spin_time)
+        if client is None:
+            return _fail(f"Unable to find container node '{container}' serving reload_node")
+        response = await _call(client, request, timeout=args.timeout)
+        if not response.success:
+            return _fail(f"Failed to reload '{target}': {response.error_message}")
+        for uid, name in zip(response.unique_ids, response.full_node_names, strict=True):
+            said = f"Reloaded '{name}' in '{container}' container node as component {uid}"
+            print(f"{uid}  {name}" if args.quiet else said)
+        if response.error_message:
+            print(response.error_message, file=sys.stderr)
+        return 0
+
+    return _with_node(reload, ros_args=getattr(args, "ros_args", ()))
 
 
 def _run_types(args: argparse.Namespace) -> int:

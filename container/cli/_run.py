@@ -43,6 +43,10 @@ def add_parser(subparsers: SubParsers) -> None:
         "(default: the file's container.on_failure, 'continue': serve on and exit 0)",
     )
     parser.add_argument(
+        "--reload", action="store_true",
+        help="for development: reload a plugin's nodes when its source files change (docs/guide/reload.md)",
+    )
+    parser.add_argument(
         "--use_multi_threaded_executor", action="store_true",
         help="accepted for rclcpp's component_container_isolated; no effect: every node "
         "already has its own callback lanes on the one executor",
@@ -65,9 +69,11 @@ def _run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"container run: {exc}", file=sys.stderr)
         return 2
-    from .._app import manager_extension, run_container
+    from .._app import manager_extension, reload_extension, run_container
 
     extensions = () if settings is None else (manager_extension(settings),)
+    if args.reload:
+        extensions = (*extensions, reload_extension())
     return run_container(
         config, extensions=extensions, ros_args=getattr(args, "ros_args", ()), exit_on_failure=args.exit_on_failure
     )

@@ -105,11 +105,18 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         other such nodes of the context (:mod:`container.intra`); every
         publisher and subscription of the node takes part.
 
+    ``reload_state`` is a dict handed from the node to the one that replaces
+    it when its plugin is reloaded (``container reload``): whatever it holds
+    once this node is down, the new node finds in its own ``reload_state``
+    from its constructor on. It starts empty on a first load.
+
     rclpy's ``enable_communication_interface`` keyword is taken as in rclpy:
     ``False`` serves none of the standard lifecycle services (the node
     still publishes ``transition_event``); otherwise the node serves them
     itself (:class:`~container.lifecycle._services.LifecycleServices`).
     """
+
+    reload_state: dict[str, Any]
 
     def __init__(
         self,
@@ -120,6 +127,9 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
         use_intra_process_comms: bool = False,
         **kwargs: Any,
     ) -> None:
+        # Set before the constructor when the node replaces one a reload took down.
+        if not isinstance(getattr(self, "reload_state", None), dict):
+            self.reload_state = {}
         # Node.__init__ creates /parameter_events through create_publisher;
         # that one, and anything rclpy creates for itself, stays always-on.
         self._entities_follow_state = False

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 
 from ._errors import ContainerError
 from ._text import MESSAGE_LIMIT, clip
+from .executor import call_soon
 
 if TYPE_CHECKING:
     from rclpy.impl.rcutils_logger import RcutilsLogger
@@ -105,9 +106,8 @@ class SourceWatcher:
 
 
 def _deliver(loop: asyncio.AbstractEventLoop, batches: asyncio.Queue[Batch], batch: Batch) -> None:
-    """Hand a batch from the watching thread to the loop's queue."""
-    with contextlib.suppress(RuntimeError):  # the loop is closed: the container is gone
-        loop.call_soon_threadsafe(batches.put_nowait, batch)
+    """Hand a batch from the watching thread to the loop's queue (nothing once the loop is closed)."""
+    call_soon(loop, batches.put_nowait, batch)
 
 
 def _touched(batch: Batch, sources: Mapping[str, Iterable[Path]]) -> list[str]:

@@ -456,11 +456,13 @@ class PluginRegistry:
             self._types.update(old_types)
 
         def load_all() -> None:
-            for entry_point in entry_points:
-                plugin = self._import(entry_point, distribution)
-                self._add(plugin, distribution=distribution, entry_point=entry_point.name)
+            # Every module first: an import that fails or never returns leaves the
+            # old code's hooks and types in place.
+            plugins = [(entry_point.name, self._import(entry_point, distribution)) for entry_point in entry_points]
+            take_out()
+            for name, plugin in plugins:
+                self._add(plugin, distribution=distribution, entry_point=name)
 
-        take_out()
         try:
             _, reimport = import_afresh(modules, load_all)
         except PluginError as exc:

@@ -19,6 +19,7 @@ again the same way; the error says what failed, where, and what runs now.
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import time
 from collections.abc import Sequence
@@ -125,10 +126,19 @@ class Reloader:
         began = time.monotonic()
         group = [loaded for loaded in manager.loaded() if loaded.node_type.distribution == distribution]
         untouched = "nothing was changed: the old code's nodes run on" if group else "nothing was changed"
+        importing = asyncio.ensure_future(
+            in_thread(functools.partial(manager.registry.reimport, distribution), name=f"reimport:{clip(distribution)}")
+        )
         try:
-            swap: Reimported = await in_thread(
-                functools.partial(manager.registry.reimport, distribution), name=f"reimport:{clip(distribution)}"
-            )
+            swap: Reimported = await asyncio.wait_for(asyncio.shield(importing), manager.load_timeout)
+        except TimeoutError:
+            # It runs on (a thread cannot be stopped); should it succeed, the old code goes back.
+            importing.add_done_callback(_undo_when_done)
+            raise ReloadError(
+                f"Could not reload {distribution!r}: importing its new code did not end within "
+                f"{manager.load_timeout:g} s (load_timeout); {untouched}",
+                distribution=distribution, old_code_running=bool(group),
+            ) from None
         except LoadError as exc:
             # The registry's ReloadError (the new code failed) knows where.
             location = exc.location if isinstance(exc, ReloadError) else ""
@@ -237,6 +247,12 @@ def _state_of(node: LoadedNode) -> dict[str, Any]:
     """The old node's ``reload_state``, read once it is down (its shutdown may have written it)."""
     state = getattr(node.node, RELOAD_STATE, None)
     return state if isinstance(state, dict) else {}
+
+
+def _undo_when_done(importing: asyncio.Future[Reimported]) -> None:
+    """Put the old code back after an import the reload gave up on, if it succeeded after all."""
+    if not importing.cancelled() and importing.exception() is None:
+        importing.result().undo()
 
 
 def _root_cause(error: BaseException) -> BaseException:

@@ -304,6 +304,32 @@ def test_a_plain_install_is_watched_in_its_site_packages(
     assert heard[0].startswith("v2! greeter lives=2 "), heard[0]
 
 
+def test_an_import_that_never_returns_is_given_up_on_and_the_container_serves_on(
+    run_container: Callable[..., ContainerProcess], probe: Probe, client_node: Node, executor: AsyncioExecutor
+) -> None:
+    config = CONFIG.replace("  name: ComponentManager\n", "  name: ComponentManager\n  load_timeout: 2.0\n")
+    container = run_container(config)
+    greetings = Heard(client_node, "/greeting")
+    client = ContainerClient(client_node, executor, process=container)
+    wait_until(lambda: greetings.first("v1!"), "v1 heard", timeout=20.0, executor=executor)
+    probe.source.write_text("import time\n\ntime.sleep(30)\n" + PLUGIN.format(word="v2"), encoding="utf-8")
+    reload: Client[Any, Any] = client_node.create_client(ReloadNode, "/ComponentManager/_container/reload_node")
+    assert reload.wait_for_service(timeout_sec=20.0)
+
+    began = time.monotonic()
+    answer = client.call(reload, ReloadNode.Request(node_name="/greeter"), timeout=30.0)
+
+    assert time.monotonic() - began < 10.0
+    assert not answer.success
+    assert "importing its new code did not end within 2 s (load_timeout)" in answer.error_message, answer
+    assert "the old code's nodes run on" in answer.error_message, answer.error_message
+    # The container's services answer, and the old node goes on publishing.
+    assert client.list() == [(1, "/greeter"), (2, "/talker"), (3, "/quiet_greeter"), (4, "/ear")]
+    mark = greetings.count()
+    wait_until(lambda: greetings.count() >= mark + 5, "the greeter after the failed reload", executor=executor)
+    assert greetings.latest().startswith("v1! greeter lives=1 "), greetings.latest()
+
+
 def _run_cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "container", *args], capture_output=True, text=True, timeout=timeout

@@ -126,7 +126,7 @@ def add_parser(subparsers: SubParsers) -> None:
             "code fails, the old code's nodes run on (docs/guide/reload.md)."
         ),
     )
-    reload.add_argument("node", help="full name of the node (e.g. /talker); or its unique ID, with --container")
+    reload.add_argument("node", help="full name of the node (e.g. /ldlidar); or its unique ID, with --container")
     reload.add_argument(
         "--container", default=None, help="the container node holding it (default: looked up on the ROS domain)"
     )

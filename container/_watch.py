@@ -38,6 +38,9 @@ if TYPE_CHECKING:
 
 __all__ = ["QUIET_MS", "SourceWatcher"]
 
+#: The watching thread's voice (Python logging reaches ROS logging in a container).
+_logger = logging.getLogger("container.reload")
+
 #: A batch of writes is over once none has come for this long.
 QUIET_MS = 150
 #: ... or once it has lasted this long.
@@ -103,6 +106,8 @@ class SourceWatcher:
         except ContainerError as exc:
             # The reloader logged the steps; this is the one line an author reads.
             self._log.error(clip(str(exc), limit=MESSAGE_LIMIT))
+        except Exception as exc:  # a fault of ours must not end the watching
+            self._log.error(f"Reloading {distribution!r} failed: {type(exc).__name__}: {clip(str(exc))}")
 
 
 def _deliver(loop: asyncio.AbstractEventLoop, batches: asyncio.Queue[Batch], batch: Batch) -> None:
@@ -150,10 +155,19 @@ def _watch(paths: list[Path], before: Snapshot, stop: threading.Event, deliver: 
     the watch was decided on) and then is found by comparing files, and
     joins that first batch.
     """
-    import watchfiles
-
     # It logs every batch at INFO ("1 change detected"); the reload's own lines say more.
     logging.getLogger("watchfiles").setLevel(logging.WARNING)
+    try:
+        _watch_changes(paths, before, stop, deliver)
+    except Exception as exc:  # watchfiles' own errors (a watched directory gone): said, not silent
+        _logger.error("Reloading on change stopped: watching %s failed: %s: %s", paths, type(exc).__name__, exc)
+
+
+def _watch_changes(
+    paths: list[Path], before: Snapshot, stop: threading.Event, deliver: Callable[[Batch], None]
+) -> None:
+    import watchfiles
+
     first = True
     quiet_ms = 0
     for changes in watchfiles.watch(

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from pathlib import Path
+
+import pytest
 
 from container._watch import Batch, _snapshot, _touched, _watch
 
@@ -75,3 +78,12 @@ def test_changes_are_told_to_the_distributions_whose_files_they_are(tmp_path: Pa
     assert _touched({(modified, str(tmp_path / "a_nodes" / "sub" / "x.py"))}, sources) == ["a-nodes"]
     assert _touched({(modified, str(tmp_path / "b_nodes.py"))}, sources) == ["b-nodes"]
     assert _touched({(modified, str(tmp_path / "a_nodes_extra" / "x.py"))}, sources) == []
+
+
+def test_a_watch_that_fails_says_so(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    gone = tmp_path / "removed"
+
+    with caplog.at_level(logging.ERROR, logger="container.reload"):
+        _watch([gone], {}, threading.Event(), Deliveries())  # returns: nothing to watch
+
+    assert f"Reloading on change stopped: watching [{gone!r}] failed: FileNotFoundError" in caplog.text, caplog.text

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import os
 import re
+import weakref
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -168,17 +169,24 @@ class _SetSince:
     __slots__ = ("_node", "names")
 
     def __init__(self, node: Node) -> None:
-        self._node = node
+        # Weakly: the node holds this callback, and a cycle would keep an
+        # unloaded node's memory until the garbage collector runs.
+        self._node = weakref.ref(node)
         self.names: dict[str, None] = {}
 
     def __call__(self, parameters: list[Parameter[Any]]) -> SetParametersResult:
-        for parameter in parameters:
-            if self._node.has_parameter(parameter.name):
-                self.names[parameter.name] = None
+        node = self._node()
+        if node is not None:
+            for parameter in parameters:
+                if node.has_parameter(parameter.name):
+                    self.names[parameter.name] = None
         return SetParametersResult(successful=True)
 
     def current(self) -> list[Parameter[Any]]:
-        return [self._node.get_parameter(name) for name in self.names if self._node.has_parameter(name)]
+        node = self._node()
+        if node is None:
+            return []
+        return [node.get_parameter(name) for name in self.names if node.has_parameter(name)]
 
 
 @dataclass(eq=False, slots=True)

@@ -230,6 +230,8 @@ class Accounting:
         self._window_start = time.monotonic_ns()
         self._process_at = time.process_time_ns()
         self._loop_at: tuple[int, int] | None = None
+        #: Each node's rows and load of the last window (``_nodes``).
+        self._last_nodes: dict[str, tuple[tuple[int, ...], NodeLoad]] = {}
 
     def _new_owner(self, name: str, *, plugin: bool) -> Owner:
         return Owner(name, plugin=plugin, new_meter=Meter, thread_ended=self._threads.ended)
@@ -345,7 +347,7 @@ class Accounting:
             for account in self.unattributed.accounts()
         }
         self._forget_idle(owners, threads, callbacks)
-        nodes = _nodes(callbacks)
+        nodes = _nodes(callbacks, self._last_nodes)
         nodes_cpu = sum(node.cpu for node in nodes)
         # What the nodes' work took on the executor's threads and the loop's: theirs, not the executor's.
         on_executor = sum(c.cpu for c in callbacks if c.kind != "thread") + sum(loop_unattributed.values())
@@ -523,12 +525,27 @@ def _summed(members: list[CallbackLoad]) -> dict[str, Any]:
     }
 
 
-def _nodes(callbacks: list[CallbackLoad]) -> tuple[NodeLoad, ...]:
+def _nodes(callbacks: list[CallbackLoad], last: dict[str, tuple[tuple[int, ...], NodeLoad]]) -> tuple[NodeLoad, ...]:
+    """Every node's load, its callbacks' rows summed by group and by node.
+
+    :param last: each node's rows (by identity) and load of the previous
+        window, updated: a node whose rows are all the same objects (all
+        idle, each reusing its last idle row) gets the same load again, so a
+        window costs what ran, not every node of a large container. The rows
+        a load holds stay alive, so their ids are not reused meanwhile.
+    """
     by_node: dict[str, list[CallbackLoad]] = defaultdict(list)
     for callback in callbacks:
         by_node[callback.node].append(callback)
     nodes = []
+    for gone in [name for name in last if name not in by_node]:
+        del last[gone]
     for name, own in by_node.items():
+        rows = tuple(map(id, own))
+        cached = last.get(name)
+        if cached is not None and cached[0] == rows:
+            nodes.append(cached[1])
+            continue
         own.sort(key=lambda c: (-c.cpu, c.name))
         by_group: dict[str, list[CallbackLoad]] = defaultdict(list)
         for callback in own:
@@ -536,16 +553,16 @@ def _nodes(callbacks: list[CallbackLoad]) -> tuple[NodeLoad, ...]:
         groups = tuple(
             GroupLoad(node=name, name=group, **_summed(members)) for group, members in sorted(by_group.items())
         )
-        nodes.append(
-            NodeLoad(
-                name=name,
-                **_summed(own),
-                duration_p99=max(c.duration_p99 for c in own),
-                cpu_seconds_total=sum(c.cpu_seconds_total for c in own),
-                groups=groups,
-                callbacks=tuple(own),
-            )
+        load = NodeLoad(
+            name=name,
+            **_summed(own),
+            duration_p99=max(c.duration_p99 for c in own),
+            cpu_seconds_total=sum(c.cpu_seconds_total for c in own),
+            groups=groups,
+            callbacks=tuple(own),
         )
+        last[name] = (rows, load)
+        nodes.append(load)
     nodes.sort(key=lambda n: (-n.cpu, n.name))
     return tuple(nodes)
 

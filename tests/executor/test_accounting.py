@@ -227,3 +227,39 @@ def test_a_meter_times_plain_runs_and_each_step_of_a_coroutine(engine: ModuleTyp
     assert busy >= 3e7
     assert cpu < 1e7
     assert meter.take()[9] == 0  # a new window: no duration yet
+
+
+def test_a_window_gives_a_node_that_ran_nothing_its_last_load_and_one_that_ran_a_new_one(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """A window costs what ran: an idle node's load is the last window's object again, not a
+    new one summed from every row; a node whose timer fires gets its figures anew."""
+    accounting = executor.accounting
+    assert accounting is not None
+    worker = host(Node, "window_worker")
+    host(Node, "window_idle")
+    fired: list[Future[None]] = [Future()]
+
+    def tick() -> None:
+        if not fired[-1].done():
+            fired[-1].set_result(None)
+
+    timer = worker.create_timer(0.01, tick)
+    _spin_until(executor, fired[-1], "the timer fired")
+    timer.cancel()
+    accounting.sample()  # the window it ran in
+    quiet = accounting.sample()  # the first window it ran in nothing: its rows are new
+    again = accounting.sample()
+
+    assert _node(again, "/window_worker") is _node(quiet, "/window_worker")
+    assert _node(again, "/window_idle") is _node(quiet, "/window_idle")
+    assert _node(again, "/window_worker").rate == 0.0
+
+    fired.append(Future())
+    timer.reset()
+    _spin_until(executor, fired[-1], "the timer fired again")
+    ran = accounting.sample()
+
+    assert _node(ran, "/window_worker") is not _node(again, "/window_worker")
+    assert _node(ran, "/window_worker").rate > 0
+    assert _node(ran, "/window_idle") is _node(again, "/window_idle")

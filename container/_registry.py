@@ -27,10 +27,10 @@ import importlib.metadata
 import logging
 import os
 import types
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Final
+from typing import TYPE_CHECKING, Final
 
 import pluggy
 from rclpy.node import Node
@@ -38,10 +38,14 @@ from rclpy.node import Node
 from . import _hookspecs
 from ._errors import LoadError, PluginError, ReloadError
 from ._hookspecs import ros_package_name
-from ._reimport import DistributionModules, Reimport, distribution_modules, failure_location, import_afresh
 from ._text import clip
 
-__all__ = ["ENTRY_POINT_GROUP", "NodeType", "PluginRegistry", "Reimported", "ros_package_name"]
+if TYPE_CHECKING:
+    # The reload's machinery is imported when a reload asks for it: a
+    # container that never reloads does not pay for it at start-up.
+    from ._reimport import DistributionModules, Reimport, Reimported
+
+__all__ = ["ENTRY_POINT_GROUP", "NodeType", "PluginRegistry", "ros_package_name"]
 
 #: The entry point group plugin distributions declare their plugins under.
 ENTRY_POINT_GROUP: Final = "container.plugins"
@@ -74,23 +78,6 @@ class NodeType:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "full_name", f"{self.package}::{self.name}")
-
-
-@dataclass(eq=False, slots=True)
-class Reimported:
-    """A distribution whose code :meth:`PluginRegistry.reimport` imported afresh.
-
-    The registry hands out the new code's types from then on; :meth:`undo`
-    puts the old code (modules, hook implementations, types) back.
-    """
-
-    distribution: str
-    #: The new code's node types, by full name.
-    types: Mapping[str, NodeType]
-    _undo: Callable[[], None]
-
-    def undo(self) -> None:
-        self._undo()
 
 
 class _Registrar:
@@ -392,12 +379,16 @@ class PluginRegistry:
         :raises LoadError: it was not loaded from entry points, or it is the
             container's own.
         """
+        from ._reimport import distribution_modules
+
         if distribution not in self._sources:
             raise LoadError(f"distribution {distribution!r} was not loaded from an installed entry point")
         return distribution_modules(distribution, self._entry_points_of(distribution))
 
     def reloadable_sources(self) -> dict[str, list[Path]]:
         """The files and directories holding the code of every distribution that can be reimported."""
+        from ._reimport import distribution_modules
+
         found: dict[str, list[Path]] = {}
         entry_points = importlib.metadata.entry_points(group=self._group)
         for distribution in self._sources:
@@ -431,6 +422,8 @@ class PluginRegistry:
             (the message starts with the failure's ``file:line``); the old
             code stays in place.
         """
+        from ._reimport import Reimported, failure_location, import_afresh
+
         modules = self.modules_of(distribution)
         reason = self._check_stale(distribution)
         if reason is not None:

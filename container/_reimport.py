@@ -24,15 +24,25 @@ import os
 import sys
 import tempfile
 import traceback
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from ._errors import LoadError
 
-__all__ = ["DistributionModules", "Reimport", "distribution_modules", "failure_location", "import_afresh"]
+if TYPE_CHECKING:
+    from ._registry import NodeType
+
+__all__ = [
+    "DistributionModules",
+    "Reimport",
+    "Reimported",
+    "distribution_modules",
+    "failure_location",
+    "import_afresh",
+]
 
 T = TypeVar("T")
 
@@ -118,6 +128,23 @@ class Reimport:
     def undo(self) -> None:
         """Put the old modules back in place of whatever the new import left."""
         _put_back(self.modules, self.old)
+
+
+@dataclass(eq=False, slots=True)
+class Reimported:
+    """A distribution whose code :meth:`PluginRegistry.reimport` imported afresh.
+
+    The registry hands out the new code's types from then on; :meth:`undo`
+    puts the old code (modules, hook implementations, types) back.
+    """
+
+    distribution: str
+    #: The new code's node types, by full name.
+    types: Mapping[str, NodeType]
+    _undo: Callable[[], None]
+
+    def undo(self) -> None:
+        self._undo()
 
 
 def import_afresh(modules: DistributionModules, load: Callable[[], T]) -> tuple[T, Reimport]:

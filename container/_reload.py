@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from rclpy.parameter import Parameter
 
     from ._container import ComponentManager
-    from ._registry import Reimported
+    from ._reimport import Reimported
 
 __all__ = ["Reloaded", "Reloader"]
 

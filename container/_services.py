@@ -39,7 +39,6 @@ from rclpy.parameter import Parameter
 from ._container import LoadRequest, type_label
 from ._errors import ContainerError, LoadError
 from ._qos import SERVICE_QOS
-from ._reload import Reloader
 from ._text import MESSAGE_LIMIT, clip
 from ._warnings import encode
 
@@ -49,6 +48,7 @@ if TYPE_CHECKING:
     from rclpy.service import Service
 
     from ._container import ComponentManager
+    from ._reload import Reloader
 
 __all__ = ["SERVICE_QOS", "ContainerServices", "load_request_from_msg"]
 
@@ -99,7 +99,8 @@ class ContainerServices:
 
     def __init__(self, manager: ComponentManager, *, reloader: Reloader | None = None) -> None:
         self._manager = manager
-        self._reloader = Reloader(manager) if reloader is None else reloader
+        # Made on first use: the reload's machinery is not imported until a reload asks for it.
+        self._reloader = reloader
         changes = MutuallyExclusiveCallbackGroup()
         self._services: list[Service[Any, Any]] = [
             manager.create_service(LoadNode, LOAD_NODE, self._load, callback_group=changes, qos_profile=SERVICE_QOS),
@@ -121,6 +122,10 @@ class ContainerServices:
     @property
     def reloader(self) -> Reloader:
         """What the reload service reloads nodes with (a ``--reload`` watcher uses it too)."""
+        if self._reloader is None:
+            from ._reload import Reloader
+
+            self._reloader = Reloader(self._manager)
         return self._reloader
 
     def destroy(self) -> None:
@@ -182,7 +187,7 @@ class ContainerServices:
 
     async def _reload(self, request: ReloadNode.Request, response: ReloadNode.Response) -> Any:
         try:
-            reloaded = await self._reloader.reload_node(request.node_name or request.unique_id)
+            reloaded = await self.reloader.reload_node(request.node_name or request.unique_id)
         except ContainerError as exc:
             self._manager.get_logger().error(clip(str(exc), limit=MESSAGE_LIMIT))
             response.success = False

@@ -94,3 +94,54 @@ def greeter_package(destination: Path) -> Path:
         ignore=shutil.ignore_patterns("__pycache__"),
     )
     return destination
+
+
+#: The reload tests' and benchmark's plugin project (tests/test_reload.py, tests/benchmarks/bench_reload.py).
+RELOAD_PROBE_PYPROJECT = """\
+[build-system]
+requires = ["setuptools>=64"]
+build-backend = "setuptools.build_meta"
+
+[project]
+name = "reload-probe"
+version = "0.1"
+
+[project.entry-points."container.plugins"]
+reload_probe = "reload_probe.plugin"
+"""
+
+
+def install_reload_probe(directory: Path, plugin: str, *, editable: bool = True) -> tuple[Path, list[str]]:
+    """The ``reload-probe`` plugin (its module ``reload_probe.plugin`` is ``plugin``) installed with pip into a
+    prefix under ``directory``: ``--editable`` (setuptools' compat mode, a path in a ``.pth``) or plainly.
+
+    :return: the plugin module's file to edit (the project's in editable mode, the installed one else), and the
+        PYTHONPATH entries that see the install as site.py would (the prefix's site-packages, then what its
+        ``.pth`` adds): the test environment stays as set up.
+    """
+    project = directory / "reload-probe"
+    (project / "src" / "reload_probe").mkdir(parents=True)
+    (project / "pyproject.toml").write_text(RELOAD_PROBE_PYPROJECT, encoding="utf-8")
+    (project / "src" / "reload_probe" / "__init__.py").write_text("", encoding="utf-8")
+    (project / "src" / "reload_probe" / "plugin.py").write_text(plugin, encoding="utf-8")
+    prefix = directory / "prefix"
+    how = ["--config-settings", "editable_mode=compat", "--editable", str(project)] if editable else [str(project)]
+    result = subprocess.run(
+        [
+            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+            "--no-compile", "--prefix", str(prefix), *how,
+        ],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout + result.stderr
+    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+    source = (project / "src" if editable else site) / "reload_probe" / "plugin.py"
+    assert source.is_file()
+    paths = [
+        line.strip()
+        for pth in site.glob("*.pth")
+        for line in pth.read_text(encoding="utf-8").splitlines()
+        if line.strip() and not line.startswith(("#", "import"))
+    ]
+    assert paths == ([str(project / "src")] if editable else []), paths
+    return source, [str(site), *paths]

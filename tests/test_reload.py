@@ -31,6 +31,7 @@ from std_msgs.msg import String
 from container import AsyncioExecutor
 from tests.component_support import IMPORT_ROOT, ContainerClient, graph_nodes, parameter
 from tests.container_support import ContainerProcess
+from tests.install_support import install_reload_probe
 from tests.waiting import wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
@@ -73,19 +74,6 @@ class Greeter(LifecycleNode):
 def register_node_types(register):
     register(Greeter)
 '''
-
-PYPROJECT = """\
-[build-system]
-requires = ["setuptools>=64"]
-build-backend = "setuptools.build_meta"
-
-[project]
-name = "reload-probe"
-version = "0.1"
-
-[project.entry-points."container.plugins"]
-reload_probe = "reload_probe.plugin"
-"""
 
 CONFIG = """\
 container:
@@ -139,35 +127,10 @@ def probe(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, request: pytest.Fixtu
     """``reload-probe`` installed with ``pip install --editable`` into a prefix on PYTHONPATH
     (``plain`` as the fixture's parameter: ``pip install``, its files in that ``site-packages``)."""
     editable = getattr(request, "param", "editable") == "editable"
-    project = tmp_path / "reload-probe"
-    (project / "src" / "reload_probe").mkdir(parents=True)
-    (project / "pyproject.toml").write_text(PYPROJECT, encoding="utf-8")
-    (project / "src" / "reload_probe" / "__init__.py").write_text("", encoding="utf-8")
-    Probe(project / "src" / "reload_probe" / "plugin.py").write("v1")
-    prefix = tmp_path / "prefix"
-    how = ["--config-settings", "editable_mode=compat", "--editable", str(project)] if editable else [str(project)]
-    result = subprocess.run(
-        [
-            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-            "--no-compile", "--prefix", str(prefix), *how,
-        ],
-        capture_output=True, text=True, timeout=120,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
-    probe = Probe(project / "src" / "reload_probe" / "plugin.py" if editable else site / "reload_probe" / "plugin.py")
-    assert probe.source.is_file()
-    # What site.py would make of the install's .pth file in a site directory.
-    paths = [
-        line.strip()
-        for pth in site.glob("*.pth")
-        for line in pth.read_text(encoding="utf-8").splitlines()
-        if line.strip() and not line.startswith(("#", "import"))
-    ]
-    assert paths == ([str(project / "src")] if editable else []), paths
-    path = os.pathsep.join([str(site), *paths, str(IMPORT_ROOT), os.environ.get("PYTHONPATH", "")])
+    source, paths = install_reload_probe(tmp_path, PLUGIN.format(word="v1"), editable=editable)
+    path = os.pathsep.join([*paths, str(IMPORT_ROOT), os.environ.get("PYTHONPATH", "")])
     monkeypatch.setenv("PYTHONPATH", path.rstrip(os.pathsep))
-    return probe
+    return Probe(source)
 
 
 class Heard:

@@ -39,6 +39,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))  # tests.benchmarks
 
 from tests.benchmarks import cpus  # noqa: E402
+from tests.install_support import install_reload_probe  # noqa: E402
 
 PLUGIN = '''\
 from typing import Any
@@ -62,19 +63,6 @@ def register_node_types(register):
     register(Greeter)
 '''
 
-PYPROJECT = """\
-[build-system]
-requires = ["setuptools>=64"]
-build-backend = "setuptools.build_meta"
-
-[project]
-name = "reload-probe"
-version = "0.1"
-
-[project.entry-points."container.plugins"]
-reload_probe = "reload_probe.plugin"
-"""
-
 CONFIG = """\
 container:
   name: ComponentManager
@@ -93,27 +81,6 @@ nodes:
 
 #: Seconds to wait for one round's new code before giving up on the round.
 ROUND_TIMEOUT = 60.0
-
-
-def install(directory: Path) -> tuple[Path, str]:
-    """The probe installed in editable mode under ``directory``: its source file, and the PYTHONPATH to see it."""
-    project = directory / "reload-probe"
-    (project / "src" / "reload_probe").mkdir(parents=True)
-    (project / "pyproject.toml").write_text(PYPROJECT, encoding="utf-8")
-    (project / "src" / "reload_probe" / "__init__.py").write_text("", encoding="utf-8")
-    source = project / "src" / "reload_probe" / "plugin.py"
-    source.write_text(PLUGIN.format(word="w0"), encoding="utf-8")
-    prefix = directory / "prefix"
-    subprocess.run(
-        [
-            sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation", "--no-compile",
-            "--prefix", str(prefix), "--config-settings", "editable_mode=compat", "--editable", str(project),
-        ],
-        check=True, timeout=300,
-    )  # fmt: skip
-    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
-    path = os.pathsep.join([str(site), str(project / "src"), os.environ.get("PYTHONPATH", "")])
-    return source, path.rstrip(os.pathsep)
 
 
 class Observer:
@@ -240,7 +207,8 @@ def main() -> None:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     print(f"# bench_reload: {args.rounds} saves per mode; {cpus.header()}", flush=True)
     with tempfile.TemporaryDirectory(prefix="bench-reload-") as directory:
-        source, pythonpath = install(Path(directory))
+        source, paths = install_reload_probe(Path(directory), PLUGIN.format(word="w0"))
+        pythonpath = os.pathsep.join([*paths, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
         config = Path(directory) / "container.yaml"
         config.write_text(CONFIG, encoding="utf-8")
         env = dict(os.environ) | {"PYTHONPATH": pythonpath}

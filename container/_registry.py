@@ -359,11 +359,7 @@ class PluginRegistry:
 
     def _forget(self, distribution: str, reason: str) -> None:
         """Drop a distribution's types and hook implementations for good."""
-        for full_name in [name for name, t in self._types.items() if t.distribution == distribution]:
-            del self._types[full_name]
-        for name, plugin in list(self._pm.list_name_plugin()):
-            if name.startswith(f"{distribution}:"):
-                self._pm.unregister(plugin)
+        self._take_out(distribution)
         del self._sources[distribution]
         self._stale[distribution] = reason
         logger.warning("Node types of %s: %s", distribution, reason)
@@ -429,19 +425,13 @@ class PluginRegistry:
         if reason is not None:
             raise LoadError(f"Cannot reload {distribution!r}: {reason}")
         entry_points = self._entry_points_of(distribution)
-        prefix = f"{distribution}:"
-        old_plugins = [(name, plugin) for name, plugin in self._pm.list_name_plugin() if name.startswith(prefix)]
+        old_plugins = [
+            (name, plugin) for name, plugin in self._pm.list_name_plugin() if name.startswith(f"{distribution}:")
+        ]
         old_types = {name: t for name, t in self._types.items() if t.distribution == distribution}
 
-        def take_out() -> None:
-            for name, plugin in list(self._pm.list_name_plugin()):
-                if name.startswith(prefix):
-                    self._pm.unregister(plugin)
-            for full_name in [name for name, t in self._types.items() if t.distribution == distribution]:
-                del self._types[full_name]
-
         def put_back(reimport: Reimport | None) -> None:
-            take_out()
+            self._take_out(distribution)
             if reimport is not None:
                 reimport.undo()
             for name, plugin in old_plugins:
@@ -452,7 +442,7 @@ class PluginRegistry:
             # Every module first: an import that fails or never returns leaves the
             # old code's hooks and types in place.
             plugins = [(entry_point.name, self._import(entry_point, distribution)) for entry_point in entry_points]
-            take_out()
+            self._take_out(distribution)
             for name, plugin in plugins:
                 self._add(plugin, distribution=distribution, entry_point=name)
 
@@ -471,6 +461,14 @@ class PluginRegistry:
         new_types = {name: t for name, t in self._types.items() if t.distribution == distribution}
         logger.info("Imported %s afresh: %s", distribution, ", ".join(sorted(new_types)) or "no node type")
         return Reimported(distribution, types.MappingProxyType(new_types), lambda: put_back(reimport))
+
+    def _take_out(self, distribution: str) -> None:
+        """Drop a distribution's types and unregister its hook implementations."""
+        for full_name in [name for name, t in self._types.items() if t.distribution == distribution]:
+            del self._types[full_name]
+        for name, plugin in list(self._pm.list_name_plugin()):
+            if name.startswith(f"{distribution}:"):
+                self._pm.unregister(plugin)
 
     def add_plugin(self, plugin: object, *, distribution: str) -> None:
         """Load an in-process plugin object as if ``distribution`` shipped it.

@@ -159,7 +159,7 @@ class Reloader:
             _, cut = await manager.unload(loaded.unique_id)
             notes.extend(f"'{loaded.full_name}': {note}" for note in cut)
         kept = [
-            _Kept(loaded.request, loaded.full_name, loaded.unique_id, goal, Carry(changed, _state_of(loaded)))
+            _Kept(loaded.request, loaded.full_name, loaded.unique_id, goal, Carry(changed, _reload_state_of(loaded)))
             for loaded, (goal, changed) in zip(group, before, strict=True)
         ]
         try:
@@ -243,7 +243,7 @@ class Reloader:
         return problems
 
 
-def _state_of(node: LoadedNode) -> dict[str, Any]:
+def _reload_state_of(node: LoadedNode) -> dict[str, Any]:
     """The old node's ``reload_state``, read once it is down (its shutdown may have written it)."""
     state = getattr(node.node, RELOAD_STATE, None)
     return state if isinstance(state, dict) else {}

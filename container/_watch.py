@@ -163,6 +163,29 @@ def _watch(paths: list[Path], before: Snapshot, stop: threading.Event, deliver: 
         _logger.error("Reloading on change stopped: watching %s failed: %s: %s", paths, type(exc).__name__, exc)
 
 
+def _stat(path: str) -> tuple[int, int] | None:
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return None
+    return (stat.st_mtime_ns, stat.st_size)
+
+
+def _unseen(paths: Iterable[str], known: Snapshot) -> set[str]:
+    """The paths whose (modification time, size) is not the one ``known`` holds, ``known`` updated:
+    a file is delivered once per state it is saved in, however many ways its change is told."""
+    unseen = set()
+    for path in paths:
+        now = _stat(path)
+        if known.get(path) != now:
+            unseen.add(path)
+            if now is None:
+                known.pop(path, None)
+            else:
+                known[path] = now
+    return unseen
+
+
 def _watch_changes(
     paths: list[Path], before: Snapshot, stop: threading.Event, deliver: Callable[[Batch], None]
 ) -> None:
@@ -182,12 +205,14 @@ def _watch_changes(
     ):
         if stop.is_set():
             return
-        batch: Batch = set(changes)
+        named = {path for _, path in changes}
         if first:
+            # What changed before the OS watch was in place shows only here.
             first = False
-            now = _snapshot(paths)
-            batch |= {(watchfiles.Change.modified, path) for path in before.keys() | now.keys()
-                      if before.get(path) != now.get(path)}
+            named |= before.keys() | _snapshot(paths).keys()
+        # Each state of a file once: a change the first comparison found may
+        # come from the OS watch in the next batch too.
+        batch: Batch = {(watchfiles.Change.modified, path) for path in _unseen(named, before)}
         if batch:
             deliver(batch)
             quiet_ms = 0

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from container._watch import Batch, _snapshot, _touched, _watch
+from container._watch import Batch, _snapshot, _touched, _unseen, _watch
 
 
 class Deliveries:
@@ -87,3 +87,20 @@ def test_a_watch_that_fails_says_so(tmp_path: Path, caplog: pytest.LogCaptureFix
         _watch([gone], {}, threading.Event(), Deliveries())  # returns: nothing to watch
 
     assert f"Reloading on change stopped: watching [{gone!r}] failed: FileNotFoundError" in caplog.text, caplog.text
+
+
+def test_a_saved_state_is_told_once_however_many_ways_it_is_seen(tmp_path: Path) -> None:
+    """The first comparison and the OS watch can both tell one save (a reload failing twice for it):
+    each state of a file is delivered once."""
+    source = tmp_path / "plugin.py"
+    source.write_text("A = 1\n", encoding="utf-8")
+    known = _snapshot([tmp_path])
+    source.write_text("A = 22\n", encoding="utf-8")
+
+    assert _unseen([str(source)], known) == {str(source)}  # found by comparing
+    assert _unseen([str(source)], known) == set()  # then told by the OS watch: the same state
+    source.write_text("A = 333\n", encoding="utf-8")
+    assert _unseen([str(source)], known) == {str(source)}
+    source.unlink()
+    assert _unseen([str(source)], known) == {str(source)}
+    assert _unseen([str(source)], known) == set()

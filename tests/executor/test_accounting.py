@@ -15,7 +15,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 
 from container import AsyncioExecutor
-from container.executor import CallbackLoad, ContainerLoad, NodeLoad
+from container.executor import Accounting, CallbackLoad, ContainerLoad, NodeLoad
 from tests.component_support import burn
 from tests.engine_support import engines
 from tests.waiting import wait_until
@@ -263,3 +263,74 @@ def test_a_window_gives_a_node_that_ran_nothing_its_last_load_and_one_that_ran_a
     assert _node(ran, "/window_worker") is not _node(again, "/window_worker")
     assert _node(ran, "/window_worker").rate > 0
     assert _node(ran, "/window_idle") is _node(again, "/window_idle")
+
+
+def test_each_windows_node_loads_add_up_their_callbacks_rows_as_work_comes_and_goes(context: Context) -> None:
+    """A window sums only the rows of work that ran and keeps the idle ones from window to
+    window: whatever runs and stops, in any order, each callback's row is its own (its runs in
+    the window and since the start), and each node's load is its callbacks' rows added up (by
+    group and in all), every callback it has, highest CPU first."""
+    import random
+
+    accounting = Accounting(loop_thread=lambda: None)
+    nodes = [Node(f"sums{index}", context=context) for index in range(3)]
+    meters: dict[str, list[tuple[str, Any]]] = {}
+    for node in nodes:
+        other = MutuallyExclusiveCallbackGroup()
+        for index in range(6):
+            callback = _named(f"tick{index}")
+            timer = node.create_timer(3600.0, callback, callback_group=other if index % 2 else None)
+            meters.setdefault(node.get_fully_qualified_name(), []).append(
+                (callback.__qualname__, accounting.meter(timer, node, "timer"))
+            )
+    chooser = random.Random(47)
+    runs_total: dict[tuple[str, str], int] = {}
+    try:
+        accounting.sample()
+        for _ in range(60):
+            ran: dict[tuple[str, str], int] = {}
+            for name, own in meters.items():
+                for tick, meter in chooser.sample(own, chooser.choice([0, 0, 1, 2, 6])):
+                    for _ in range(chooser.choice([1, 2])):
+                        meter.call(time.monotonic_ns(), burn, 0.0002)
+                        ran[name, tick] = ran.get((name, tick), 0) + 1
+            for key, count in ran.items():
+                runs_total[key] = runs_total.get(key, 0) + count
+            load = accounting.sample()
+            assert sorted(node.name for node in load.nodes) == sorted(meters)
+            for node_load in load.nodes:
+                rows = node_load.callbacks
+                assert sorted(row.name for row in rows) == sorted(
+                    f"timer callback {tick}" for tick, _ in meters[node_load.name]
+                )
+                for row in rows:
+                    key = (node_load.name, row.name.removeprefix("timer callback "))
+                    assert row.runs_total == runs_total.get(key, 0), row
+                    assert row.rate * load.period == pytest.approx(ran.get(key, 0)), row
+                    assert (row.cpu > 0) == (key in ran), row
+                assert list(rows) == sorted(rows, key=lambda c: (-c.cpu, c.name))
+                assert node_load.cpu == pytest.approx(sum(c.cpu for c in rows), abs=1e-12)
+                assert node_load.rate == pytest.approx(sum(c.rate for c in rows), abs=1e-9)
+                assert node_load.lateness_p99 == max(c.lateness_p99 for c in rows)
+                assert node_load.duration_p99 == max(c.duration_p99 for c in rows)
+                assert node_load.cpu_seconds_total == pytest.approx(sum(c.cpu_seconds_total for c in rows))
+                by_group: dict[str, list[CallbackLoad]] = {}
+                for row in rows:
+                    by_group.setdefault(row.group, []).append(row)
+                assert [group.name for group in node_load.groups] == sorted(by_group)
+                for group in node_load.groups:
+                    members = by_group[group.name]
+                    assert group.cpu == pytest.approx(sum(c.cpu for c in members), abs=1e-12)
+                    assert group.rate == pytest.approx(sum(c.rate for c in members), abs=1e-9)
+                    assert group.lateness_p99 == max(c.lateness_p99 for c in members)
+    finally:
+        for node in nodes:
+            node.destroy_node()
+
+
+def _named(name: str) -> Callable[[], None]:
+    def callback() -> None:
+        pass
+
+    callback.__qualname__ = name
+    return callback

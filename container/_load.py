@@ -133,7 +133,7 @@ def _status(owner: str, node: NodeLoad) -> DiagnosticStatus:
 
 def _copied(message_type: Any, source: object, **given: Any) -> Any:
     """A ``message_type`` whose fields other than ``given`` are ``source``'s attributes of the same names
-    (the message files name their fields as the accounting's dataclasses do)."""
+    (the message files name their fields as the accounting's records do)."""
     fields = {name: getattr(source, name) for name in message_type.get_fields_and_field_types() if name not in given}
     return message_type(**fields, **given)
 

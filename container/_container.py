@@ -280,6 +280,8 @@ class ComponentManager(Node):
         #: Held by whatever changes the set of loaded nodes from outside
         #: (the container services, a reload), so that they apply one at a time.
         self.changing = asyncio.Lock()
+        #: Set by :meth:`unload_all`: nothing is loaded after it.
+        self.closed = False
         #: What unloaded nodes freed, given back to the system once unloads settle.
         self.memory = MemoryReturn(log=lambda trimmed: self.get_logger().info(trimmed.describe()))
 
@@ -349,6 +351,8 @@ class ComponentManager(Node):
             name is a duplicate, refused.
         :raises LoadError: with a message fit for a LoadNode response.
         """
+        if self.closed:
+            raise LoadError("the container is shutting down: it loads nothing more")
         if restore is not None and restore.unique_id in self._loaded:
             raise LoadError(f"unique_id {restore.unique_id} is in use")
         node_type = self.registry.resolve(request.package, request.plugin)
@@ -642,9 +646,16 @@ class ComponentManager(Node):
         task.add_done_callback(self._background.discard)
 
     async def unload_all(self) -> None:
-        """Unload every node, the last loaded first."""
-        for unique_id in reversed(list(self._loaded)):
-            await self.unload(unique_id)
+        """Unload every node, the last loaded first; load nothing after.
+
+        A load or a reload under way (they hold :attr:`changing`) ends first:
+        a reload's new nodes, loaded after this began, would otherwise
+        outlive it (each bounded by ``load_timeout``).
+        """
+        async with self.changing:
+            self.closed = True
+            for unique_id in reversed(list(self._loaded)):
+                await self.unload(unique_id)
         for task in list(self._background):
             task.cancel()
         self.memory.close()

@@ -118,6 +118,8 @@ class Reloader:
     async def reload_distribution(self, distribution: str) -> Reloaded:
         """Import ``distribution`` afresh and reload its loaded nodes (see the module's docs)."""
         async with self._manager.changing:
+            if self._manager.closed:
+                raise LoadError("the container is shutting down: nothing is reloaded")
             return await self._reload(distribution)
 
     async def _reload(self, distribution: str) -> Reloaded:

@@ -12,8 +12,10 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
+import time
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import pytest
 from lifecycle_msgs.srv import GetState
@@ -98,6 +100,46 @@ async def test_leaving_the_host_takes_every_node_down_its_lifecycle(ros_context:
         assert Recorder.seen == ["configure", "activate"]
 
     assert Recorder.seen == ["configure", "activate", "deactivate", "cleanup", "shutdown"]
+
+
+class SlowToConstruct(LifecycleNode):
+    """A node whose constructor takes a second: a load of it is under way that long."""
+
+    began: ClassVar[threading.Event] = threading.Event()
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        SlowToConstruct.began.set()
+        time.sleep(1.0)
+        super().__init__(*args, **kwargs)
+
+
+class SlowPlugin:
+    @hookimpl
+    def register_node_types(self, register: object) -> None:
+        register(SlowToConstruct)  # type: ignore[operator]
+
+
+async def test_unloading_everything_waits_for_a_load_under_way_and_loads_nothing_after(ros_context: object) -> None:
+    """A shutdown that unloads every node while a load (a service's, a reload's) is under way: the
+    load ends first and its node is unloaded too, and later loads are refused, not left loaded."""
+    registry = PluginRegistry(group="container.test_plugins.none")
+    registry.add_plugin(SlowPlugin(), distribution="slow")
+    SlowToConstruct.began.clear()
+    async with open_container_host(context=ros_context, registry=registry) as host:  # type: ignore[arg-type]
+        manager = host.manager
+
+        async def load_as_a_service_does() -> object:
+            async with manager.changing:
+                return await manager.load(LoadRequest("slow", "SlowToConstruct", name="late"))
+
+        loading = asyncio.ensure_future(load_as_a_service_does())
+        await host.wait_until(SlowToConstruct.began.is_set, what="the slow constructor began")
+        await manager.unload_all()
+        await loading
+
+        assert manager.loaded() == [], [loaded.full_name for loaded in manager.loaded()]
+        with pytest.raises(LoadError, match="shutting down"):
+            await manager.load(LoadRequest("slow", "SlowToConstruct", name="later"))
 
 
 @pytest.mark.parametrize("plugin", ["Talker", "Listener"])

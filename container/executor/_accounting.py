@@ -374,7 +374,7 @@ class Accounting:
         loop_unattributed = {}
         for account in self.unattributed.accounts():
             rows = _Rows(None)
-            self._take(rows, account, period_ns, KINDS[account.kind][0], account.kind, account.name)
+            self._take_account(rows, account, period_ns)
             loop_unattributed[_UNATTRIBUTED_LOOP[account.kind]] = sum(row.cpu for row in rows.built)
         self._forget_idle(owners.values(), threads, nodes, named=metered.keys())
         nodes_cpu = sum(node.cpu for node in nodes)
@@ -408,6 +408,10 @@ class Accounting:
         else:
             self._built(rows, item, figures, period_ns, group, kind, name)
 
+    def _take_account(self, rows: _Rows, account: Account, period_ns: int) -> None:
+        """:meth:`_take` for one kind of a node's other work (or of nobody's)."""
+        self._take(rows, account, period_ns, KINDS[account.kind][0], account.kind, account.name)
+
     def _built(
         self, rows: _Rows, item: _Metered | Account, figures: tuple[int, ...], period_ns: int,
         group: str, kind: str, name: str,
@@ -439,8 +443,7 @@ class Accounting:
         threads_row = bool(spent or running)
         for account in owner.accounts():
             # Its threads' own row replaces the thread account's.
-            into = _Rows(None) if threads_row and account.kind == "thread" else rows
-            self._take(into, account, period_ns, KINDS[account.kind][0], account.kind, account.name)
+            self._take_account(_Rows(None) if threads_row and account.kind == "thread" else rows, account, period_ns)
         if not threads_row:
             return 0.0
         thread_account = owner.account("thread")
@@ -512,7 +515,8 @@ def _row(account: Account, *, name: str, cpu: float, cpu_seconds_total: float) -
 
 
 def _summed(members: list[CallbackLoad]) -> tuple[float, float, float, int, int, float]:
-    """A group's sums of its callbacks, and their worst lateness and stuck time (GroupLoad's order)."""
+    """What a group and a node add up alike from their callbacks: sums, and the worst lateness and stuck
+    time (GroupLoad's order of fields)."""
     # One pass, not one generator per figure: a sample adds up every group and node each second.
     cpu = rate = lateness_p99 = stuck_for = 0.0
     dropped = stuck = 0
@@ -604,39 +608,22 @@ def _node_load(name: str, built: list[CallbackLoad], idle: _IdlePart) -> NodeLoa
         callbacks = tuple(sorted([*built, *idle.rows], key=_order))  # rows of no CPU interleave by name
     else:
         callbacks = (*built, *idle.rows)
-    cpu = rate = lateness_p99 = stuck_for = duration_p99 = total = 0.0
-    dropped = stuck = 0
+    sums = _summed(built)
     by_group: dict[str, list[CallbackLoad]] = {}
     for c in built:
-        cpu += c.cpu
-        rate += c.rate
-        dropped += c.dropped
-        stuck += c.stuck
-        total += c.cpu_seconds_total
-        if c.lateness_p99 > lateness_p99:
-            lateness_p99 = c.lateness_p99
-        if c.stuck_for > stuck_for:
-            stuck_for = c.stuck_for
-        if c.duration_p99 > duration_p99:
-            duration_p99 = c.duration_p99
-        members = by_group.get(c.group)
-        if members is None:
-            by_group[c.group] = [c]
-        else:
-            members.append(c)
+        by_group.setdefault(c.group, []).append(c)
     groups = idle.groups
     names = idle.names
     if by_group:
         groups = dict(groups)
-        if len(by_group) == 1:  # one group ran: its sums are the node's
-            (group,) = by_group
-            groups[group] = GroupLoad(name, group, cpu, rate, lateness_p99, dropped, stuck, stuck_for)
-        else:
-            for group, members in by_group.items():
-                groups[group] = GroupLoad(name, group, *_summed(members))
+        for group, members in by_group.items():
+            # One group ran (most nodes): its sums are the node's.
+            groups[group] = GroupLoad(name, group, *(sums if len(by_group) == 1 else _summed(members)))
         if len(groups) != len(names):
             names = sorted(groups)
+    cpu, rate, lateness_p99, dropped, stuck, stuck_for = sums
     return NodeLoad(  # NodeLoad's fields, in order
-        name, cpu, rate, lateness_p99, duration_p99, dropped, stuck, stuck_for, idle.total + total,
+        name, cpu, rate, lateness_p99, max((c.duration_p99 for c in built), default=0.0), dropped, stuck, stuck_for,
+        idle.total + sum(c.cpu_seconds_total for c in built),
         tuple(groups[group] for group in names), callbacks,
     )  # fmt: skip

@@ -18,6 +18,7 @@ import argparse
 import asyncio
 import ctypes
 import inspect
+import os
 import re
 import sys
 import warnings
@@ -68,6 +69,7 @@ __all__ = [
     "running_loop",
     "runs_plain_callback",
     "set_event_index",
+    "skip_in_log_calls",
     "sleeps_zero",
     "state_machine",
     "state_machine_if_built",
@@ -90,6 +92,11 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
         "rclpy.impl.implementation_singleton.rclpy_implementation",
         "rclpy_logging_rcutils_log",
         "rclpy 2.0-10.x; what RcutilsLogger.log ends in",
+    ),
+    (
+        "rclpy.impl.rcutils_logger",
+        "_internal_callers",
+        "rclpy 1.0-10.x; files whose frames a logger skips looking for its caller (a list third parties may extend)",
     ),
     ("rclpy.event_handler.EventHandler", "_EventHandler__event", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.event_handler.EventHandler", "_event_index", "rclpy 4.0-10.x (instance attribute)"),
@@ -244,6 +251,20 @@ def rcutils_log(severity: int, name: str, message: str, *, function: str, file: 
     thread, which may take it again.
     """
     _RCUTILS_LOG(severity, name, message, function, file, line)
+
+
+def skip_in_log_calls(path: str) -> None:
+    """Have rclpy's loggers skip the frames of ``path`` when they look for a
+    line's call site, as they skip their own: a logger subclass's ``log``
+    calling rclpy's (``container._logger``) would otherwise be every line's
+    call site, and the ``once`` and throttle filters, which keep their state
+    per call site, would take one site's lines for another's."""
+    from rclpy.impl import rcutils_logger
+
+    callers: list[str] = rcutils_logger._internal_callers
+    resolved = os.path.realpath(path)
+    if resolved not in callers:
+        callers.append(resolved)
 
 
 #: rclpy's words when rmw timed out waiting for a client's response reader.

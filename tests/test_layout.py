@@ -28,6 +28,7 @@ ALLOWED = {
     "container.lifecycle": (
         "container._compat",
         "container._errors",
+        "container._logger",
         "container._qos",
         "container._text",
         "container.checks",

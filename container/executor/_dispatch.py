@@ -228,15 +228,21 @@ class Dispatcher:
         return threading.get_ident() == self._loop_thread
 
     # -- entities ---------------------------------------------------------------
-    def invalidate(self) -> None:
+    def invalidate(self, *, sweep: bool = True) -> None:
         """Collect entities again before the next waits (any thread).
 
         Work already taken for an entity that is gone (destroyed, or its node
         removed) is retired at once: it will not start.
+
+        :param sweep: look for such work; ``False`` where nothing left (a node
+            added) or the caller retires it next. Looking walks every entity
+            of every node: done for each of a hundred nodes added one by one,
+            it took 0.15-0.3 s of a hundred-node start-up.
         """
         self._hot.invalidate()
         self._cold.invalidate()
-        self._sweep_tokens()
+        if sweep:
+            self._sweep_tokens()
         with contextlib.suppress(InvalidHandle):
             self._cold_wake.trigger()
 

@@ -269,6 +269,8 @@ class WorkerPool:
                     return
             lane, work, handed, handed_at = item
             item = None
+            # Read without the lock (an int): what the others finish meanwhile is judged against it.
+            finished_before = self._finished
             quick = handed_at - free_from < WORKER_LINGER_NS
             handoff = self._handoff if handed else None
             if handoff is not None:
@@ -282,7 +284,7 @@ class WorkerPool:
                 # Idle (or gone) before the loop hears it finished: the loop holds the GIL
                 # from then until it hands the next work, which would otherwise find no
                 # idle worker and start a thread for almost every request.
-                after = self._idle_again(me)
+                after = self._idle_again(me, finished_before)
                 free_from = time.monotonic_ns()
                 if handoff is not None:
                     handoff.finished()
@@ -291,15 +293,27 @@ class WorkerPool:
             if after is not False:
                 item = (*after, False, free_from)
 
-    def _idle_again(self, me: _Worker) -> tuple[Lane, Work] | bool:
+    def _idle_again(self, me: _Worker, finished_before: int) -> tuple[Lane, Work] | bool:
         """``me`` finished its work: the backlog's oldest work for it to run next, else
         ``False`` (it is back on the idle stack) or ``True``: it ends now (the pool is
-        closed, or above its size: it was started while every worker was blocked)."""
+        closed, or above its size: it was started while every worker was blocked).
+
+        Above the pool's size, a worker leaves the backlog to the others once any of them
+        finished something while it ran: they are not all blocked, so it is not needed.
+        Kept on while the backlog lasted, every thread the monitor started in a slow
+        moment of an overloaded container (a hundred listeners logging every message,
+        each worker waiting for the GIL) stayed for as long as the overload: 67 threads
+        for the demo mix, each one more for the GIL to go round.
+
+        :param finished_before: :attr:`_finished` when ``me`` started its work.
+        """
         with self._lock:
+            others_finished = self._finished != finished_before
             self._finished += 1
-            if self._backlog:
+            above_size = len(self._workers) > self.size
+            if self._backlog and not (above_size and others_finished and not self._closed):
                 return self._backlog.popleft()
-            if self._closed or len(self._workers) > self.size:
+            if self._closed or above_size:
                 self._workers.remove(me)
                 return True
             self._idle.append(me)

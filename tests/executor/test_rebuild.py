@@ -13,6 +13,7 @@ Unloading 200 talkers from one container logged 115 such tracebacks
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 from collections.abc import Iterator
@@ -70,3 +71,28 @@ def test_entities_destroyed_while_the_wait_set_is_built_leave_the_graph(
             made.destroy_node()
         node.destroy_node()
         peer.destroy_node()
+
+
+def test_a_retired_node_no_longer_wakes_the_executor_as_it_is_destroyed(
+    context: Context, executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An unload retires a node, then destroys it: each entity destroyed woke the executor,
+    which collected every node's entities again, twice (its wait sets), and looked for
+    work of entities gone: a hundred idle nodes' shutdown took 7.8 s."""
+    node = Node("retired", context=context)
+    for index in range(5):
+        node.create_service(Trigger, f"retired_service_{index}", lambda request, response: response)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        stuck = asyncio.run_coroutine_threadsafe(executor.retire(node, timeout=1.0), executor.loop).result(10.0)
+        assert stuck == []
+        assert node.executor is None and node not in executor.get_nodes()
+        woken: list[None] = []
+        monkeypatch.setattr(executor, "wake", lambda: woken.append(None))
+        node.destroy_node()
+        assert woken == []
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)

@@ -282,3 +282,57 @@ def test_a_burst_of_short_plain_callbacks_runs_on_the_pools_threads(
         spinner.join(5.0)
         for node in nodes:
             node.destroy_node()
+
+
+class _Running:
+    """A stand-in lane: runs the work it is handed, a plain function."""
+
+    @staticmethod
+    def run_handed(work: Any) -> None:
+        work()
+
+
+def test_a_thread_started_while_every_worker_was_blocked_ends_once_the_others_work_again() -> None:
+    """Every worker blocked, the monitor starts one more thread for the work waiting (a
+    backlog of short calls, the GIL held). Once the workers are free again, that thread
+    ends with its call, though the backlog still holds work for the others to take: kept
+    while a backlog lasted, each thread the monitor started in a slow moment of an
+    overloaded container stayed for as long as the overload (67 threads for a hundred
+    demo nodes whose listeners logged every message)."""
+    pool = _workers.WorkerPool(name="overload", handoff=None, carries=False, size=2)
+    release = threading.Event()
+    blocked_now: list[None] = []
+    done: list[None] = []
+
+    def blocked() -> None:
+        blocked_now.append(None)
+        release.wait(10.0)
+
+    def busy() -> None:
+        until = time.perf_counter() + 0.001
+        while time.perf_counter() < until:
+            pass
+        done.append(None)
+
+    def workers() -> int:
+        return sum(not thread.name.endswith("monitor") for thread in pool.threads)
+
+    lane: Any = _Running()
+    # The stand-in lane runs plain functions as its work.
+    blocked_work: Any = blocked
+    busy_work: Any = busy
+    try:
+        for _ in range(2):
+            pool.hand(lane, blocked_work, from_loop=False)
+        wait_until(lambda: len(blocked_now) == 2, "every worker blocked")
+        for _ in range(300):
+            pool.hand(lane, busy_work, from_loop=False)
+        wait_until(lambda: done, "a thread started for the work waiting behind blocked workers")
+        assert workers() == 3
+        release.set()
+        wait_until(lambda: workers() <= 2, lambda: f"{workers()} workers, the pool's size 2", timeout=10.0)
+        assert len(done) <= 250, f"the extra thread ended only with the backlog ({len(done)} of 300 done)"
+        wait_until(lambda: len(done) == 300, "the backlog run", timeout=20.0)
+    finally:
+        release.set()
+        pool.close(timeout=5.0)

@@ -366,7 +366,7 @@ class Dispatcher:
         return self.gate.permits is None and self._dispatching_burst()
 
     def _wait_and_dispatch_once(self, timeout_ns: int) -> int:
-        if self._hot.dirty:
+        if self._hot.rebuild_due():
             self._retire_lanes()
         eager = self.on_loop_thread()
         if eager:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -96,3 +97,46 @@ def test_a_retired_node_no_longer_wakes_the_executor_as_it_is_destroyed(
     finally:
         executor.shutdown(timeout_sec=5.0)
         spinner.join(5.0)
+
+
+def test_entities_created_one_by_one_cost_a_few_rebuilds_and_all_run(
+    context: Context, executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a rebuild, the next waits a multiple of its time: thirty timers created one
+    by one (a big container's configure creates a node's entities so) are collected a
+    few at a time, not one rebuild each; each still fires, and one destroyed meanwhile
+    never does. Spaced here from any rebuild, by 200 times its time, so that a small
+    wait set's rebuilds (well under a millisecond) are spaced as a big one's are."""
+    monkeypatch.setattr(_waitset, "_REBUILD_SPACED_FROM_NS", 0)
+    monkeypatch.setattr(_waitset, "_REBUILD_SPACING", 200)
+    rebuilds: list[None] = []
+    real = _waitset.EntityWaitSet._rebuild
+
+    def counted(self: _waitset.EntityWaitSet) -> None:
+        rebuilds.append(None)
+        real(self)
+
+    monkeypatch.setattr(_waitset.EntityWaitSet, "_rebuild", counted)
+    node = Node("spaced", context=context)
+    executor.add_node(node)
+    fired: set[int] = set()
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        wait_until(lambda: len(rebuilds) >= 1, "the first rebuild")
+        before = len(rebuilds)
+        timers = []
+        for index in range(30):
+            timers.append(node.create_timer(0.01, lambda index=index: fired.add(index)))
+            time.sleep(0.001)  # one by one, as a configure creates them
+        node.destroy_timer(timers[-1])
+        wait_until(lambda: fired >= set(range(29)), lambda: f"every timer to fire ({sorted(fired)})")
+        # Two wait sets (hot and cold), each rebuilt for a few of the 31 changes.
+        assert len(rebuilds) - before < 30, f"{len(rebuilds) - before} rebuilds for 31 changes"
+        fired.clear()
+        wait_until(lambda: fired >= set(range(29)), "every timer to fire again")
+        assert 29 not in fired
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        node.destroy_node()

@@ -19,8 +19,9 @@ hundred-node container's start-up took 2.58x plain rclpy's (1.69x with a
 thread per lane). Past :attr:`WorkerPool.size`, a worker exits once its
 callback returned, if the backlog is empty or another worker finished
 something meanwhile (the others are not all blocked: the pool shrinks back
-once the blockers are done, even under a backlog that never empties); below it, one idle for :data:`WORKER_IDLE_S` exits too,
-and so does the monitor, so an idle container keeps no thread here.
+once the blockers are done, even under a backlog that never empties);
+below it, one idle for :data:`WORKER_IDLE_S` exits too, and so does the
+monitor, so an idle container keeps no thread here.
 """
 
 from __future__ import annotations

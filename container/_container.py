@@ -32,7 +32,7 @@ from rclpy.validate_node_name import validate_node_name
 from . import checks
 from ._compat import InvalidROSArgsError, is_built, state_machine, state_machine_if_built
 from ._errors import ConfigError, LoadError, TransitionError
-from ._logger import FastLogger
+from ._logger import FastLogging
 from ._memory import MemoryReturn
 from ._params import ParameterSource, node_parameters
 from ._registry import NodeType, PluginRegistry
@@ -228,7 +228,7 @@ class LoadWatcher(Protocol):
         """Handle a node just taken off the container's list, before it goes down its lifecycle."""
 
 
-class ComponentManager(Node):
+class ComponentManager(FastLogging, Node):
     """The container's own node (``ComponentManager`` by default, like rclcpp's).
 
     :param registry: the node types that may be loaded.
@@ -237,16 +237,6 @@ class ComponentManager(Node):
     :param use_intra_process_comms: whether a loaded node joins intra-process
         communication when its request does not say.
     """
-
-    #: :meth:`get_logger`'s logger, made at its first call.
-    _fast_logger: FastLogger | None = None
-
-    def get_logger(self) -> FastLogger:
-        """The node's logger: rclpy's, but a line costs microseconds (:mod:`container._logger`)."""
-        logger = self._fast_logger
-        if logger is None:
-            logger = self._fast_logger = FastLogger(name=super().get_logger().name)  # type: ignore[no-untyped-call, unused-ignore]
-        return logger
 
     def __init__(
         self,

@@ -24,15 +24,16 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Any
+from typing import Any, cast
 
 import rclpy.logging
 from rclpy.impl import rcutils_logger
 from rclpy.impl.rcutils_logger import RcutilsLogger
+from rclpy.node import Node
 
 from ._compat import rcutils_log, skip_in_log_calls
 
-__all__ = ["FastLogger"]
+__all__ = ["FastLogger", "FastLogging"]
 
 #: Files whose frames are the logging machinery's, not the caller's (as rclpy's ``_find_caller`` skips).
 _INTERNAL = frozenset({rcutils_logger.__file__, rclpy.logging.__file__, __file__})
@@ -76,6 +77,21 @@ class FastLogger(RcutilsLogger):
         # The registration is let go by whichever logger holds the pair, when it is dropped.
         fast.logger_sublogger_namepair, child.logger_sublogger_namepair = child.logger_sublogger_namepair, None
         return fast
+
+
+class FastLogging:
+    """Makes a node class's :meth:`get_logger` a :class:`FastLogger` (listed before ``Node`` in its bases)."""
+
+    #: :meth:`get_logger`'s logger, made at its first call.
+    _fast_logger: FastLogger | None = None
+
+    def get_logger(self) -> FastLogger:
+        """The node's logger: rclpy's, but a line costs microseconds (:mod:`container._logger`)."""
+        logger = self._fast_logger
+        if logger is None:
+            rclpys = Node.get_logger(cast(Node, self))  # type: ignore[no-untyped-call, unused-ignore]
+            logger = self._fast_logger = FastLogger(name=rclpys.name)
+        return logger
 
 
 # rclpy's own search, which lines with a filter take, looks past this module's frames too.

@@ -23,8 +23,10 @@ from container.testing import isolate_ros
 
 isolate_ros()
 
+from rcl_interfaces.msg import Log  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
 from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E402
@@ -80,6 +82,15 @@ def client_node(context: Context, executor: AsyncioExecutor) -> Iterator[Node]:
     yield node
     executor.remove_node(node)
     node.destroy_node()
+
+
+@pytest.fixture
+def rosout(client_node: Node) -> list[Log]:
+    """Every line on ``/rosout`` from now on, and the ones still kept (transient local)."""
+    heard: list[Log] = []
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    client_node.create_subscription(Log, "/rosout", heard.append, qos)
+    return heard
 
 
 @pytest.fixture

@@ -10,16 +10,14 @@ from __future__ import annotations
 import inspect
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
+from typing import Any
 
 import pytest
 import rclpy.logging
 from rcl_interfaces.msg import Log
-from rclpy.context import Context
 from rclpy.impl.logging_severity import LoggingSeverity
 from rclpy.impl.rcutils_logger import RcutilsLogger
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from container import AsyncioExecutor, LifecycleNode
 from container._logger import FastLogger
@@ -27,20 +25,9 @@ from tests.waiting import wait_until
 
 
 @pytest.fixture
-def rosout(client_node: Node) -> list[Log]:
-    heard: list[Log] = []
-    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    client_node.create_subscription(Log, "/rosout", heard.append, qos)
-    return heard
-
-
-@pytest.fixture
-def talker(context: Context, executor: AsyncioExecutor) -> Iterator[LifecycleNode]:
-    node = LifecycleNode("logging_node", context=context)
-    executor.add_node(node)
-    yield node
-    executor.remove_node(node)
-    node.destroy_node()
+def talker(host: Callable[..., Any]) -> LifecycleNode:
+    node: LifecycleNode = host(LifecycleNode, "logging_node")
+    return node
 
 
 def heard(lines: list[Log], text: str) -> Callable[[], list[Log]]:

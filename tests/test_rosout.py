@@ -14,8 +14,6 @@ from pathlib import Path
 
 import pytest
 from rcl_interfaces.msg import Log
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from container import AsyncioExecutor
 from tests.container_support import ContainerProcess
@@ -48,15 +46,6 @@ def logs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, see_plugin: Callable[.
     directory = tmp_path / "ros_log"
     monkeypatch.setenv("ROS_LOG_DIR", str(directory))
     return directory
-
-
-@pytest.fixture
-def rosout(client_node: Node) -> list[Log]:
-    """Every line on ``/rosout`` from now on, and the ones still kept (transient local)."""
-    heard: list[Log] = []
-    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    client_node.create_subscription(Log, "/rosout", heard.append, qos)
-    return heard
 
 
 def heard_line(heard: list[Log], *, name: str, text: str) -> Callable[[], Log | None]:

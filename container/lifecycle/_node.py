@@ -48,7 +48,7 @@ from rclpy.timer import Timer
 from .. import checks
 from .._compat import managed_entities, state_machine
 from .._errors import TransitionError
-from .._logger import FastLogger
+from .._logger import FastLogging
 from .._text import MESSAGE_LIMIT, clip
 from ..executor import Escaped, contained, in_thread, run_coroutine, working_for
 from ..intra import IntraProcessNode
@@ -83,7 +83,7 @@ _FAIL_BACK_S = 1.0
 _PUBLISHING = {"activating", "active"}
 
 
-class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
+class LifecycleNode(FastLogging, IntraProcessNode, LifecycleNodeBase):
     """A lifecycle node whose transition callbacks may be coroutines.
 
     Override ``on_configure``, ``on_activate``, ... as in rclpy, with
@@ -686,16 +686,6 @@ class LifecycleNode(IntraProcessNode, LifecycleNodeBase):
             for timer in self._paused_timers:
                 timer.reset()
             self._paused_timers.clear()
-
-    #: :meth:`get_logger`'s logger, made at its first call.
-    _fast_logger: FastLogger | None = None
-
-    def get_logger(self) -> FastLogger:
-        """The node's logger: rclpy's, but a line costs microseconds (:mod:`container._logger`)."""
-        logger = self._fast_logger
-        if logger is None:
-            logger = self._fast_logger = FastLogger(name=super().get_logger().name)  # type: ignore[no-untyped-call, unused-ignore]
-        return logger
 
     def destroy_node(self) -> None:
         if self._heartbeat is not None:

@@ -228,7 +228,7 @@ class Dispatcher:
         return threading.get_ident() == self._loop_thread
 
     # -- entities ---------------------------------------------------------------
-    def invalidate(self, *, sweep: bool = True) -> None:
+    def invalidate(self, *, sweep: bool = True, prompt: bool = False) -> None:
         """Collect entities again before the next waits (any thread).
 
         Work already taken for an entity that is gone (destroyed, or its node
@@ -238,13 +238,29 @@ class Dispatcher:
             added) or the caller retires it next. Looking walks every entity
             of every node: done for each of a hundred nodes added one by one,
             it took 0.15-0.3 s of a hundred-node start-up.
+        :param prompt: someone waits for the rebuild (:meth:`released`): no
+            spacing after the last one.
         """
-        self._hot.invalidate()
-        self._cold.invalidate()
+        self._hot.invalidate(prompt=prompt)
+        self._cold.invalidate(prompt=prompt)
         if sweep:
             self._sweep_tokens()
         with contextlib.suppress(InvalidHandle):
             self._cold_wake.trigger()
+
+    def release_mark(self) -> tuple[int, int]:
+        """A mark :meth:`released` passes once both wait sets wait on tables collected after this call."""
+        return self._hot.release_mark(), self._cold.release_mark()
+
+    def released(self, mark: tuple[int, int]) -> bool:
+        """Whether neither wait set still holds what left before ``mark`` was taken.
+
+        A destroyed entity that a wait set still holds is destroyed only as
+        it lets go, at its next rebuild (its node stays on the ROS graph
+        until then).
+        """
+        hot, cold = mark
+        return self._hot.released(hot) and self._cold.released(cold)
 
     def nodes(self) -> list[Node]:
         return list(self._nodes())

@@ -105,6 +105,12 @@ _CALLER: Any = object()
 #: How often :meth:`AsyncioExecutor.retire` looks whether a node's callbacks ended.
 _RETIRE_POLL_S = 0.01
 
+#: How often, and how long at most, :meth:`AsyncioExecutor.retire` looks
+#: whether the wait sets let go of a removed node's entities (a rebuild: a
+#: few ms at a hundred nodes).
+_RELEASE_POLL_S = 0.001
+_RELEASE_WAIT_S = 2.0
+
 #: How long an ``await`` on an rclpy future may sleep before looking again,
 #: for futures completed outside the executor (no wake-up reaches us then).
 _RCL_FUTURE_POLL_S = 0.01
@@ -310,6 +316,13 @@ class AsyncioExecutor(Executor):
     async def retire(self, node: Node, *, timeout: float) -> list[str]:
         """:meth:`remove_node`, then wait up to ``timeout`` for its running callbacks.
 
+        Once none runs, it also waits until the wait sets no longer hold the
+        node's entities, so that destroying the node next takes it off the
+        ROS graph at once: an unload answered while ``ros2 node list`` still
+        showed the node, and a node of the same name loaded right after
+        found the old one's ``/rosout`` publisher still registered (rcl warns,
+        and the old node's end then takes the new one's ``/rosout`` away).
+
         :return: the callbacks of ``node`` still running when ``timeout``
             ran out (plain callbacks blocked in their thread), described for
             a log line; empty when nothing of the node runs any more.
@@ -322,12 +335,22 @@ class AsyncioExecutor(Executor):
             node.executor = None  # type: ignore[assignment]  # rclpy types the setter without None
         else:
             self.remove_node(node)
-        deadline = self.loop.time() + timeout
-        while True:
-            running = self._dispatcher.running(node)
-            if not running or self.loop.time() >= deadline:
+        dispatcher = self._dispatcher
+        # Taken once the node left: any table begun after this holds nothing of it.
+        mark = dispatcher.release_mark()
+        dispatcher.invalidate(sweep=False, prompt=True)
+        loop = self.loop
+        deadline = loop.time() + timeout
+        while running := dispatcher.running(node):
+            if loop.time() >= deadline:
                 return [describe(work.entity) for work in running]
             await asyncio.sleep(_RETIRE_POLL_S)
+        released_by = loop.time() + _RELEASE_WAIT_S
+        # Bounded: a wait set nobody serves (the executor paused) lets go at
+        # its next rebuild, and the node's destruction completes then.
+        while not dispatcher.released(mark) and loop.time() < released_by:
+            await asyncio.sleep(_RELEASE_POLL_S)
+        return []
 
     def _on_loop(self) -> bool:
         return running_loop() is self.loop

@@ -248,9 +248,34 @@ class EntityWaitSet:
         self.waits = 0
         #: No rebuild before this (monotonic ns): see :data:`_REBUILD_SPACING`.
         self._rebuild_after = 0
+        #: Tables begun (under ``_lock``), and the number of the one in use:
+        #: whether the table waited on was collected after some moment (see
+        #: :meth:`release_mark`).
+        self._begun = 0
+        self._installed = 0
 
-    def invalidate(self) -> None:
+    def invalidate(self, *, prompt: bool = False) -> None:
+        """Collect the entities again before the next wait.
+
+        :param prompt: not later than that: someone waits for the rebuild
+            (see :meth:`release_mark`), so the spacing between rebuilds is waived once.
+        """
         self._routes.dirty = True
+        if prompt:
+            self._rebuild_after = 0
+
+    def release_mark(self) -> int:
+        """A mark :meth:`released` passes once this wait set waits on a table begun after this call.
+
+        Such a table holds nothing of what left before the call: a node
+        removed, then destroyed, is really destroyed (off the ROS graph) only
+        once no table holds its entities any more.
+        """
+        return self._begun + 1
+
+    def released(self, mark: int) -> bool:
+        """Whether the table in use was begun at or after ``mark`` (or this wait set is closed)."""
+        return self._installed >= mark or self._routes.closed
 
     @property
     def dirty(self) -> bool:
@@ -284,6 +309,8 @@ class EntityWaitSet:
 
     def _build(self) -> None:
         for attempt in range(_REBUILD_TRIES):
+            self._begun += 1
+            number = self._begun
             self._routes.dirty = False
             table = Table()
             try:
@@ -296,6 +323,7 @@ class EntityWaitSet:
                     continue  # destroyed by another thread after it was held here: again, without it
                 raise
             self._install(table)
+            self._installed = number
             return
 
     def _collect(self, table: Table) -> None:

@@ -99,6 +99,42 @@ def test_a_retired_node_no_longer_wakes_the_executor_as_it_is_destroyed(
         spinner.join(5.0)
 
 
+def test_a_node_destroyed_once_retired_is_off_the_graph_at_once(
+    context: Context, executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A destroyed entity that a wait set still holds is destroyed when the wait set lets
+    go of it, at its next rebuild. ``retire`` returned before that rebuild, so an unload
+    was answered with the node still on the graph, and a node of the same name loaded
+    next found the old one's ``/rosout`` publisher registered (the soak of
+    ``test_unload_leaks`` saw the node left, in three CI legs of four). Rebuilds are
+    spaced here by a million times their time (seconds at least): retire waives that
+    for the rebuild it waits for, so it returns at once, the node released."""
+    monkeypatch.setattr(_waitset, "_REBUILD_SPACED_FROM_NS", 0)
+    monkeypatch.setattr(_waitset, "_REBUILD_SPACING", 1_000_000)
+    peer = Node("graph_watcher", context=context)
+    node = Node("retired", context=context)
+    fired = threading.Event()
+    node.create_timer(0.01, fired.set)
+    node.create_service(Trigger, "retired_service", lambda request, response: response)
+    executor.add_node(node)  # before the spin: its first rebuild holds the node
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        assert fired.wait(10.0), "the node's timer never fired: the wait set does not hold it"
+        started = time.monotonic()
+        stuck = asyncio.run_coroutine_threadsafe(executor.retire(node, timeout=1.0), executor.loop).result(10.0)
+        took = time.monotonic() - started
+        assert stuck == []
+        node.destroy_node()
+        assert "retired" not in peer.get_node_names()
+        assert not _service_seen(peer, "/retired/retired_service")
+        assert took < 1.0, f"retire took {took:.3f} s: the rebuild it waits for was spaced"
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
+        peer.destroy_node()
+
+
 def test_entities_created_one_by_one_cost_a_few_rebuilds_and_all_run(
     context: Context, executor: AsyncioExecutor, monkeypatch: pytest.MonkeyPatch
 ) -> None:

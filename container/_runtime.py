@@ -6,10 +6,12 @@ tests start ROS the same way.
 
 from __future__ import annotations
 
+import faulthandler
 import functools
 import importlib.metadata
 import logging
 import os
+import signal
 from pathlib import Path
 
 __all__ = [
@@ -17,6 +19,7 @@ __all__ = [
     "PROFILE_VARIABLES",
     "configure_logging",
     "configure_warnings",
+    "dump_stacks_on_sigusr1",
     "fast_dds_major",
     "profile_variable",
     "use_fast_discovery",
@@ -87,3 +90,20 @@ def configure_warnings() -> None:
     from ._roslog import install
 
     install(level=logging.WARNING)
+
+
+def dump_stacks_on_sigusr1() -> bool:
+    """Have SIGUSR1 write every thread's Python stack to standard error, the process going on.
+
+    For a container that stops answering, or does not end after SIGINT:
+    ``kill -USR1 <pid>`` shows where each thread is, without a debugger
+    (faulthandler writes from the signal handler itself, so it works while
+    a thread holds the GIL or the loop is stuck). Left alone when SIGUSR1
+    already has a handler (an embedding application's).
+
+    :return: whether SIGUSR1 now dumps the stacks.
+    """
+    if signal.getsignal(signal.SIGUSR1) not in (signal.SIG_DFL, None):
+        return False
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
+    return True

@@ -66,7 +66,7 @@ from rclpy.utilities import try_shutdown
 from ._compat import RCLError
 from ._errors import SecurityError
 from ._roslog import say_now
-from ._runtime import configure_warnings, use_fast_discovery
+from ._runtime import configure_warnings, dump_stacks_on_sigusr1, use_fast_discovery
 from ._security import NO_SECURITY_PLUGINS, check_security, clear_rcl_error
 from .executor import AsyncioExecutor, end_resender, end_spare_threads
 
@@ -267,6 +267,8 @@ def run_session(
     """
     use_fast_discovery()
     configure_warnings()
+    if server:
+        dump_stacks_on_sigusr1()
     # Security requested is security, or said in one line, before rcl
     # starts: rcl would run without it unsaid, or fail with no reason.
     try:

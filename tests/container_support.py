@@ -69,6 +69,24 @@ class LoggedProcess:
                     raise AssertionError(f"no line with {needle!r} within {timeout} s:\n{self.output()}")
                 self._changed.wait(remaining)
 
+    def stacks(self, *, timeout: float = 3.0) -> str:
+        """The output once a container asked for its threads' stacks (SIGUSR1) has written them.
+
+        For a failure's message: where a process that should have ended is.
+        """
+        if self.process.poll() is not None:
+            return self.output()
+        start = len(self.lines)
+        self.process.send_signal(signal.SIGUSR1)
+        with contextlib.suppress(AssertionError):
+            self.wait_for_line("(most recent call first)", timeout=timeout, start=start)
+            # The rest of the dump: its lines come at once; read until they pause.
+            deadline = time.monotonic() + timeout
+            with self._changed:
+                while self._changed.wait(0.5) and time.monotonic() < deadline:
+                    pass
+        return self.output(last=len(self.lines) - start + 60)
+
     def stop(self, *, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
         """Signal the process group and wait; SIGKILL as a last resort (then fail)."""
         if self.process.poll() is None:
@@ -76,8 +94,9 @@ class LoggedProcess:
         try:
             code = self.process.wait(timeout)
         except subprocess.TimeoutExpired:
+            stacks = self.stacks()
             self.close()
-            raise AssertionError(f"{self.name} ignored signal {sig} for {timeout} s:\n{self.output()}") from None
+            raise AssertionError(f"{self.name} ignored signal {sig} for {timeout} s:\n{stacks}") from None
         self.close()
         return code
 

@@ -55,7 +55,7 @@ def exit_code(process: LoggedProcess, *, timeout: float = 15.0) -> int:
     try:
         return process.process.wait(timeout)
     except Exception:
-        raise AssertionError(f"still running {timeout} s after the signals:\n{process.output()}") from None
+        raise AssertionError(f"still running {timeout} s after the signals:\n{process.stacks()}") from None
 
 
 def finished_output(process: LoggedProcess) -> str:
@@ -196,3 +196,16 @@ def test_a_client_command_cut_short_while_it_starts_is_quiet(command: tuple[str,
         if cut.killed_before_python:
             continue
         assert (cut.status, cut.output) == (128 + signum, ""), cut.describe()
+
+
+def test_sigusr1_writes_every_threads_stack_and_the_container_serves_on(spawn: list[LoggedProcess]) -> None:
+    """Where a container that does not end, or stops answering, is: ``kill -USR1``."""
+    process = start(spawn, "run", str(DEMO))
+    process.wait_for_line(READY)
+    output = process.stacks()
+    assert "(most recent call first)" in output, output
+    assert "Thread 0x" in output or "Current thread 0x" in output, output
+    assert 'File "' in output and "container" in output, output
+    assert process.process.poll() is None, "SIGUSR1 ended the container"
+    process.process.send_signal(signal.SIGINT)
+    assert exit_code(process) == 0, finished_output(process)

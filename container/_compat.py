@@ -111,6 +111,12 @@ PRIVATE_NAMES: tuple[tuple[str, str, str], ...] = (
     ("rclpy.lifecycle.LifecycleNodeMixin", "_managed_entities", "rclpy 4.0-10.x (instance attribute)"),
     ("rclpy.node.Node", "_Node__node", "rclpy 1.0-10.x (instance attribute)"),
     ("sys", "_current_frames", "CPython 2.5-3.14; what faulthandler and py-spy read"),
+    ("sys", "_getframe", "CPython 2.1-3.14; what logging and inspect read a caller from"),
+    (
+        "rclpy.node.Node",
+        "_wake_executor",
+        "rclpy 1.0-10.x; what every create_*, add_waitable, destroy_* and remove_waitable calls",
+    ),
     ("argparse", "_SubParsersAction", "CPython 3.2-3.14; what add_subparsers() returns"),
     ("rclpy.action.server.ActionServer", "_execute_goal", "rclpy 1.0-10.x; create_task()s the execute callback"),
     ("asyncio.base_events.BaseEventLoop", "_ready", "CPython 3.4-3.14 (instance attribute)"),
@@ -212,6 +218,11 @@ class FdCallbackLoop(asyncio.SelectorEventLoop):
 def thread_frame(ident: int) -> FrameType | None:
     """The frame another thread is executing now (for a stuck thread's stack)."""
     return sys._current_frames().get(ident)
+
+
+def caller_frame(depth: int) -> FrameType:
+    """The frame ``depth`` calls above the one calling this (0: the caller's own)."""
+    return sys._getframe(depth + 1)
 
 
 # -- argparse ---------------------------------------------------------------------
@@ -326,6 +337,25 @@ def raise_client_not_matched() -> None:
     warnings.filterwarnings("error", message=re.escape(_CLIENT_NOT_MATCHED), category=RuntimeWarning)
 
 # -- executors, entities, futures -------------------------------------------------
+
+
+#: rclpy's node methods that wake the executor because they added an entity.
+_ADDING = ("create_", "add_waitable")
+
+
+def woken_by_an_addition() -> bool:
+    """Whether the ``Executor.wake()`` calling this was called because a node added an entity.
+
+    rclpy's nodes wake their executor through ``Node._wake_executor``, which
+    every ``create_*`` and ``add_waitable`` calls once it added the entity,
+    and every ``destroy_*``, ``remove_waitable`` and ``destroy_node`` once
+    it removed one. Only a removal can leave work of an entity that is gone.
+    ``False`` for any other caller: look for such work.
+    """
+    waker = sys._getframe(2)  # 0: this, 1: the executor's wake(), 2: what called it
+    if waker.f_code.co_name != "_wake_executor" or waker.f_back is None:
+        return False
+    return waker.f_back.f_code.co_name.startswith(_ADDING)
 
 
 def wake_guard(executor: Executor) -> GuardCondition:

@@ -23,7 +23,6 @@ two severities, which rclpy does only to keep its filters' state apart.
 from __future__ import annotations
 
 import os
-import sys
 from typing import Any, cast
 
 import rclpy.logging
@@ -31,7 +30,7 @@ from rclpy.impl import rcutils_logger
 from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.node import Node
 
-from ._compat import rcutils_log, skip_in_log_calls
+from ._compat import caller_frame, rcutils_log, skip_in_log_calls
 
 __all__ = ["FastLogger", "FastLogging"]
 
@@ -52,7 +51,7 @@ class FastLogger(RcutilsLogger):
             return bool(super().log(message, severity, **kwargs))  # type: ignore[no-untyped-call, unused-ignore]
         if not self.is_enabled_for(severity):  # type: ignore[no-untyped-call, unused-ignore]
             return False
-        frame = sys._getframe(1)
+        frame = caller_frame(1)
         while frame.f_code.co_filename in _INTERNAL and frame.f_back is not None:
             frame = frame.f_back
         code = frame.f_code

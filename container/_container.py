@@ -584,7 +584,7 @@ class ComponentManager(FastLogging, Node):
         )
 
     # -- unload -------------------------------------------------------------------
-    async def unload(self, unique_id: int) -> tuple[LoadedNode, list[str]]:
+    async def unload(self, unique_id: int, *, off_graph: bool = True) -> tuple[LoadedNode, list[str]]:
         """Take the node down its lifecycle, stop what still runs, then destroy it.
 
         rclcpp destroys a component without running its shutdown; here a
@@ -597,6 +597,11 @@ class ComponentManager(FastLogging, Node):
         state machine (and so its lifecycle services) until it returns. An
         unload always removes the node.
 
+        :param off_graph: return once the node is off the ROS graph, as
+            rclcpp's unload does (a node of the same name may be loaded next);
+            ``False`` where nobody looks any more (a shutdown's unloads: each
+            such wait costs a rebuild of the wait sets, half a second for a
+            hundred demo nodes), and the node leaves the graph a moment later.
         :return: the node, and notes on what had to be cut short.
         :raises LoadError: no node has ``unique_id``.
         """
@@ -618,7 +623,7 @@ class ComponentManager(FastLogging, Node):
                 await bring_down(self._host, node, timeout=self.unload_timeout)
             except TransitionError as exc:
                 notes.append(f"taken down incompletely: {exc.reason}")
-        stuck = await self._host.retire(node, timeout=self.unload_timeout)
+        stuck = await self._host.retire(node, timeout=self.unload_timeout, released=off_graph)
         if stuck:
             notes.append(
                 f"still running after {self.unload_timeout:g} s, left to finish: {', '.join(stuck)}"
@@ -656,7 +661,7 @@ class ComponentManager(FastLogging, Node):
         async with self.changing:
             self.closed = True
             for unique_id in reversed(list(self._loaded)):
-                await self.unload(unique_id)
+                await self.unload(unique_id, off_graph=False)
         for task in list(self._background):
             task.cancel()
         self.memory.close()

@@ -317,15 +317,17 @@ class AsyncioExecutor(Executor):
                 self._removed_idle[node] = Dispatcher.members(node)
         self._guard_trigger()
 
-    async def retire(self, node: Node, *, timeout: float) -> list[str]:
+    async def retire(self, node: Node, *, timeout: float, released: bool = True) -> list[str]:
         """:meth:`remove_node`, then wait up to ``timeout`` for its running callbacks.
 
-        Once none runs, it also waits until the wait sets no longer hold the
-        node's entities, so that destroying the node next takes it off the
-        ROS graph at once: an unload answered while ``ros2 node list`` still
-        showed the node, and a node of the same name loaded right after
-        found the old one's ``/rosout`` publisher still registered (rcl warns,
-        and the old node's end then takes the new one's ``/rosout`` away).
+        :param released: once none runs, also wait until the wait sets no
+            longer hold the node's entities, so that destroying the node next
+            takes it off the ROS graph at once: an unload answered while
+            ``ros2 node list`` still showed the node, and a node of the same
+            name loaded right after found the old one's ``/rosout`` publisher
+            still registered (rcl warns, and the old node's end then takes
+            the new one's ``/rosout`` away). Else they let go at their next
+            rebuild, the node's destruction completing then.
 
         :return: the callbacks of ``node`` still running when ``timeout``
             ran out (plain callbacks blocked in their thread), described for
@@ -342,7 +344,8 @@ class AsyncioExecutor(Executor):
         dispatcher = self._dispatcher
         # Taken once the node left: any table begun after this holds nothing of it.
         mark = dispatcher.release_mark()
-        dispatcher.invalidate(sweep=False, prompt=True)
+        if released:
+            dispatcher.invalidate(sweep=False, prompt=True)
         loop = self.loop
         deadline = loop.time() + timeout
         while running := dispatcher.running(node):
@@ -352,7 +355,7 @@ class AsyncioExecutor(Executor):
         released_by = loop.time() + _RELEASE_WAIT_S
         # Bounded: a wait set nobody serves (the executor paused) lets go at
         # its next rebuild, and the node's destruction completes then.
-        while not dispatcher.released(mark) and loop.time() < released_by:
+        while released and not dispatcher.released(mark) and loop.time() < released_by:
             await asyncio.sleep(_RELEASE_POLL_S)
         return []
 

@@ -17,7 +17,7 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
@@ -126,17 +126,18 @@ def test_only_a_removed_entity_makes_the_executor_look_for_work_of_entities_gone
     client = node.create_client(Trigger, "swept_service")
     guard = node.create_guard_condition(lambda: None)
     assert swept == []
-    for destroy, entity in (
-        (node.destroy_timer, timer),
-        (node.destroy_subscription, subscription),
-        (node.destroy_service, service),
-        (node.destroy_client, client),
-        (node.destroy_guard_condition, guard),
-        (node.destroy_publisher, publisher),
-    ):
+    removals: list[tuple[str, Callable[[], object]]] = [
+        ("destroy_timer", lambda: node.destroy_timer(timer)),
+        ("destroy_subscription", lambda: node.destroy_subscription(subscription)),
+        ("destroy_service", lambda: node.destroy_service(service)),
+        ("destroy_client", lambda: node.destroy_client(client)),
+        ("destroy_guard_condition", lambda: node.destroy_guard_condition(guard)),
+        ("destroy_publisher", lambda: node.destroy_publisher(publisher)),
+    ]
+    for name, remove in removals:
         before = len(swept)
-        destroy(entity)
-        assert len(swept) > before, f"{destroy.__name__} did not look for work of what it removed"
+        remove()
+        assert len(swept) > before, f"{name} did not look for work of what it removed"
     before = len(swept)
     executor.remove_node(node)
     node.destroy_node()

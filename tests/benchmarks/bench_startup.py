@@ -35,7 +35,8 @@ second once all are up, which the container runs while it loads the rest
 
 Also read from ``/proc``: the container's threads when it is ready and
 again ``--settle`` seconds later (idle worker threads exit), and the rclpy
-peer's at its end. ``--pythons`` runs everything under several
+peer's at its end; and the container's shutdown, from a SIGINT sent then
+to its exit (its nodes going down their lifecycle and destroyed). ``--pythons`` runs everything under several
 interpreters (each a set-up virtualenv's, e.g. a git worktree's ``.venv``):
 the code before and after a change, side by side.
 """
@@ -127,6 +128,8 @@ class Sample:
     ratios: list[float] = field(default_factory=list)
     threads_ready: list[int] = field(default_factory=list)
     threads_settled: list[int] = field(default_factory=list)
+    #: The container's: from SIGINT (once settled) to its exit.
+    shutdown: list[float] = field(default_factory=list)
 
 
 def write_site(root: Path) -> Path:
@@ -172,7 +175,8 @@ def drain(stream: object, ready: threading.Event, marker: str, tail: list[bytes]
             ready.set()
 
 
-def run_container(python: str, config: Path, env: dict[str, str], settle: float) -> tuple[float, int, int]:
+def run_container(python: str, config: Path, env: dict[str, str], settle: float) -> tuple[float, int, int, float]:
+    """Ready (s from start), threads at ready and ``settle`` s later, and shutdown (s from SIGINT to exit)."""
     ready = threading.Event()
     start = time.monotonic()
     process = subprocess.Popen(
@@ -197,14 +201,19 @@ def run_container(python: str, config: Path, env: dict[str, str], settle: float)
         elapsed = time.monotonic() - start
         at_ready = threads_of(process.pid)
         time.sleep(settle)
-        return elapsed, at_ready, threads_of(process.pid)
-    finally:
+        settled = threads_of(process.pid)
+        stopped = time.monotonic()
         process.send_signal(signal.SIGINT)
-        try:
-            process.wait(60)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        process.wait(60)
+        return elapsed, at_ready, settled, time.monotonic() - stopped
+    finally:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
         reader.join(5)
 
 
@@ -269,13 +278,14 @@ def main() -> int:
         for round_ in range(1, args.rounds + 1):
             for mix in args.mixes:
                 for python in args.pythons:
-                    seconds, ready, settled = run_container(python, configs[mix], env, args.settle)
+                    seconds, ready, settled, shutdown = run_container(python, configs[mix], env, args.settle)
                     sample = results.setdefault((python, mix, "container"), Sample())
                     sample.seconds.append(seconds)
                     sample.threads_ready.append(ready)
                     sample.threads_settled.append(settled)
+                    sample.shutdown.append(shutdown)
                     line = [f"round {round_} {mix:5} {python}: container {seconds:.2f} s "
-                            f"({ready} threads, {settled} after {args.settle:g} s)"]
+                            f"({ready} threads, {settled} after {args.settle:g} s; shutdown {shutdown:.2f} s)"]
                     for peer_name, spin in (("rclpy", False), ("rclpy+spin", True)):
                         peer_seconds, peer_threads = run_peer(
                             python, root / "peer.py", mix, args.nodes, env, spin=spin
@@ -288,11 +298,12 @@ def main() -> int:
                     print(", ".join(line), flush=True)
             if args.empty:
                 for python in args.pythons:
-                    seconds, ready, settled = run_container(python, empty, env, min(args.settle, 1.0))
+                    seconds, ready, settled, shutdown = run_container(python, empty, env, min(args.settle, 1.0))
                     sample = results.setdefault((python, "empty", "container"), Sample())
                     sample.seconds.append(seconds)
                     sample.threads_ready.append(ready)
                     sample.threads_settled.append(settled)
+                    sample.shutdown.append(shutdown)
                     print(f"round {round_} empty {python}: ready in {seconds:.2f} s ({ready} threads)", flush=True)
     print(
         f"\nmedians of {args.rounds} round(s), {args.nodes} nodes; ready: from process start; "
@@ -300,16 +311,17 @@ def main() -> int:
     )
     print(
         "| python | mix | container | rclpy | **ratio** | rclpy+spin | ratio | "
-        "threads at ready | threads settled | rclpy threads |"
+        "threads at ready | threads settled | rclpy threads | container shutdown |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for python in args.pythons:
         for mix in [*args.mixes, *(["empty"] if args.empty else [])]:
             box = results[(python, mix, "container")]
             container_s = median(box.seconds)
             if mix == "empty":
                 print(f"| {python} | {mix} | {container_s:.2f} s | | | | | "
-                      f"{median(box.threads_ready):.0f} | {median(box.threads_settled):.0f} | |")
+                      f"{median(box.threads_ready):.0f} | {median(box.threads_settled):.0f} | | "
+                      f"{median(box.shutdown):.2f} s |")
                 continue
             plain = results[(python, mix, "rclpy")]
             spun = results[(python, mix, "rclpy+spin")]
@@ -318,7 +330,7 @@ def main() -> int:
                 f"| {python} | {mix} | {container_s:.2f} s | {plain_s:.2f} s | **{median(plain.ratios):.2f}x** | "
                 f"{spun_s:.2f} s | {median(spun.ratios):.2f}x | "
                 f"{median(box.threads_ready):.0f} | {median(box.threads_settled):.0f} | "
-                f"{median(plain.threads_ready):.0f} |"
+                f"{median(plain.threads_ready):.0f} | {median(box.shutdown):.2f} s |"
             )
     return 0
 

@@ -122,8 +122,8 @@ def test_only_a_removed_entity_makes_the_executor_look_for_work_of_entities_gone
     publisher = node.create_publisher(Empty, "swept", 10)  # and its QoS event handlers: add_waitable
     subscription = node.create_subscription(Empty, "swept", lambda message: None, 10)
     timer = node.create_timer(1.0, lambda: None)
-    service = node.create_service(Trigger, "swept_service", lambda request, response: response)
-    client = node.create_client(Trigger, "swept_service")
+    service: Any = node.create_service(Trigger, "swept_service", lambda request, response: response)
+    client: Any = node.create_client(Trigger, "swept_service")
     guard = node.create_guard_condition(lambda: None)
     assert swept == []
     removals: list[tuple[str, Callable[[], object]]] = [

@@ -352,7 +352,7 @@ def woken_by_an_addition() -> bool:
     it removed one. Only a removal can leave work of an entity that is gone.
     ``False`` for any other caller: look for such work.
     """
-    waker = sys._getframe(2)  # 0: this, 1: the executor's wake(), 2: what called it
+    waker = caller_frame(2)  # 0: this, 1: the executor's wake(), 2: what called it
     if waker.f_code.co_name != "_wake_executor" or waker.f_back is None:
         return False
     return waker.f_back.f_code.co_name.startswith(_ADDING)

@@ -343,8 +343,8 @@ class AsyncioExecutor(Executor):
             self.remove_node(node)
         dispatcher = self._dispatcher
         # Taken once the node left: any table begun after this holds nothing of it.
-        mark = dispatcher.release_mark()
-        if released:
+        mark = dispatcher.release_mark() if released else None
+        if mark is not None:
             dispatcher.invalidate(sweep=False, prompt=True)
         loop = self.loop
         deadline = loop.time() + timeout
@@ -355,7 +355,7 @@ class AsyncioExecutor(Executor):
         released_by = loop.time() + _RELEASE_WAIT_S
         # Bounded: a wait set nobody serves (the executor paused) lets go at
         # its next rebuild, and the node's destruction completes then.
-        while released and not dispatcher.released(mark) and loop.time() < released_by:
+        while mark is not None and not dispatcher.released(mark) and loop.time() < released_by:
             await asyncio.sleep(_RELEASE_POLL_S)
         return []
 

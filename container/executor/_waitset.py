@@ -248,6 +248,10 @@ class EntityWaitSet:
         self.waits = 0
         #: No rebuild before this (monotonic ns): see :data:`_REBUILD_SPACING`.
         self._rebuild_after = 0
+        #: Someone waits for the next rebuild (:meth:`invalidate`): not spaced.
+        #: A flag, not ``_rebuild_after = 0``, which a rebuild under way would
+        #: overwrite as it ends.
+        self._prompt = False
         #: Tables begun (under ``_lock``), and the number of the one in use:
         #: whether the table waited on was collected after some moment (see
         #: :meth:`release_mark`).
@@ -260,9 +264,9 @@ class EntityWaitSet:
         :param prompt: not later than that: someone waits for the rebuild
             (see :meth:`release_mark`), so the spacing between rebuilds is waived once.
         """
-        self._routes.dirty = True
         if prompt:
-            self._rebuild_after = 0
+            self._prompt = True
+        self._routes.dirty = True
 
     def release_mark(self) -> int:
         """A mark :meth:`released` passes once this wait set waits on a table begun after this call.
@@ -284,7 +288,11 @@ class EntityWaitSet:
 
     def rebuild_due(self) -> bool:
         """Whether the next wait rebuilds the table: it is stale, and the last rebuild not too recent."""
-        return self._routes.dirty and time.monotonic_ns() >= self._rebuild_after
+        return self._routes.dirty and self._spaced_ns() <= 0
+
+    def _spaced_ns(self) -> int:
+        """How long before the next rebuild may start (ns; 0 or less: now)."""
+        return 0 if self._prompt else self._rebuild_after - time.monotonic_ns()
 
     @property
     def routes(self) -> Routes:
@@ -299,6 +307,7 @@ class EntityWaitSet:
         return self._take_lock
 
     def _rebuild(self) -> None:
+        self._prompt = False  # whoever asked sees a table begun from now on
         began = time.monotonic_ns()
         try:
             self._build()
@@ -470,7 +479,7 @@ class EntityWaitSet:
                 return WOKEN
             try:
                 if self._routes.dirty:
-                    spaced = self._rebuild_after - time.monotonic_ns()
+                    spaced = self._spaced_ns()
                     if spaced <= 0:
                         with self._take_lock:
                             self._rebuild()

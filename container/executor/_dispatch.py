@@ -25,7 +25,6 @@ import inspect
 import logging
 import threading
 import time
-import weakref
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -51,6 +50,7 @@ from ._engine import (
     Work,
 )
 from ._entries import KINDS, WOKEN, Entry, entities_of, express_work
+from ._faults import WaitableFaults
 from ._gate import Gate
 from ._hooks import ExecutorHooks
 from ._lanes import Lane, Retired
@@ -169,8 +169,8 @@ class Dispatcher:
         self.response_executor = DoneCallbacks(
             executor=future_executor, post=self._post, on_loop_thread=self._dispatching_burst, gate=self.gate
         )
-        #: Waitables whose own code raised (see :meth:`set_aside`), by identity.
-        self._set_aside: dict[int, weakref.ref[object] | object] = {}
+        #: Waitables whose own code raised (see :meth:`waitable_failed`).
+        self.faults = WaitableFaults()
 
     # -- threads ----------------------------------------------------------------
     def start(self) -> None:
@@ -425,43 +425,25 @@ class Dispatcher:
         return True
 
     # -- waitables whose own code fails ---------------------------------------------------
-    def set_aside(self, waitable: object, node: Node, where: str, error: BaseException) -> None:
-        """Leave ``waitable`` out of every wait set from now on: its own code raised in ``where``.
-
-        A waitable is user code run inside the wait itself (rclpy 9's
-        ``Waitable.__enter__`` raises ``NotImplementedError`` unless a
-        subclass defines it: a waitable written for Jazzy). Raising again on
-        every wait would flood the log and starve the node's other entities;
-        it is reported once, through its node's logger, and everything else
-        keeps running. rclpy's own executors raise out of ``spin`` instead.
-        """
-        key = id(waitable)
-        if self.is_set_aside(waitable):
+    def waitable_failed(self, waitable: object, node: Node, where: str, error: BaseException) -> None:
+        """``waitable``'s own code raised in ``where``: leave it out of the wait sets for a
+        while, and for good once it keeps raising (see ``_faults``), reported then,
+        once, through its node's logger. Everything else keeps running."""
+        run = self.faults.failed(waitable)
+        if run is None:
+            self.invalidate(sweep=False)  # rebuilt without it at once, taken back later
             return
-        try:
-            self._set_aside[key] = weakref.ref(waitable)
-        except TypeError:  # not weakly referenceable: kept alive here
-            self._set_aside[key] = waitable
         self.invalidate()
+        times, seconds = run
         message = (
-            f"waitable {type(waitable).__qualname__} raised {type(error).__name__} in {where}: {error};"
+            f"waitable {type(waitable).__qualname__} raised {type(error).__name__} in {where}: {error}"
+            f" ({times} times in a row over {seconds:.2f} s);"
             " it is left out of the executor's wait set from now on (the node's other callbacks keep running)"
         )
         try:
             node.get_logger().error(message)
         except Exception:  # the node is being destroyed
             _log.error("%s of node %s", message, node)
-
-    def is_set_aside(self, waitable: object) -> bool:
-        """Whether :meth:`set_aside` took ``waitable`` out of the wait sets."""
-        kept = self._set_aside.get(id(waitable))
-        if kept is None:
-            return False
-        held = kept() if isinstance(kept, weakref.ref) else kept
-        if held is waitable:
-            return True
-        del self._set_aside[id(waitable)]  # another object at a reused address
-        return False
 
     # -- what lanes ask of the dispatcher (LaneHooks) ---------------------------
     def post(self, callback: Callable[..., object], *args: Any) -> None:

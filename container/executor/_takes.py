@@ -173,7 +173,7 @@ def take_waitable(dispatcher: Dispatcher, entry: Entry) -> None:
     try:
         data = waitable.take_data()
     except Exception as error:
-        dispatcher.set_aside(waitable, entry.node, "take_data()", error)
+        dispatcher.waitable_failed(waitable, entry.node, "take_data()", error)
         return
     for future in waitable_futures(waitable):
         adopt_future(future, dispatcher.future_executor)

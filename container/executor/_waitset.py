@@ -338,6 +338,7 @@ class EntityWaitSet:
     def _collect(self, table: Table) -> None:
         """Fill ``table`` with every entity of the dispatcher's nodes, each held; build its wait set."""
         dispatcher = self._dispatcher
+        faults = dispatcher.faults
         held = table.held
         extra = NumberOfEntities()
         for kind in KINDS:
@@ -377,7 +378,7 @@ class EntityWaitSet:
                             if taker is not None and entry.is_async and not entry.wants_info:
                                 table.express[entity.handle.pointer] = _route(taker, entry)
             for waitable in list(node.waitables):
-                if not self._takes_waitable(waitable) or dispatcher.is_set_aside(waitable):
+                if not self._takes_waitable(waitable) or faults.left_out(waitable):
                     continue
                 event = event_handle(waitable)
                 where = "__enter__()"
@@ -387,7 +388,7 @@ class EntityWaitSet:
                     where = "get_num_entities()"
                     counts = waitable.get_num_entities() if event is None else None
                 except Exception as error:  # a waitable's own code: never the executor's end
-                    dispatcher.set_aside(waitable, node, where, error)
+                    dispatcher.waitable_failed(waitable, node, where, error)
                     continue
                 entry = dispatcher.entry(waitable, node, "waitable")
                 if event is not None:
@@ -478,6 +479,15 @@ class EntityWaitSet:
             if self._routes.closed:
                 return WOKEN
             try:
+                retry_at = self._dispatcher.faults.retry_at_ns
+                if retry_at:
+                    # A waitable left out after it raised is tried again then (see ``_faults``).
+                    left = retry_at - time.monotonic_ns()
+                    if left > 0:
+                        if timeout_ns < 0 or timeout_ns > left:
+                            timeout_ns = left
+                    elif self._dispatcher.faults.retries_due():
+                        self._dispatcher.invalidate(sweep=False)
                 if self._routes.dirty:
                     spaced = self._spaced_ns()
                     if spaced <= 0:
@@ -590,7 +600,7 @@ class EntityWaitSet:
             try:
                 entry.entity.add_to_wait_set(wait_set)
             except Exception as error:
-                dispatcher.set_aside(entry.entity, entry.node, "add_to_wait_set()", error)
+                dispatcher.waitable_failed(entry.entity, entry.node, "add_to_wait_set()", error)
                 timeout_ns = 0  # rebuilt without it at once
         timeout_ns, poll = self._before_wait(notifier, timeout_ns)
         try:
@@ -629,7 +639,7 @@ class EntityWaitSet:
                 try:
                     ready_now = entry.entity.is_ready(wait_set)
                 except Exception as error:
-                    dispatcher.set_aside(entry.entity, entry.node, "is_ready()", error)
+                    dispatcher.waitable_failed(entry.entity, entry.node, "is_ready()", error)
                     continue
                 if ready_now:
                     take_waitable(dispatcher, entry)

@@ -30,7 +30,13 @@ from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
 from . import checks
-from ._compat import InvalidROSArgsError, is_built, state_machine, state_machine_if_built
+from ._compat import (
+    InvalidROSArgsError,
+    finish_type_description_service,
+    is_built,
+    state_machine,
+    state_machine_if_built,
+)
 from ._errors import ConfigError, LoadError, TransitionError
 from ._logger import FastLogging
 from ._memory import MemoryReturn
@@ -415,11 +421,11 @@ class ComponentManager(FastLogging, Node):
             changed = {parameter.name: parameter for parameter in set_since_load}
             overrides = [*(p for p in overrides if p.name not in changed), *changed.values()]
         if not any(parameter.name == TYPE_DESCRIPTION_SERVICE for parameter in overrides):
-            # rclpy 7.1 (Jazzy) never releases what starting a node's
-            # ~/get_type_description service allocates: about 100 kB per node
-            # created and destroyed, measured with plain rclpy and no
-            # executor. Loaded nodes start without it unless asked
-            # (-p start_type_description_service:=true).
+            # A node's ~/get_type_description service is a DDS reader and
+            # writer (about 100 kB) that next to no tool asks; loaded nodes
+            # start without it unless asked (-p
+            # start_type_description_service:=true). rclpy 7-9 never
+            # finalise it; an unload does (see _destroy).
             overrides.append(Parameter(TYPE_DESCRIPTION_SERVICE, value=False))
         cli_args = ["--ros-args", *(part for rule in remaps for part in ("-r", rule))] if remaps else None
         intra_process = request.wants_intra_process(self.use_intra_process_comms)
@@ -630,7 +636,7 @@ class ComponentManager(FastLogging, Node):
             )
             self._spawn(self._destroy_when_idle(node))
         else:
-            _destroy(node)
+            _destroy(node, held=not off_graph)
             self.memory.unloaded()
         log = self.get_logger()
         for note in notes:
@@ -642,7 +648,7 @@ class ComponentManager(FastLogging, Node):
         """Destroy ``node`` once its last blocked callback has returned."""
         while await self._host.retire(node, timeout=1.0):
             pass
-        _destroy(node)
+        _destroy(node, held=False)
         self.memory.unloaded()
         self.get_logger().info(f"Released '{node.get_fully_qualified_name()}': its last callback returned")
 
@@ -687,6 +693,8 @@ def _discard(built: list[Node]) -> None:
             # The base class's: an override may rely on attributes the
             # failed constructor never set.
             with contextlib.suppress(Exception):
+                finish_type_description_service(node)  # never served: nothing holds it
+            with contextlib.suppress(Exception):
                 Node.destroy_node(node)
         machine = state_machine_if_built(node)
         if machine is not None:
@@ -694,8 +702,19 @@ def _discard(built: list[Node]) -> None:
     built.clear()
 
 
-def _destroy(node: Node) -> None:
-    """Destroy ``node`` now, not whenever the garbage collector gets to it."""
+def _destroy(node: Node, *, held: bool) -> None:
+    """Destroy ``node`` now, not whenever the garbage collector gets to it.
+
+    :param held: whether a wait set may still hold the node's entities (a
+        shutdown's unloads do not wait for them to let go). Else its type
+        description service, which rclpy leaves on the graph and in Fast
+        DDS for good, is finalised first: a shutdown ends the process anyway.
+    """
+    if not held:
+        try:
+            finish_type_description_service(node)
+        except Exception as exc:  # rcl's failure: the node is destroyed all the same
+            node.get_logger().warning(f"its type description service stays on the graph: {exc}")
     node.destroy_node()
     # rclpy's LifecycleNode keeps a C++ state machine that holds the rcl node
     # (and its transition_event publisher); destroy_node leaves it, so the node

@@ -19,10 +19,12 @@ from rclpy.context import Context
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode
+from rclpy.node import Node
 from rclpy.waitable import Waitable
 from std_msgs.msg import String
 
 from container import _compat
+from tests.waiting import wait_until
 
 
 @pytest.fixture
@@ -44,6 +46,7 @@ def samples(context: Context) -> Iterator[dict[str, Callable[[], Any]]]:
         "rclpy.executors.Executor": lambda: executor,
         "rclpy.lifecycle.LifecycleNodeMixin": lambda: node,
         "rclpy.node.Node": lambda: node,
+        "rclpy.type_description_service.TypeDescriptionService": lambda: node._type_description_service,
     }
     loop.close()
     executor.shutdown()
@@ -181,3 +184,26 @@ def test_rclpys_unmatched_client_warning_becomes_an_error_and_no_other() -> None
             warnings.warn("failed to send response (timeout): rmw gave up", RuntimeWarning, stacklevel=1)
         assert _compat.client_not_matched(raised.value)
         warnings.warn("another runtime warning", RuntimeWarning, stacklevel=1)  # ignored, as before
+
+
+def test_a_finished_type_description_service_leaves_the_graph_with_its_node(context: Context) -> None:
+    """rclpy's ``destroy_node`` leaves ``~/get_type_description`` on the graph; finished first, it goes."""
+    watcher = Node("compat_graph_watcher", context=context)
+    kept = Node("compat_kept", context=context)
+    finished = Node("compat_finished", context=context)
+    names = ("/compat_kept/get_type_description", "/compat_finished/get_type_description")
+
+    def services() -> set[str]:
+        return {name for name, _ in watcher.get_service_names_and_types()}
+
+    try:
+        wait_until(lambda: set(names) <= services(), lambda: f"both services listed: {sorted(services())}")
+        assert _compat.finish_type_description_service(finished)
+        kept.destroy_node()
+        finished.destroy_node()
+        wait_until(lambda: names[1] not in services(), f"{names[1]} gone")
+        # rclpy's own: the kept node's service is still listed, with no node behind it.
+        assert names[0] in services()
+        assert "/compat_kept" not in {f"{ns.rstrip('/')}/{n}" for n, ns in watcher.get_node_names_and_namespaces()}
+    finally:
+        watcher.destroy_node()

@@ -330,8 +330,10 @@ class AsyncioExecutor(Executor):
             rebuild, the node's destruction completing then.
 
         :return: the callbacks of ``node`` still running when ``timeout``
-            ran out (plain callbacks blocked in their thread), described for
-            a log line; empty when nothing of the node runs any more.
+            ran out (plain callbacks blocked in their thread), or with
+            ``released`` the wait sets if they still hold the node after
+            :data:`_RELEASE_WAIT_S` (nobody serves them), described for a log
+            line; empty when nothing of the node runs or is held any more.
         """
         if node.executor is self:
             # Through the node's own setter, which calls remove_node and then
@@ -355,7 +357,9 @@ class AsyncioExecutor(Executor):
         released_by = loop.time() + _RELEASE_WAIT_S
         # Bounded: a wait set nobody serves (the executor paused) lets go at
         # its next rebuild, and the node's destruction completes then.
-        while mark is not None and not dispatcher.released(mark) and loop.time() < released_by:
+        while mark is not None and not dispatcher.released(mark):
+            if loop.time() >= released_by:
+                return [f"the executor's wait sets (not rebuilt within {_RELEASE_WAIT_S:g} s)"]
             await asyncio.sleep(_RELEASE_POLL_S)
         return []
 

@@ -146,6 +146,8 @@ class Dispatcher:
         # wait set's lock is released (see ``Lane.run_eager``), each with
         # whether its lane admitted it already (else: as it starts).
         self._eager: collections.deque[tuple[Lane, Work, bool]] = collections.deque()
+        #: Waitables whose own code raised (see :meth:`waitable_failed`).
+        self.faults = WaitableFaults()
         self._hot = EntityWaitSet(
             self, kinds=KINDS, takes_waitable=is_hot_waitable, own_guards=own_guards
         )
@@ -169,8 +171,6 @@ class Dispatcher:
         self.response_executor = DoneCallbacks(
             executor=future_executor, post=self._post, on_loop_thread=self._dispatching_burst, gate=self.gate
         )
-        #: Waitables whose own code raised (see :meth:`waitable_failed`).
-        self.faults = WaitableFaults()
 
     # -- threads ----------------------------------------------------------------
     def start(self) -> None:

@@ -213,6 +213,8 @@ class EntityWaitSet:
         own_guards: Callable[[], Iterable[tuple[GuardCondition, int]]],
     ) -> None:
         self._dispatcher = dispatcher
+        #: Waitables left out after their code raised (see ``_faults``): looked at before each wait.
+        self._faults = dispatcher.faults
         self._kinds = kinds
         self._takes_waitable = takes_waitable
         self._own_guards = own_guards
@@ -479,14 +481,14 @@ class EntityWaitSet:
             if self._routes.closed:
                 return WOKEN
             try:
-                retry_at = self._dispatcher.faults.retry_at_ns
+                retry_at = self._faults.retry_at_ns
                 if retry_at:
                     # A waitable left out after it raised is tried again then (see ``_faults``).
                     left = retry_at - time.monotonic_ns()
                     if left > 0:
                         if timeout_ns < 0 or timeout_ns > left:
                             timeout_ns = left
-                    elif self._dispatcher.faults.retries_due():
+                    elif self._faults.retries_due():
                         self._dispatcher.invalidate(sweep=False)
                 if self._routes.dirty:
                     spaced = self._spaced_ns()

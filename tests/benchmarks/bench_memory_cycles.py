@@ -138,14 +138,16 @@ def settled(pid: int, *, quiet: float = 2.0, timeout: float = 30.0) -> tuple[int
     return pss_and_rss(pid)
 
 
-def run(layout: str, nodes: int, cycles: int) -> list[tuple[str, int, int]]:
-    """``(phase, PSS kB, RSS kB)`` of the measured process: before, then loaded/unloaded per cycle."""
+def run(layout: str, nodes: int, cycles: int) -> list[tuple[str, int, int, float]]:
+    """``(phase, PSS kB, RSS kB, seconds)`` of the measured process: before, then
+    loaded/unloaded per cycle, with how long the driver took to get there (the
+    load or the unload of every node)."""
     env = {
         **os.environ,
         "ROS_DOMAIN_ID": str(random.randint(100, 140) + (50 if layout == "rclpy" else 0)),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
     }
-    phases: list[tuple[str, int, int]] = []
+    phases: list[tuple[str, int, int, float]] = []
     with tempfile.TemporaryDirectory() as work:
         container = None
         if layout == "container":
@@ -167,12 +169,15 @@ def run(layout: str, nodes: int, cycles: int) -> list[tuple[str, int, int]]:
         measured = container if container is not None else driver
         assert driver.stdin is not None and driver.stdout is not None
         try:
+            went = time.monotonic()
             for line in driver.stdout:
                 phase = line.strip()
+                took = time.monotonic() - went
                 pss, rss = settled(measured.pid)
-                phases.append((phase, pss, rss))
+                phases.append((phase, pss, rss, took))
                 driver.stdin.write("\n")
                 driver.stdin.flush()
+                went = time.monotonic()
             if driver.wait() != 0:
                 raise SystemExit(f"the {layout} driver failed")
         finally:
@@ -195,17 +200,19 @@ def main() -> None:
         results = {layout: future.result() for layout, future in futures.items()}
     mib = 1024.0
     print(f"{args.nodes} demo talkers, {args.cycles} cycles; PSS and RSS in MiB")
-    print(f"{'':11} {'phase':10} {'PSS':>8} {'RSS':>8} {'RSS/before':>11} {'PSS/node kB':>12}")
+    print(f"{'':11} {'phase':10} {'PSS':>8} {'RSS':>8} {'RSS/before':>11} {'took':>7} {'PSS/node kB':>12}")
     for layout, phases in results.items():
-        _, pss0, rss0 = phases[0]
-        for phase, pss, rss in phases:
+        _, pss0, rss0, _ = phases[0]
+        for phase, pss, rss, took in phases:
             per_node = f"{(pss - pss0) / args.nodes:12.0f}" if phase == "loaded" else ""
-            print(f"{layout:11} {phase:10} {pss / mib:8.1f} {rss / mib:8.1f} {rss / rss0:10.2f}x {per_node}")
+            print(
+                f"{layout:11} {phase:10} {pss / mib:8.1f} {rss / mib:8.1f} {rss / rss0:10.2f}x {took:6.1f}s {per_node}"
+            )
     container, rclpy = results["container"], results["rclpy"]
-    worst = max(rss for phase, _, rss in container if phase == "unloaded") / container[0][2]
+    worst = max(rss for phase, _, rss, _ in container if phase == "unloaded") / container[0][2]
     print(f"container: RSS after unloading, worst cycle against before: {worst:.2f}x (budget 1.25x)")
-    last_c = [rss for phase, _, rss in container if phase == "unloaded"]
-    last_r = [rss for phase, _, rss in rclpy if phase == "unloaded"]
+    last_c = [rss for phase, _, rss, _ in container if phase == "unloaded"]
+    last_r = [rss for phase, _, rss, _ in rclpy if phase == "unloaded"]
     print(f"RSS after each unload, container: {', '.join(f'{r / mib:.0f}' for r in last_c)} MiB; "
           f"rclpy: {', '.join(f'{r / mib:.0f}' for r in last_r)} MiB")
 

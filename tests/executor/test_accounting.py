@@ -198,11 +198,13 @@ def test_a_meter_times_plain_runs_and_each_step_of_a_coroutine(engine: ModuleTyp
     meter = engine.Meter()
     arrived = time.monotonic_ns() - 5_000_000  # arrived 5 ms ago
     plain = engine.Work("entity", time.sleep, False, 1, lambda *_: None, None, (0.02,), meter=meter, arrived=arrived)
+    began = time.monotonic_ns()
     plain.run(contextvars.copy_context())
+    took = time.monotonic_ns() - began  # a sleep(0.02) on a busy machine takes longer: compared with what it took
     runs, finished, busy, cpu, late50, _, _, dur50, _, dur_max, dropped, stuck, running = meter.take()
     assert (runs, finished, dropped, stuck, running) == (1, 1, 0, 0, 0)
-    assert late50 == pytest.approx(5e6, rel=0.2)
-    assert dur50 == pytest.approx(2e7, rel=0.15) and dur_max >= 2e7
+    assert late50 == pytest.approx(began - arrived, rel=0.2)
+    assert dur50 == pytest.approx(took, rel=0.15) and dur_max >= 2e7
     assert busy >= 2e7
     assert cpu < 5e6  # it slept
 

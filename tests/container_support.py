@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -85,7 +86,9 @@ class LoggedProcess:
             with self._changed:
                 while self._changed.wait(0.5) and time.monotonic() < deadline:
                     pass
-        return self.output(last=len(self.lines) - start + 60)
+        dumped = self.output(last=len(self.lines) - start + 60)
+        native = native_stacks(self.process.pid)
+        return f"{dumped}\n{native}" if native else dumped
 
     def stop(self, *, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
         """Signal the process group and wait; SIGKILL as a last resort (then fail)."""
@@ -117,3 +120,25 @@ class ContainerProcess(LoggedProcess):
     def __init__(self, config: Path, *, args: tuple[str, ...] = ()) -> None:
         self.config = config
         super().__init__([sys.executable, "-m", "container", "run", str(config), *args], name="container")
+
+
+def native_stacks(pid: int, *, timeout: float = 30.0, frames: int = 25) -> str:
+    """Every thread's C stack of ``pid`` (gdb attached for a moment), or nothing without gdb.
+
+    For where a process hangs outside Python: Fast DDS's own threads, or
+    the main thread in the interpreter's teardown, where the SIGUSR1 dump
+    shows only "Garbage-collecting" and no Python frame.
+    """
+    gdb = shutil.which("gdb")
+    if gdb is None:
+        return ""
+    try:
+        done = subprocess.run(
+            [gdb, "-p", str(pid), "-batch", "-nx", "-ex", "set pagination off",
+             "-ex", f"thread apply all bt {frames}"],
+            capture_output=True, text=True, timeout=timeout, check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"native stacks: gdb failed: {exc}"
+    lines = [line for line in done.stdout.splitlines() if line.startswith(("Thread ", "#"))]
+    return "native stacks (gdb):\n" + "\n".join(lines[-400:])

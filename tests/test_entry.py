@@ -17,6 +17,7 @@ import signal
 import site
 import subprocess
 import sys
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -221,3 +222,25 @@ def test_the_command_is_named_container_wherever_it_is_started_from(tmp_path: Pa
     result = subprocess.run([str(link), "--help"], capture_output=True, text=True, env=as_from_a_shell(), timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("usage: container "), result.stdout
+
+
+#: A command whose interpreter exit never ends (an atexit callback that sleeps
+#: for ten minutes: registered first, it runs after everything else).
+_HANGING_EXIT = (
+    "import atexit, sys, time; atexit.register(time.sleep, 600); "
+    "sys.argv = ['container', 'types']; from container.__main__ import main; sys.exit(main())"
+)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_an_exit_that_never_ends_is_cut_off_with_every_threads_stack() -> None:
+    began = time.monotonic()
+    done = subprocess.run(
+        [sys.executable, "-c", _HANGING_EXIT], cwd=REPO, capture_output=True, text=True, timeout=90, check=False
+    )
+    took = time.monotonic() - began
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert "Timeout (0:00:20)!" in done.stderr, done.stderr[-2000:]
+    assert "(most recent call first)" in done.stderr, done.stderr[-2000:]
+    assert 20.0 <= took < 60.0, took

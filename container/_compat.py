@@ -552,18 +552,13 @@ def managed_entities(node: Node) -> set[Any]:
 
 
 @functools.cache
-def _librcl() -> ctypes.CDLL:
-    """The rcl library rclpy's extension uses (already loaded: found by its path in
-    ``/proc/self/maps``, else by its name on the library path)."""
-    try:
-        with open("/proc/self/maps", encoding="utf-8") as maps:
-            for line in maps:
-                path = line.rstrip("\n").partition("/")[2]
-                if path and os.path.basename(path) == "librcl.so":
-                    return ctypes.CDLL("/" + path)
-    except OSError:
-        pass
-    return ctypes.CDLL("librcl.so")
+def _rcl_service_fini() -> Any:
+    """rcl's ``rcl_service_fini``, typed: from the ``librcl.so`` rclpy loaded (by its
+    soname, as ``_security`` reaches librcutils)."""
+    fini = ctypes.CDLL("librcl.so").rcl_service_fini
+    fini.argtypes = (ctypes.c_void_p, ctypes.c_void_p)
+    fini.restype = ctypes.c_int
+    return fini
 
 
 def finish_type_description_service(node: Node) -> bool:
@@ -589,11 +584,8 @@ def finish_type_description_service(node: Node) -> bool:
     if service is None:
         return False
     impl = service.impl
-    fini = _librcl().rcl_service_fini
-    fini.argtypes = (ctypes.c_void_p, ctypes.c_void_p)
-    fini.restype = ctypes.c_int
     with impl, node.handle:  # both alive until rcl is done with them
-        ret = fini(impl.pointer, node.handle.pointer)
+        ret = _rcl_service_fini()(impl.pointer, node.handle.pointer)
     if ret != 0:
         raise RCLError(f"rcl_service_fini of {node.get_fully_qualified_name()}'s type description service: {ret}")
     return True

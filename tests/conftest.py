@@ -13,6 +13,7 @@ import gc
 import os
 import subprocess
 import sys
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,17 @@ def executor(context: Context) -> Iterator[AsyncioExecutor]:
         yield ex
     finally:
         ex.shutdown(timeout_sec=5.0)
+
+
+@pytest.fixture
+def spinning(executor: AsyncioExecutor) -> Iterator[AsyncioExecutor]:
+    """``executor`` spinning on a thread of its own, as in a container or an application
+    that builds nodes while it spins (a test module may define its own)."""
+    spinner = threading.Thread(target=executor.spin, name="spin", daemon=True)
+    spinner.start()
+    yield executor
+    executor.shutdown(timeout_sec=5.0)
+    spinner.join(5.0)
 
 
 @pytest.fixture

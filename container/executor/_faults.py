@@ -47,8 +47,7 @@ class _Failures:
     retry_at_ns: int = 0
 
     def holds(self, waitable: object) -> bool:
-        held = self.held() if isinstance(self.held, weakref.ref) else self.held
-        return held is waitable
+        return _is(self.held, waitable)
 
 
 def _hold(waitable: object) -> weakref.ref[object] | object:
@@ -56,6 +55,11 @@ def _hold(waitable: object) -> weakref.ref[object] | object:
         return weakref.ref(waitable)
     except TypeError:  # not weakly referenceable: kept alive here
         return waitable
+
+
+def _is(held: weakref.ref[object] | object, waitable: object) -> bool:
+    """Whether what :func:`_hold` made of a waitable is ``waitable`` (not another object at its address)."""
+    return (held() if isinstance(held, weakref.ref) else held) is waitable
 
 
 class WaitableFaults:
@@ -101,8 +105,7 @@ class WaitableFaults:
         with self._lock:
             kept = self._set_aside.get(key)
             if kept is not None:
-                held = kept() if isinstance(kept, weakref.ref) else kept
-                if held is waitable:
+                if _is(kept, waitable):
                     return True
                 del self._set_aside[key]  # another object at a reused address
             failures = self._failing.get(key)
@@ -114,13 +117,6 @@ class WaitableFaults:
                 del self._failing[key]  # another object, or a run long over
                 return False
             return failures.retry_at_ns != 0
-
-    def is_set_aside(self, waitable: object) -> bool:
-        with self._lock:
-            kept = self._set_aside.get(id(waitable))
-        if kept is None:
-            return False
-        return (kept() if isinstance(kept, weakref.ref) else kept) is waitable
 
     def retries_due(self) -> bool:
         """Whether a retry's time came (its waitable is taken back at the next rebuild)."""

@@ -227,16 +227,6 @@ def _process_cpu_s() -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-@pytest.fixture
-def spinning(executor: AsyncioExecutor) -> Iterator[AsyncioExecutor]:
-    """The executor spinning on a thread of its own, as in a container (the test samples beside it)."""
-    spinner = threading.Thread(target=executor.spin, name="spin", daemon=True)
-    spinner.start()
-    yield executor
-    executor.shutdown(timeout_sec=5.0)
-    spinner.join(5.0)
-
-
 def _measure(executor: AsyncioExecutor, burning: dict[str, Burns]) -> tuple[ContainerLoad, dict[str, float], float]:
     """One window once every node burned a few times: its load, what each node burned in it,
     and the process's CPU from ``/proc`` per second of it."""

@@ -15,7 +15,6 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -149,16 +148,6 @@ def test_a_waitable_written_for_jazzy_runs_or_is_set_aside_as_its_rclpy_asks(
     else:
         assert reports == []
         assert waitable.executed > 0
-
-
-@pytest.fixture
-def spinning(executor: AsyncioExecutor) -> Iterator[AsyncioExecutor]:
-    """``executor`` spinning on a thread of its own, as an application's would while it builds nodes."""
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    yield executor
-    executor.shutdown(timeout_sec=2.0)
-    thread.join(5.0)
 
 
 class HalfBuiltWaitable(EnteringWaitable):

@@ -22,9 +22,8 @@ __all__ = ["main"]
 #: The exit codes of a command a signal cut short (SIGINT, SIGTERM).
 _CUT_SHORT = frozenset(128 + signum for signum in SIGNALS)
 #: How long the interpreter's own exit may take once the command is over (s).
-#: It destroys what is left of rcl and Fast DDS (0.1-0.3 s); one container in
-#: CI's runs sat there for good, its main thread collecting garbage with no
-#: Python frame left, after every node had been unloaded.
+#: The session has destroyed rcl's context and the DDS participant by then
+#: (``_session.tear_down``, bounded itself); what is left is Python's.
 _EXIT_GRACE_S = 20.0
 
 

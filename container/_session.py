@@ -46,6 +46,7 @@ from __future__ import annotations
 import asyncio
 import atexit
 import contextlib
+import gc
 import logging
 import os
 import signal
@@ -68,7 +69,7 @@ from ._errors import SecurityError
 from ._roslog import say_now
 from ._runtime import configure_warnings, dump_stacks_on_sigusr1, use_fast_discovery
 from ._security import NO_SECURITY_PLUGINS, check_security, clear_rcl_error
-from .executor import AsyncioExecutor, end_resender, end_spare_threads
+from .executor import AsyncioExecutor, Deadline, end_resender, end_spare_threads
 
 __all__ = [
     "EXIT_FAILURE",
@@ -79,6 +80,7 @@ __all__ = [
     "exit_now",
     "ros_failure",
     "run_session",
+    "tear_down",
 ]
 
 EXIT_OK = 0
@@ -94,6 +96,15 @@ _HARD_STOP_POLL_S = 0.1
 #: Seconds from the first signal to the end of a session that was not a
 #: ready server (a start-up, a client command): an orderly stop takes 0.1-0.5 s.
 START_UP_STOP_S = 0.8
+
+#: How long the end of a session waits for the context, and the DDS
+#: participant with it, to be torn down (0.1-0.3 s here) before the process
+#: ends without it. Fast DDS can deadlock there: a container's participant
+#: destroyed while peers' discovery traffic arrives (four containers
+#: stopped at once: once in 32 runs of the signals test) sat in
+#: ``DomainParticipant::set_listener`` for good, its UDP receive thread
+#: waiting on a mutex in the participant's discovery listener.
+TEARDOWN_S = 5.0
 
 _log = logging.getLogger("container")
 
@@ -344,8 +355,39 @@ def run_session(
     if leftover or not clean:
         # Daemon threads would die silently with the process; say so instead.
         _log.error(f"threads left behind: {', '.join(leftover) or 'callbacks still running'}")
-        return code or EXIT_FAILURE
+        code = code or EXIT_FAILURE
+    tear_down(context, code=code)
     return code
+
+
+def tear_down(context: Context, *, code: int) -> None:
+    """Destroy ``context`` and the DDS participant now, within :data:`TEARDOWN_S`; past
+    that, end the process with ``code``.
+
+    After a session the participant is still there: what holds the last of
+    its nodes' rcl handles is garbage in reference cycles (rclpy's nodes and
+    entities refer to each other), which Python's own exit collected at a
+    moment nobody bounded, with no Python frame left to report. Here they
+    are collected and the context destroyed now, and a deadlock in the
+    middleware costs :data:`TEARDOWN_S` and one line, not the process's
+    exit. The bound is the executor's :class:`~container.executor.Deadline`,
+    a thread that needs no GIL: the deadlock happens inside rclpy's
+    destructors, which keep it.
+    """
+    deadline = Deadline(
+        TEARDOWN_S,
+        code=code,
+        logger=_log.name,
+        message=(
+            f"ROS teardown (the DDS participant's destruction) still running {TEARDOWN_S:g} s after "
+            f"the session ended: exiting without it (status {code})"
+        ),
+    )
+    try:
+        context.destroy()  # when nothing uses it any more: the collection below, or now
+        gc.collect()
+    finally:
+        deadline.cancel()
 
 
 class _Signals:

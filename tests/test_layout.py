@@ -167,7 +167,8 @@ def test_public_names_are_exactly_these() -> None:
     ])  # fmt: skip
     assert container.executor.__all__ == [
         "HAS_PUBLISHER_GID", "Accounting", "AsyncioExecutor", "CallbackErrorHandler", "CallbackLoad", "ContainerLoad",
-        "Escaped", "ExecutorState", "GroupLoad", "NodeLoad", "UnattributedLoad", "call_soon", "contained", "describe",
+        "Deadline", "Escaped", "ExecutorState", "GroupLoad", "NodeLoad", "UnattributedLoad", "call_soon", "contained",
+        "describe",
         "end_resender", "end_spare_threads", "format_plugin_frames", "in_thread", "publisher_gid", "result",
         "run_coroutine", "working_for",
     ]  # fmt: skip

@@ -14,6 +14,7 @@ from ._accounting import Accounting, CallbackLoad, ContainerLoad, GroupLoad, Nod
 from ._answers import end_resender
 from ._bridge import Escaped, contained, in_thread, result
 from ._culprit import working_for
+from ._engine import Deadline
 from ._entries import describe
 from ._executor import AsyncioExecutor, CallbackErrorHandler, ExecutorState
 from ._frames import format_plugin_frames
@@ -24,7 +25,8 @@ from ._spare import end_spare_threads
 # The executor's API, then what the rest of the container shares with it:
 # running plugin code (``Escaped``, ``contained``, ``in_thread``, and
 # ``end_spare_threads`` for the threads ``in_thread`` keeps, ``end_resender``
-# for the thread that sends answers to clients not known to be matched), awaiting
+# for the thread that sends answers to clients not known to be matched, and
+# ``Deadline`` to end the process where no Python thread may run), awaiting
 # an rclpy future (``result``), posting to a loop from another thread
 # (``call_soon``, ``run_coroutine``: the one way, see ``_inbox``), naming a
 # callback in a log (``describe``), showing a plugin's own frames of a stack
@@ -37,6 +39,7 @@ __all__ = [
     "CallbackErrorHandler",
     "CallbackLoad",
     "ContainerLoad",
+    "Deadline",
     "Escaped",
     "ExecutorState",
     "GroupLoad",

@@ -69,6 +69,14 @@ class FdWatcher:
     @property
     def wakes(self) -> int: ...
 
+class Deadline:
+    """Unless :meth:`cancel` comes within ``seconds``, a thread that needs no GIL says
+    ``message`` (WARN, under ``logger``, on rcutils' console sink) and ends the process
+    with status ``code``."""
+
+    def __init__(self, seconds: float, *, code: int, logger: str, message: str) -> None: ...
+    def cancel(self) -> None: ...
+
 class Handoff:
     """The busy loop thread lets go of the GIL until the workers it woke have started.
 

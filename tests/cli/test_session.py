@@ -17,6 +17,7 @@ from rclpy.node import Node
 
 from container._session import Session, run_session
 from container.cli import main
+from container.executor._engine import ENGINE
 from tests.container_support import REPO, LoggedProcess
 from tests.waiting import wait_until
 
@@ -103,6 +104,73 @@ def test_command_line_arguments_are_not_ros_arguments(monkeypatch: pytest.Monkey
 
     assert run_session(main) == 7
     assert topics == ["/chatter"]
+
+
+#: A session whose main makes a node (left to the garbage collector, as a
+#: node's own references make it) and returns 3, then the names of the
+#: process's Fast DDS threads (``dds.*``), each its participant's but the shared
+#: memory watchdog, which the library keeps for the process.
+SESSION_THEN_THREADS = """
+import os, sys
+from container import _session
+from rclpy.node import Node
+
+{patch}
+
+class Probe(Node):
+    def __init__(self, context):
+        super().__init__("_teardown_probe", context=context)
+        # As most nodes do: a bound method as a callback, node and timer in a cycle.
+        self.timer = self.create_timer(60.0, self.tick)
+
+    def tick(self):
+        pass
+
+async def main(session):
+    session.executor.add_node(Probe(session.context))
+    return 3
+
+code = _session.run_session(main)
+names = []
+for task in os.listdir("/proc/self/task"):
+    try:
+        with open(f"/proc/self/task/{{task}}/comm") as comm:
+            names.append(comm.read().strip())
+    except OSError:
+        pass
+print("dds threads:", sorted(n for n in names if n.startswith("dds.") and n != "dds.shm.wdog"), flush=True)
+sys.exit(code)
+"""
+
+
+def run_script(script: str, *, timeout: float = 30.0) -> tuple[int, str, float]:
+    began = time.monotonic()
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout, cwd=REPO, check=False
+    )
+    return done.returncode, done.stdout + done.stderr, time.monotonic() - began
+
+
+def test_a_session_ends_with_its_participant_destroyed_not_left_to_the_interpreters_exit() -> None:
+    code, output, _ = run_script(SESSION_THEN_THREADS.format(patch=""))
+    assert code == 3, output
+    assert "dds threads: []" in output, output
+    assert "Traceback" not in output, output
+
+
+@pytest.mark.skipif(ENGINE == "python", reason="the pure-Python Deadline needs the GIL, which this hang keeps")
+def test_a_teardown_that_never_ends_costs_its_bound_and_keeps_the_sessions_status() -> None:
+    # A middleware deadlock in the participant's destruction, inside rclpy's
+    # destructors, which keep the GIL: stood in for by a context whose
+    # destruction sleeps for an hour in C, the GIL held (ctypes.PyDLL).
+    hang = "import ctypes, rclpy.context\n_session.TEARDOWN_S = 1.0\n"
+    hang += "rclpy.context.Context.destroy = lambda self: ctypes.PyDLL(None).sleep(3600)"
+    code, output, took = run_script(SESSION_THEN_THREADS.format(patch=hang))
+    assert code == 3, output
+    assert "ROS teardown (the DDS participant's destruction) still running 1 s after the session ended" in output
+    assert "exiting without it (status 3)" in output, output
+    assert "dds threads:" not in output, output  # the process ended there
+    assert took < 20, output
 
 
 #: A node that is in discovery and serves the lifecycle and container services,

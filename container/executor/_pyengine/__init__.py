@@ -13,6 +13,7 @@ why, and ``docs/executor/engines.md`` lists it.
 
 from __future__ import annotations
 
+from .deadline import Deadline
 from .express import Express, first_step
 from .handles import HandleMeter
 from .handoff import Handoff
@@ -32,6 +33,7 @@ __all__ = [
     "SERVICE",
     "SUBSCRIPTION",
     "Caller",
+    "Deadline",
     "Express",
     "FdWatcher",
     "HandleMeter",

@@ -10,7 +10,8 @@
  * thread's async chain), watcher.c (asyncio's file descriptors wake the
  * loop's rcl wait), handoff.c (the loop and the workers it wakes: who waits
  * for whom, and who stays awake), meter.c (what each entity's callbacks
- * cost). Every object one file reads of another's is a compiled type
+ * cost), deadline.c (the process ends at a moment no Python code can be
+ * counted on to reach). Every object one file reads of another's is a compiled type
  * declared here: no file reads a Python attribute of the executor's own
  * classes by name. container/executor/_pyengine/ does the same job in Python,
  * module for module, with the same names (_fastpath.pyi describes both).
@@ -178,6 +179,9 @@ Py_ssize_t notifier_take_reported(
 
 /* -- watcher.c --------------------------------------------------------------- */
 extern PyTypeObject FdWatcherType;
+
+/* -- deadline.c -------------------------------------------------------------- */
+extern PyTypeObject DeadlineType;
 extern PyTypeObject HandoffType;
 typedef struct HandoffObject HandoffObject;
 /* On the loop thread, without the GIL: whether workers it woke still run

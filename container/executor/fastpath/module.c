@@ -150,6 +150,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     {"KeepLast", &KeepLastType}, {"Slots", &SlotsType}, {"Route", &RouteType}, {"Routes", &RoutesType},
     {"FdWatcher", &FdWatcherType}, {"Handoff", &HandoffType}, {"Meter", &MeterType},
     {"Server", &ServerType}, {"Caller", &CallerType}, {"HandleMeter", &HandleMeterType},
+    {"Deadline", &DeadlineType},
   };
   size_t i;
   PyObject * m;

@@ -64,7 +64,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import try_shutdown
 
-from ._compat import RCLError
+from ._compat import RCLError, hand_signal_over
 from ._errors import SecurityError
 from ._roslog import say_now
 from ._runtime import configure_warnings, dump_stacks_on_sigusr1, use_fast_discovery
@@ -97,13 +97,15 @@ _HARD_STOP_POLL_S = 0.1
 #: ready server (a start-up, a client command): an orderly stop takes 0.1-0.5 s.
 START_UP_STOP_S = 0.8
 
-#: How long the end of a session waits for the context, and the DDS
-#: participant with it, to be torn down (0.1-0.3 s here) before the process
-#: ends without it. Fast DDS can deadlock there: a container's participant
-#: destroyed while peers' discovery traffic arrives (four containers
-#: stopped at once: once in 32 runs of the signals test) sat in
-#: ``DomainParticipant::set_listener`` for good, its UDP receive thread
-#: waiting on a mutex in the participant's discovery listener.
+#: How long each step of the end of a session, rcl's shutdown and then the
+#: context's destruction with the DDS participant's (0.1-0.3 s here), may
+#: take before the process ends without it. Fast DDS can deadlock in both,
+#: with peers' discovery traffic arriving (four containers stopped at once:
+#: 4 hangs in about 300 runs of the signals test on Kilted): destroying the
+#: participant, the main thread sat in ``DomainParticipant::set_listener``
+#: for good, a UDP receive thread waiting on a mutex of the participant's
+#: discovery listener; finalising the rosout publisher in rcl's shutdown,
+#: it waited on the discovery (PDP) mutex.
 TEARDOWN_S = 5.0
 
 _log = logging.getLogger("container")
@@ -345,7 +347,13 @@ def run_session(
     except KeyboardInterrupt:
         code = exit_code_for(signal.SIGINT)
     finally:
-        try_shutdown(context=context)
+        # rcl's shutdown finalises the rosout publishers: Fast DDS deadlocked
+        # there too (a PDP mutex, peers' discovery arriving), the GIL held.
+        bound = _teardown_bound(code, "rcl's shutdown")
+        try:
+            try_shutdown(context=context)
+        finally:
+            bound.cancel()
     end_spare_threads(timeout=1.0)  # idle, not left behind
     if session is not None:
         session.over.set()
@@ -374,20 +382,25 @@ def tear_down(context: Context, *, code: int) -> None:
     a thread that needs no GIL: the deadlock happens inside rclpy's
     destructors, which keep it.
     """
-    deadline = Deadline(
-        TEARDOWN_S,
-        code=code,
-        logger=_log.name,
-        message=(
-            f"ROS teardown (the DDS participant's destruction) still running {TEARDOWN_S:g} s after "
-            f"the session ended: exiting without it (status {code})"
-        ),
-    )
+    bound = _teardown_bound(code, "the DDS participant's destruction")
     try:
         context.destroy()  # when nothing uses it any more: the collection below, or now
         gc.collect()
     finally:
-        deadline.cancel()
+        bound.cancel()
+
+
+def _teardown_bound(code: int, what: str) -> Deadline:
+    """The process ends with ``code`` :data:`TEARDOWN_S` from now unless cancelled."""
+    return Deadline(
+        TEARDOWN_S,
+        code=code,
+        logger=_log.name,
+        message=(
+            f"ROS teardown ({what}) still running {TEARDOWN_S:g} s after the session ended: "
+            f"exiting without it (status {code})"
+        ),
+    )
 
 
 class _Signals:
@@ -429,8 +442,9 @@ class _Signals:
         """Leave the loop; the Python-level handler goes on to the end of the session."""
         self.on_loop = False
         for signum in _SIGNALS:
-            loop.remove_signal_handler(signum)  # restores Python's defaults...
-            signal.signal(signum, self.on_signal_now)  # ...which would raise or kill
+            # Not remove_signal_handler then signal.signal: a signal between
+            # the two would meet Python's default, which raises or kills.
+            hand_signal_over(loop, signum, self.on_signal_now)
 
     def hand_over(self) -> None:
         """Leave the signals' meaning to the kernel for the process's last moments.

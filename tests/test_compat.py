@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import importlib
+import signal
 import warnings
 from collections.abc import Callable, Iterator
 from types import SimpleNamespace
@@ -40,6 +41,7 @@ def samples(context: Context) -> Iterator[dict[str, Callable[[], Any]]]:
     loop = asyncio.new_event_loop()
     yield {
         "asyncio.base_events.BaseEventLoop": lambda: loop,
+        "asyncio.unix_events._UnixSelectorEventLoop": lambda: loop,
         "rclpy.event_handler.EventHandler": lambda: handlers[0],
         "rclpy.subscription.Subscription": lambda: subscription,
         "rclpy.waitable.Waitable": lambda: Waitable(MutuallyExclusiveCallbackGroup()),
@@ -207,3 +209,37 @@ def test_a_finished_type_description_service_leaves_the_graph_with_its_node(cont
         assert "/compat_kept" not in {f"{ns.rstrip('/')}/{n}" for n, ns in watcher.get_node_names_and_namespaces()}
     finally:
         watcher.destroy_node()
+
+
+def test_a_signal_is_handed_from_the_loop_to_a_handler_with_no_default_in_between(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """asyncio's remove_signal_handler puts Python's default back first (SIGINT's raises
+    KeyboardInterrupt, SIGTERM's kills): a signal landing then met it."""
+    loop = asyncio.new_event_loop()
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    set_to: list[tuple[int, object]] = []
+    real = signal.signal
+
+    def recording(signum: int, handler: Any) -> Any:
+        set_to.append((signum, handler))
+        return real(signum, handler)
+
+    def mine(signum: int, frame: object) -> None:
+        pass
+
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(signum, lambda: None)
+        monkeypatch.setattr(signal, "signal", recording)
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            _compat.hand_signal_over(loop, signum, mine)
+        assert set_to == [(signal.SIGINT, mine), (signal.SIGTERM, mine)]
+        assert signal.getsignal(signal.SIGINT) is mine and signal.getsignal(signal.SIGTERM) is mine
+        assert not loop.remove_signal_handler(signal.SIGINT)  # the loop has let it go
+        assert signal.set_wakeup_fd(-1) == -1  # and its wake-up descriptor
+    finally:
+        monkeypatch.undo()
+        loop.close()
+        for signum, handler in before.items():
+            signal.signal(signum, handler)

@@ -85,8 +85,16 @@ def test_a_node_burning_cpu_comes_first_with_what_it_burned_and_idle_nodes_near_
         idle = _node(load, f"/idle{index}")
         assert idle.cpu < 0.01, idle
         assert idle.rate == pytest.approx(5, abs=2.5)
-    assert load.callbacks_cpu >= burner.cpu
-    assert load.cpu >= load.callbacks_cpu * 0.9
+    # The burner's figure is its callbacks and its other work (an ``async def`` callback's
+    # future calls its done-callbacks on the loop: about 10 us a second, the node's loop
+    # callbacks): only the first are in ``callbacks_cpu``, which once held the idle
+    # nodes' few microseconds more than that, and once not.
+    own = [callback for callback in burner.callbacks if callback.group not in ("asyncio", "threads")]
+    other = [callback for callback in burner.callbacks if callback.group in ("asyncio", "threads")]
+    assert burner.cpu == pytest.approx(sum(c.cpu for c in own) + sum(c.cpu for c in other), rel=1e-9)
+    assert load.callbacks_cpu >= sum(c.cpu for c in own) * (1 - 1e-9), (own, load.callbacks_cpu)
+    assert sum(c.cpu for c in other) < 0.01, other
+    assert load.cpu >= load.nodes_cpu * 0.9
 
 
 def test_lateness_rises_for_a_node_whose_group_is_kept_busy(

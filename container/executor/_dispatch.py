@@ -213,9 +213,20 @@ class Dispatcher:
         self.busy_since = time.monotonic() if ident is not None else None
 
     def relieve(self, timeout_ns: int) -> int:
-        """Wait and dispatch from a thread other than the loop's, while it is away."""
+        """Wait and dispatch from a thread other than the loop's, while it is away.
+
+        Nothing when the loop is back at its own wait: it holds the wait set
+        for as long as that wait lasts (for good, in an idle container), and
+        it looked for a relief to wake before this one said it was here. The
+        loop clears ``busy_since`` before it reads ``relieving``, this sets
+        ``relieving`` before it reads ``busy_since``: one of the two sees the
+        other (a watchdog once waited out an idle loop's whole wait here,
+        its stall never ended).
+        """
         self.relieving = True
         try:
+            if self.busy_since is None:
+                return 0
             return self.wait_and_dispatch(timeout_ns)
         finally:
             self.relieving = False

@@ -207,6 +207,9 @@ class AsyncioExecutor(Executor):
         self._completion_waiters: list[asyncio.Future[None]] = []
         #: The loop's next select must look in rcl (a spin_once has begun).
         self._rcl_turn_owed = False
+        #: When the running ``spin_once`` times out (monotonic s): past it, a select
+        #: that must not block looks in rcl no more.
+        self._once_deadline: float | None = None
         #: Nodes removed while nobody spun (and what they had then), retired
         #: when the next spin starts unless added back first (see :meth:`remove_node`).
         self._removed_idle: weakref.WeakKeyDictionary[Node, tuple[object, ...]] = weakref.WeakKeyDictionary()
@@ -380,9 +383,11 @@ class AsyncioExecutor(Executor):
         deadline = None if timeout_sec is None or timeout_sec < 0 else time.monotonic() + timeout_sec
         completed = self._loop.create_future()
         self._completion_waiters.append(completed)
+        self._once_deadline = deadline
         try:
             self._run_owned(self._until_a_callback_completes(completed, deadline), permits=1)
         finally:
+            self._once_deadline = None
             with contextlib.suppress(ValueError):
                 self._completion_waiters.remove(completed)
 
@@ -879,7 +884,15 @@ class AsyncioExecutor(Executor):
             self._rcl_turn_owed = False
             return True
         # Hand-overs from other threads (the inbox) run after a wait.
-        return bool(self._inbox) or self._dispatcher.ros_turn_due()
+        if self._inbox:
+            return True
+        # A spin_once past its timeout: its last look in rcl was the wait the
+        # timeout ended (rclpy's), not a poll of a loop that came back to
+        # select late (a timer due then would fire in a call timed out).
+        once = self._once_deadline
+        if once is not None and time.monotonic() >= once:
+            return False
+        return self._dispatcher.ros_turn_due()
 
     def _wait(self, timeout_ns: int) -> int:
         self._rcl_turn_owed = False  # any wait is the look in rcl a spin_once owes

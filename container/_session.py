@@ -349,11 +349,8 @@ def run_session(
     finally:
         # rcl's shutdown finalises the rosout publishers: Fast DDS deadlocked
         # there too (a PDP mutex, peers' discovery arriving), the GIL held.
-        bound = _teardown_bound(code, "rcl's shutdown")
-        try:
+        with _teardown_bound(code, "rcl's shutdown"):
             try_shutdown(context=context)
-        finally:
-            bound.cancel()
     end_spare_threads(timeout=1.0)  # idle, not left behind
     if session is not None:
         session.over.set()
@@ -382,17 +379,15 @@ def tear_down(context: Context, *, code: int) -> None:
     a thread that needs no GIL: the deadlock happens inside rclpy's
     destructors, which keep it.
     """
-    bound = _teardown_bound(code, "the DDS participant's destruction")
-    try:
+    with _teardown_bound(code, "the DDS participant's destruction"):
         context.destroy()  # when nothing uses it any more: the collection below, or now
         gc.collect()
-    finally:
-        bound.cancel()
 
 
-def _teardown_bound(code: int, what: str) -> Deadline:
-    """The process ends with ``code`` :data:`TEARDOWN_S` from now unless cancelled."""
-    return Deadline(
+@contextlib.contextmanager
+def _teardown_bound(code: int, what: str) -> Iterator[None]:
+    """The process ends with ``code`` if the block still runs :data:`TEARDOWN_S` from now."""
+    deadline = Deadline(
         TEARDOWN_S,
         code=code,
         logger=_log.name,
@@ -401,6 +396,10 @@ def _teardown_bound(code: int, what: str) -> Deadline:
             f"exiting without it (status {code})"
         ),
     )
+    try:
+        yield
+    finally:
+        deadline.cancel()
 
 
 class _Signals:

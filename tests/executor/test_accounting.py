@@ -16,6 +16,7 @@ from rclpy.task import Future
 
 from container import AsyncioExecutor
 from container.executor import Accounting, CallbackLoad, ContainerLoad, NodeLoad
+from container.executor._owners import KINDS
 from tests.component_support import burn
 from tests.engine_support import engines
 from tests.waiting import wait_until
@@ -89,8 +90,8 @@ def test_a_node_burning_cpu_comes_first_with_what_it_burned_and_idle_nodes_near_
     # future calls its done-callbacks on the loop: about 10 us a second, the node's loop
     # callbacks): only the first are in ``callbacks_cpu``, which once held the idle
     # nodes' few microseconds more than that, and once not.
-    own = [callback for callback in burner.callbacks if callback.group not in ("asyncio", "threads")]
-    other = [callback for callback in burner.callbacks if callback.group in ("asyncio", "threads")]
+    own = [callback for callback in burner.callbacks if callback.kind not in KINDS]
+    other = [callback for callback in burner.callbacks if callback.kind in KINDS]
     assert burner.cpu == pytest.approx(sum(c.cpu for c in own) + sum(c.cpu for c in other), rel=1e-9)
     assert load.callbacks_cpu >= sum(c.cpu for c in own) * (1 - 1e-9), (own, load.callbacks_cpu)
     assert sum(c.cpu for c in other) < 0.01, other

@@ -21,6 +21,7 @@ import signal
 import subprocess
 import sys
 import time
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -56,11 +57,14 @@ def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     sources = [REPO, REPO / "plugins" / "ldlidar", REPO / "examples" / "thirdparty_plugin",
                REPO / "examples" / "beacon_plugin"]
     kept = {REPO: Path(sys.prefix) / "skbuild", sources[3]: Path(sys.prefix) / "skbuild-beacon_plugin"}
+    # No ROS_DISTRO, as in a virtualenv of the wheels not activated: the
+    # build is for the distribution installed here (container/interfaces/ros_distro.py).
+    env = {k: v for k, v in os.environ.items() if k != "ROS_DISTRO"}
     builds = [
         subprocess.Popen(
             [str(a) for a in (*build, source)]
             + ([f"--config-settings=build-dir={kept[source]}"] if source in kept and kept[source].is_dir() else []),
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
         )
         for source in sources
     ]
@@ -115,6 +119,22 @@ def _index_files(prefix: Path, package: str) -> list[Path]:
         )
         if path.exists()
     ]
+
+
+def test_a_wheel_built_without_ros_distro_depends_on_the_distribution_it_was_built_against(
+    wheels: dict[str, Path], venv: Path
+) -> None:
+    distro = installed_ros_distro()
+    with zipfile.ZipFile(wheels["lifecycle_container"]) as wheel:
+        [metadata] = [name for name in wheel.namelist() if name.endswith(".dist-info/METADATA")]
+        requires = [line.split(":", 1)[1].strip() for line in wheel.read(metadata).decode().splitlines()
+                    if line.startswith("Requires-Dist:")]
+    assert f"ros-{distro}-rclpy[fastrtps]" in requires, requires
+    assert not [r for r in requires if r.startswith("ros-") and not r.startswith(f"ros-{distro}-")], requires
+    # So pip put no other distribution's wheels beside this one's (they share names such as ros-fastcdr).
+    listed = json.loads(_run(venv / "bin" / "python", "-m", "pip", "list", "--format", "json", env=_plain_env()))
+    distros = {p["name"].split("-")[1] for p in listed if p["name"].startswith("ros-")} & {"jazzy", "kilted"}
+    assert distros == {distro}
 
 
 def test_the_wheels_carry_the_ament_index_and_executables(venv: Path) -> None:

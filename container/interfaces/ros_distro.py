@@ -3,9 +3,11 @@
 The generated interface packages and the executor's compiled path are built
 against one distribution's rosidl and rcl: a build is for Jazzy or for
 Kilted, never both, so the distribution is chosen when building (the
-``ROS_DISTRO`` variable, default ``jazzy``) and pins what the result depends
-on. The requirements live in one table, ``[tool.lifecycle-container]`` in
-``pyproject.toml``; this module reads it for its two users:
+``ROS_DISTRO`` variable; unset, the one whose rclpy the build's environment
+holds, as a build without isolation has; else ``jazzy``) and pins what the
+result depends on. The requirements live in one table,
+``[tool.lifecycle-container]`` in ``pyproject.toml``; this module reads it
+for its two users:
 
 * scikit-build-core, as an in-tree dynamic-metadata provider: the
   distribution's packages become the build's requirements and the
@@ -20,6 +22,7 @@ before the virtualenv has anything installed.
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import sys
 import tomllib
@@ -67,15 +70,37 @@ def supported() -> list[str]:
 
 
 def chosen(environ: Mapping[str, str] = os.environ) -> str:
-    """The distribution ``environ`` asks for (``ROS_DISTRO``), else the default.
+    """The distribution ``environ`` asks for (``ROS_DISTRO``), else the one installed, else the default.
+
+    Without ``ROS_DISTRO`` (a virtualenv of PyPI wheels sets none until its
+    activate script runs), a build without isolation (``pip wheel
+    --no-build-isolation``, ``pip install -e``) compiles against whichever
+    distribution's wheels the environment holds: the wheel's dependencies
+    must name that one. A wheel built in a Kilted environment that asked for
+    Jazzy's rclpy made pip put Jazzy's ``ros-fastcdr`` under Kilted's
+    generated libraries, which then failed to load.
 
     :raises UnsupportedDistroError: it asks for one without a table.
     """
     known = supported()
-    name = environ.get(VARIABLE) or known[0]
+    name = environ.get(VARIABLE) or _installed(known) or known[0]
     if name not in known:
         raise UnsupportedDistroError(name, known)
     return name
+
+
+def _installed(known: list[str]) -> str | None:
+    """The one distribution of ``known`` whose rclpy wheel this environment holds (``None``: none, or several)."""
+    found = [name for name in known if _has_distribution(f"ros-{name}-rclpy")]
+    return found[0] if len(found) == 1 else None
+
+
+def _has_distribution(name: str) -> bool:
+    try:
+        importlib.metadata.distribution(name)
+    except importlib.metadata.PackageNotFoundError:
+        return False
+    return True
 
 
 def build_requires(distro: str) -> list[str]:

@@ -30,6 +30,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from container import AsyncioExecutor  # noqa: E402
+from tests.colcon_support import Prebuild  # noqa: E402
 from tests.component_support import IMPORT_ROOT, install_test_plugin  # noqa: E402
 from tests.container_support import REPO, SHARED, ContainerProcess  # noqa: E402,F401
 from tests.install_support import make_ros_wheels_venv  # noqa: E402
@@ -126,11 +127,41 @@ def see_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Callable[...,
     return see
 
 
+#: Modules whose builds take minutes of CPU: run last, after every test that times something, so that
+#: the builds started with the session (``colcon_prebuild``) had all the time those left idle. In this
+#: order: test_wheels installs into the underlay that test_colcon builds over.
+BUILDS_LAST = ("test_colcon.py", "test_wheels.py")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    last = [item for name in BUILDS_LAST for item in items if item.path.name == name]
+    if last:
+        moved = set(last)
+        items[:] = [item for item in items if item not in moved] + last
+
+
+@pytest.fixture(scope="session", autouse=True)
+def colcon_prebuild(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[Prebuild | None]:
+    """tests/test_colcon.py's builds, started with the session at idle priority when it was collected."""
+    if not any(item.path.name == "test_colcon.py" for item in request.session.items):
+        yield None
+        return
+    prebuild = Prebuild(tmp_path_factory.mktemp("colcon"))
+    try:
+        yield prebuild
+    finally:
+        prebuild.stop()
+
+
 @pytest.fixture(scope="session")
-def underlay(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def underlay(colcon_prebuild: Prebuild | None, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A virtualenv of the ROS wheels, the ROS build tools and colcon, nothing of this project
     (tests/test_colcon.py builds over it; tests/test_wheels.py installs into it and
-    uninstalls again)."""
+    uninstalls again): the colcon prebuild's, once it ended, if there is one."""
+    if colcon_prebuild is not None:
+        return colcon_prebuild.result(timeout=840).underlay
     return make_ros_wheels_venv(tmp_path_factory.mktemp("underlay") / "venv")
 
 

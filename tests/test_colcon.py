@@ -6,22 +6,19 @@ the repository is copied into ``src/`` and built with ``colcon build``. The
 result must be a ROS prefix ROS tools read, and a working container. Three
 plugin layouts are built beside it by the same ``colcon build``, and the
 beacon example's interface package alone in a workspace of its own, at the
-same time (``builds``).
+same time (``builds``; tests/colcon_support.py).
 
 Cost: the underlay (30 to 40 s, most of it downloads), then the two builds
-side by side (about 2.5 minutes on two cores); the module took 203 s where
-its three builds one after another took 279 s (back to back, beside other
-builds; test_colcon took 8 minutes under heavier load).
+side by side: about 230 s on two quiet CPUs, 450 s on one. They start with
+the session, at idle priority, and these tests run last (tests/conftest.py):
+what the other tests leave idle goes to the builds.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import os
-import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -31,56 +28,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.container_support import REPO
-from tests.install_support import greeter_package, installed_ros_distro
+from tests.colcon_support import PLUGIN_TYPES, Builds, Prebuild
 
-# Builds: a virtualenv of the ROS wheels and colcon, then the workspace with the
-# plugins in it (together about 3 minutes, the first test's set-up).
+# What is left of the builds is the first test's set-up.
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 INDEX = Path("share") / "ament_index" / "resource_index"
-
-
-def _snapshot(root: Path) -> dict[str, float]:
-    """Every file under ``root`` (bytecode caches aside) with its modification time."""
-    return {
-        str(path.relative_to(root)): path.stat().st_mtime
-        for path in root.rglob("*")
-        if path.is_file() and "__pycache__" not in path.parts
-    }
-
-
-def _environment(underlay: Path) -> dict[str, str]:
-    """What sourcing the underlay gives: its executables first, its prefix on AMENT_PREFIX_PATH."""
-    # Not this process's ROS libraries either: the wheels' bootstrapper skips
-    # itself when its guard variable is inherited (see tests/test_wheels.py).
-    drop = {"VIRTUAL_ENV", "PYTHONPATH", "AMENT_PREFIX_PATH", "LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}
-    env = {k: v for k, v in os.environ.items() if k not in drop}
-    env["PATH"] = f"{underlay / 'bin'}{os.pathsep}{env.get('PATH', '')}"
-    env["AMENT_PREFIX_PATH"] = str(underlay)
-    env["ROS_DISTRO"] = installed_ros_distro()
-    # Both cores, whatever the load. Each interface package's build (an
-    # ExternalProject's `cmake --build`) reads CMAKE_BUILD_PARALLEL_LEVEL. And
-    # colcon gives make `-j<cores> -l<cores>` unless MAKEFLAGS has a -j: with
-    # -l, make starts no second job while the load average is at the core
-    # count, which these builds keep it at; measured here, the container's
-    # interface packages then built one at a time, one compiler at a time.
-    cores = str(os.cpu_count() or 1)
-    env.setdefault("CMAKE_BUILD_PARALLEL_LEVEL", cores)
-    env.setdefault("MAKEFLAGS", f"-j{cores}")
-    return env
-
-
-def _copy_tracked(directory: Path, destination: Path) -> None:
-    """The repository's files under ``directory`` (tracked, or new and not ignored), into ``destination``."""
-    tracked = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard", "--", "."],
-        cwd=directory, check=True, capture_output=True,
-    ).stdout.decode().split("\0")
-    for name in filter(None, tracked):
-        if (directory / name).is_file():
-            (destination / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(directory / name, destination / name)
 
 
 def _in_workspace(workspace: Path, env: dict[str, str], script: str, *, timeout: float = 120) -> str:
@@ -97,92 +50,19 @@ def _in_workspace(workspace: Path, env: dict[str, str], script: str, *, timeout:
     return result.stdout
 
 
-#: What ``ros2 component types`` lists for each plugin package the workspace builds.
-PLUGIN_TYPES = {
-    "beacon_nodes": ["beacon_nodes::Beacon;beacon_nodes:Beacon"],
-    "greeter_nodes": ["greeter_nodes::Greeter;greeter_nodes:Greeter"],
-    "radar_nodes": ["radar_nodes::Radar;radar_nodes:Radar"],
-}
-
-
-@dataclasses.dataclass(frozen=True)
-class Builds:
-    """The two ``colcon build`` runs of the module, made side by side (``builds``)."""
-
-    #: The workspace: the repository (``src/lifecycle_container``) and three plugins beside it.
-    workspace: Path
-    #: The environment both ran in (the underlay's, as sourced).
-    env: dict[str, str]
-    #: colcon's output for the workspace, and its exit status.
-    output: str
-    returncode: int
-    #: The workspace of the beacon example's interface package alone, and its colcon's result.
-    interfaces: Path
-    interfaces_result: subprocess.CompletedProcess[str]
-
-    def finished(self, package: str) -> bool:
-        """Whether colcon built and installed ``package`` (the workspace's build goes on past a failure)."""
-        return re.search(rf"^Finished <<< {package} \[", self.output, flags=re.MULTILINE) is not None
-
-
 @pytest.fixture(scope="module")
-def builds(underlay: Path, tmp_path_factory: pytest.TempPathFactory) -> Builds:
-    """One ``colcon build`` of a workspace holding the repository (its tracked files) and three plugins:
-    radar_nodes (ament_python) with its interface package radar_interfaces, greeter_nodes (ament_python,
-    no messages) and beacon_nodes (the pip layout: pyproject.toml and CMakeLists.txt, plus a package.xml).
-    At the same time, in a workspace of its own, the beacon example's interface package as an ordinary
-    colcon package.
-
-    One build, so that colcon (a worker per core) builds radar_interfaces while the container builds, and
-    the plugins that need the container side by side after it; the interface package apart, so that the
-    plugins' workspace holds one beacon_interfaces only (the one beacon_nodes installs). The container is
-    built as a plain ``colcon build`` builds it; the plugins' packages get the one CMake argument that
-    docs/guide/colcon.md gives them over PyPI's wheels, from a colcon metadata file outside the workspace.
-    The build goes on past a package's failure, so that the container's tests say whether it built
-    whatever became of the plugins."""
-    workspace = tmp_path_factory.mktemp("colcon_ws")
-    src = workspace / "src"
-    _copy_tracked(REPO, src / "lifecycle_container")
-    _copy_tracked(REPO / "examples" / "colcon", src)
-    _copy_tracked(REPO / "examples" / "beacon_plugin", src / "beacon_plugin")
-    greeter_package(src / "greeter_nodes")
-    fix = src / "lifecycle_container" / "container" / "cmake" / "ros_wheels.cmake"
-    meta = tmp_path_factory.mktemp("colcon_meta") / "plugins.meta"
-    plugins = ["radar_interfaces", *PLUGIN_TYPES]
-    meta.write_text(json.dumps({"names": {name: {"cmake-args": [f"-DCMAKE_PROJECT_INCLUDE={fix}"]}
-                                          for name in plugins}}))
-    # The example plugin's interface package, built as an ordinary colcon
-    # package over the wheels (the one CMake argument works around their
-    # targets), for test_an_interface_package_built_by_colcon_hashes_as_the_one_pip_built.
-    interfaces = tmp_path_factory.mktemp("colcon_interfaces_ws")
-    shutil.copytree(REPO / "examples" / "beacon_plugin" / "beacon_interfaces", interfaces / "src" / "beacon_interfaces")
-    env = _environment(underlay)
-    before = {"src": _snapshot(src), "underlay": _snapshot(underlay)}
-    apart = subprocess.Popen(
-        ["colcon", "build", "--event-handlers", "console_cohesion-",
-         "--cmake-args", f"-DCMAKE_PROJECT_INCLUDE={REPO / 'container' / 'cmake' / 'ros_wheels.cmake'}",
-         "-DBUILD_TESTING=OFF"],
-        cwd=interfaces, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    try:
-        result = subprocess.run(
-            ["colcon", "build", "--event-handlers", "console_cohesion-", "--continue-on-error", "--metas", meta],
-            cwd=workspace, env=env, capture_output=True, text=True, timeout=900,
-        )
-        out, err = apart.communicate(timeout=900)
-    finally:
-        if apart.poll() is None:
-            apart.kill()
-            apart.communicate()
-    after = {"src": _snapshot(src), "underlay": _snapshot(underlay)}
+def builds(colcon_prebuild: Prebuild | None) -> Builds:
+    """What the session's prebuild made (tests/colcon_support.py): the workspace with the repository and the
+    three plugins, and the beacon example's interface package in a workspace of its own."""
+    assert colcon_prebuild is not None, "tests/conftest.py starts the builds when test_colcon is collected"
+    # What is left of the builds: started with the session at idle priority, they had the time the
+    # tests before these left idle.
+    builds = colcon_prebuild.result(timeout=840)
     # colcon writes build/, install/ and log/; nothing else may change.
-    assert after == before
-    assert sorted(p.name for p in workspace.iterdir()) == ["build", "install", "log", "src"]
+    assert builds.sources_untouched
+    assert builds.workspace_entries == ["build", "install", "log", "src"]
     assert not Path("/container").exists()
-    return Builds(
-        workspace=workspace, env=env, output=result.stdout + result.stderr, returncode=result.returncode,
-        interfaces=interfaces, interfaces_result=subprocess.CompletedProcess(apart.args, apart.returncode, out, err),
-    )
+    return builds
 
 
 @pytest.fixture(scope="module")
@@ -328,8 +208,7 @@ def test_an_interface_package_built_by_colcon_hashes_as_the_one_pip_built(builds
     # package over the wheels (``builds``), against what `pip install
     # ./examples/beacon_plugin` built into the test environment: the same
     # RIHS01 type hashes.
-    result = builds.interfaces_result
-    assert result.returncode == 0, result.stdout + result.stderr
+    assert builds.interfaces_returncode == 0, builds.interfaces_output
     for kind, name in (("msg", "Beacon"), ("action", "Sweep")):
         share = builds.interfaces / "install" / "beacon_interfaces" / "share" / "beacon_interfaces"
         by_colcon = share / kind / f"{name}.json"

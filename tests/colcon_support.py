@@ -56,6 +56,9 @@ IDLE_CPUS = "CI_IDLE_CPUS"
 #: How long one ``colcon build`` may take at idle priority, starved while tests run.
 BUILD_TIMEOUT_S = 3600
 
+#: How long a test waits for what is left of the builds once it needs them (within test_colcon's 900 s).
+WAIT_S = 840
+
 
 @dataclasses.dataclass(frozen=True)
 class Builds:
@@ -198,6 +201,7 @@ class Prebuild:
 
     def __init__(self, root: Path) -> None:
         self.root = root
+        self._builds: Builds | None = None
         self._log = (root / "prebuild.log").open("wb")
         self.process = subprocess.Popen(
             [sys.executable, "-m", "tests.colcon_support", str(root), str(os.getpid())],
@@ -206,8 +210,10 @@ class Prebuild:
             start_new_session=True,
         )
 
-    def result(self, *, timeout: float) -> Builds:
+    def result(self, *, timeout: float = WAIT_S) -> Builds:
         """What the builds made; the process's output in the failure if it made nothing."""
+        if self._builds is not None:
+            return self._builds
         try:
             self.process.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -216,7 +222,8 @@ class Prebuild:
         result = self.root / "builds.json"
         if self.process.returncode != 0 or not result.is_file():
             raise AssertionError(f"the colcon builds failed (exit {self.process.returncode}):\n{self._tail()}")
-        return Builds.from_json(result.read_text(encoding="utf-8"))
+        self._builds = Builds.from_json(result.read_text(encoding="utf-8"))
+        return self._builds
 
     def stop(self) -> None:
         """End the builds if they still run."""

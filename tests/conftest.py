@@ -161,7 +161,7 @@ def underlay(colcon_prebuild: Prebuild | None, tmp_path_factory: pytest.TempPath
     (tests/test_colcon.py builds over it; tests/test_wheels.py installs into it and
     uninstalls again): the colcon prebuild's, once it ended, if there is one."""
     if colcon_prebuild is not None:
-        return colcon_prebuild.result(timeout=840).underlay
+        return colcon_prebuild.result().underlay
     return make_ros_wheels_venv(tmp_path_factory.mktemp("underlay") / "venv")
 
 

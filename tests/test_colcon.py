@@ -57,7 +57,7 @@ def builds(colcon_prebuild: Prebuild | None) -> Builds:
     assert colcon_prebuild is not None, "tests/conftest.py starts the builds when test_colcon is collected"
     # What is left of the builds: started with the session at idle priority, they had the time the
     # tests before these left idle.
-    builds = colcon_prebuild.result(timeout=840)
+    builds = colcon_prebuild.result()
     # colcon writes build/, install/ and log/; nothing else may change.
     assert builds.sources_untouched
     assert builds.workspace_entries == ["build", "install", "log", "src"]

@@ -560,6 +560,15 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
     /* Only a carrier's publish reads it (on_event). */
     NotifierObject * told = atomic_load(&carriers_exist) ? self->notifier : NULL;
     HandoffObject * handoff = self->handoff;
+    /* Set while this thread still holds the GIL: released, it wakes a worker
+     * waiting for it, which with one CPU runs at once and publishes before
+     * this thread's next line; wake_by unset, that publish woke the loop (a
+     * trigger for every other message of a 2 ms timer, seen under CI's
+     * pinned legs). A carrier's publish wakes no one while lingering either. */
+    long long by = told != NULL ? wake_deadline(self, timeout) : LLONG_MAX;
+    if (told != NULL) {
+      atomic_store(&told->wake_by, by);
+    }
     self->waiting = 1;
     Py_BEGIN_ALLOW_THREADS
     /* Plain work was handed to workers and runs: its answer (a response, a
@@ -571,10 +580,8 @@ static PyObject * WaitSet_wait(WaitSetObject * self, PyObject * const * args, Py
      * one CPU (the Handoff's spin is off: see handoff.c), where the worker
      * could only answer once this thread stopped spinning. */
     int linger = handoff != NULL && timeout != 0 && handoff_may_linger(handoff);
-    long long by = told != NULL || linger ? wake_deadline(self, timeout) : LLONG_MAX;
-    if (told != NULL) {
-      /* Set before lingering: a carrier's publish wakes no one meanwhile either. */
-      atomic_store(&told->wake_by, by);
+    if (linger && told == NULL) {
+      by = wake_deadline(self, timeout);
     }
     if (handoff != NULL) {
       handoff_loop_free(handoff, 1);

@@ -31,7 +31,7 @@ class LoggedProcess:
         self.lines: list[str] = []
         self._changed = threading.Condition()
         self.process = subprocess.Popen(
-            list(command),
+            [*_ends_with_this_process(), *command],
             cwd=REPO,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
@@ -120,6 +120,23 @@ class ContainerProcess(LoggedProcess):
     def __init__(self, config: Path, *, args: tuple[str, ...] = ()) -> None:
         self.config = config
         super().__init__([sys.executable, "-m", "container", "run", str(config), *args], name="container")
+
+
+def _ends_with_this_process() -> list[str]:
+    """A prefix that has the child sent SIGTERM when this process ends, however it ends.
+
+    pytest-timeout's thread method ends a stuck test process with ``os._exit``:
+    no fixture's teardown runs, and a container it had started stayed on the
+    test's ROS domain (a ``/ComponentManager`` the next run's component tests
+    found). ``setpriv --pdeathsig`` sets ``PR_SET_PDEATHSIG``, kept across
+    exec; the signal comes when the *thread* that started the child ends, so
+    only the main thread's children get it (a helper thread's end is not the
+    test's).
+    """
+    setpriv = shutil.which("setpriv")
+    if setpriv is None or threading.current_thread() is not threading.main_thread():
+        return []
+    return [setpriv, "--pdeathsig", "TERM", "--"]
 
 
 def native_stacks(pid: int, *, timeout: float = 30.0, frames: int = 25) -> str:

@@ -598,8 +598,9 @@ class ComponentManager(FastLogging, Node):
         step bounded by ``unload_timeout``. A transition already in progress
         (a ``change_state`` from a peer) is waited for, and cancelled past
         ``unload_timeout``; callbacks still running are cancelled or waited
-        for, as long again. Nothing is destroyed while one of its callbacks
-        still uses it: a plain callback blocked for good keeps its node's
+        for, as long again, and the answers they gave sent (a caller still
+        being discovered has up to a second). Nothing is destroyed while one
+        of its callbacks still uses it: a plain callback blocked for good keeps its node's
         state machine (and so its lifecycle services) until it returns. An
         unload always removes the node.
 

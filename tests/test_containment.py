@@ -90,9 +90,9 @@ def test_unload_during_a_transition_cancels_it_and_answers_everyone(
     assert unloaded.success
     assert "cancelled" in unloaded.error_message
     executor.spin_until_future_complete(pending, timeout_sec=10.0)
-    assert pending.done(), "the caller was left waiting"
+    assert pending.done(), f"the caller was left waiting; the container said:\n{container.output()}"
     answer = pending.result()
-    assert answer is not None and not answer.success, "the caller was left waiting"
+    assert answer is not None and not answer.success, container.output()
     assert client.list() == []
     # The process lives on, and serves a new node under the same name.
     again = client.load(faulty("raise", "timer", name="faulty"))

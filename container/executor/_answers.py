@@ -94,7 +94,7 @@ from . import _engine
 from ._engine import Server
 from ._owners import executor_work
 
-__all__ = ["end_resender", "respond"]
+__all__ = ["end_resender", "respond", "waiting_for"]
 
 _log = logging.getLogger(__name__)
 
@@ -196,6 +196,18 @@ def end_resender(*, timeout: float) -> None:
     _resender.end(timeout=timeout)
 
 
+def waiting_for(node: Node) -> int:
+    """How many answers of ``node``'s services wait in the resender for their clients.
+
+    An unload waits for them before it destroys the node (see
+    ``AsyncioExecutor.retire``): a destroyed service's waiting answers are
+    dropped, and a caller whose response reader was still being discovered
+    when its answer was ready (a ``change_state`` that the unload cancelled)
+    was left waiting for good.
+    """
+    return _resender.waiting_for(node)
+
+
 def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go: bool = False) -> bool:
     """Send once; ``False`` when the client's response reader is not matched (yet).
 
@@ -214,6 +226,11 @@ def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go
             return False
         raise
     return True
+
+
+def _serves(node: Node, srv: Any) -> bool:
+    """Whether ``srv`` is one of ``node``'s services (an answer handed over without its node)."""
+    return srv is not None and any(served is srv for served in node.services)
 
 
 def _remember_matched(key: _Key) -> None:
@@ -283,6 +300,15 @@ class _Resender:
     def knows(self, key: _Key) -> bool:
         """Whether answers to that client wait here, or it was given up on."""
         return key in self._clients
+
+    def waiting_for(self, node: Node) -> int:
+        """:func:`waiting_for`."""
+        with self._wake:
+            return sum(
+                len(client.answers)
+                for client in self._clients.values()
+                if client.answers and (client.node is node or _serves(node, client.srv))
+            )
 
     def matched(self, key: _Key) -> None:
         """Remember that an answer to that client went through: its next ones go inline."""

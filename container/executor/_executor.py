@@ -51,6 +51,7 @@ from .._compat import (
 )
 from .._errors import ExecutorError
 from ._accounting import Accounting
+from ._answers import waiting_for
 from ._bridge import adapt, as_exception, contained, drive_in_thread, is_adapted, mirror
 from ._culprit import Culprit, TaskOrigins, handle_culprit
 from ._dispatch import Dispatcher
@@ -105,6 +106,11 @@ _CALLER: Any = object()
 
 #: How often :meth:`AsyncioExecutor.retire` looks whether a node's callbacks ended.
 _RETIRE_POLL_S = 0.01
+
+#: How long at most :meth:`AsyncioExecutor.retire` waits for answers its node's
+#: callbacks gave to clients still being discovered: one just discovered matches
+#: within milliseconds, and a client that never matches holds an unload this long.
+_ANSWERS_WAIT_S = 1.0
 
 #: How often, and how long at most, :meth:`AsyncioExecutor.retire` looks
 #: whether the wait sets let go of a removed node's entities (a rebuild: a
@@ -321,7 +327,9 @@ class AsyncioExecutor(Executor):
         self._guard_trigger()
 
     async def retire(self, node: Node, *, timeout: float, released: bool = True) -> list[str]:
-        """:meth:`remove_node`, then wait up to ``timeout`` for its running callbacks.
+        """:meth:`remove_node`, then wait up to ``timeout`` for its running callbacks,
+        and up to a second of that for the answers they gave to reach clients
+        still being discovered (:meth:`_answered`).
 
         :param released: once none runs, also wait until the wait sets no
             longer hold the node's entities, so that destroying the node next
@@ -357,6 +365,7 @@ class AsyncioExecutor(Executor):
             if loop.time() >= deadline:
                 return [describe(work.entity) for work in running]
             await asyncio.sleep(_RETIRE_POLL_S)
+        await self._answered(node, by=min(deadline, loop.time() + _ANSWERS_WAIT_S))
         released_by = loop.time() + _RELEASE_WAIT_S
         # Bounded: a wait set nobody serves (the executor paused) lets go at
         # its next rebuild, and the node's destruction completes then.
@@ -365,6 +374,23 @@ class AsyncioExecutor(Executor):
                 return [f"the executor's wait sets (not rebuilt within {_RELEASE_WAIT_S:g} s)"]
             await asyncio.sleep(_RELEASE_POLL_S)
         return []
+
+    async def _answered(self, node: Node, *, by: float) -> None:
+        """Wait until the answers its callbacks gave went out to their clients, or ``by``.
+
+        An answer to a client not known to be matched yet (its response reader
+        still being discovered) waits in the resender thread (``_answers``);
+        destroying its service drops it. A ``change_state`` cancelled by the
+        unload itself was answered so, and its caller waited for good.
+        """
+        loop = self.loop
+        while waiting := waiting_for(node):
+            if loop.time() >= by:
+                node.get_logger().warning(
+                    f"{waiting} answer(s) of its services still waited for their clients to match: dropped"
+                )
+                return
+            await asyncio.sleep(_RETIRE_POLL_S)
 
     def _on_loop(self) -> bool:
         return running_loop() is self.loop

@@ -11,6 +11,8 @@ the client is given up on once, with one log line.
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
 import gc
 import itertools
 import logging
@@ -29,7 +31,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_srvs.srv import Trigger
 
 from container import AsyncioExecutor, LifecycleNode
-from container.executor import _answers
+from container.executor import _answers, _executor
 from tests.waiting import wait_until
 
 #: The client of the issue: keep-all, reliable, transient-local (its response reader never matches).
@@ -260,4 +262,96 @@ def test_what_is_remembered_of_clients_keeps_no_service_or_node_alive(
     finally:
         executor.shutdown(timeout_sec=5.0)
         thread.join(5.0)
+        _answers.end_resender(timeout=2.0)
+
+
+def _served(context: Context, name: str, style: str) -> tuple[Node, Any]:
+    """A node (not on any executor yet) with a ``Trigger`` service, its callback plain or ``async def``."""
+    node = Node(name, context=context)
+
+    def plain(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return response
+
+    async def coroutine(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        return response
+
+    return node, node.create_service(Trigger, name, plain if style == "plain" else coroutine)
+
+
+@pytest.mark.parametrize("style", ["plain", "async"])
+def test_retiring_a_node_sends_the_answers_waiting_for_a_client_still_being_discovered(
+    context: Context,
+    executor: AsyncioExecutor,
+    host: Callable[..., Any],
+    monkeypatch: pytest.MonkeyPatch,
+    style: str,
+) -> None:
+    """An answer to a client the service's graph does not know yet goes through the
+    resender; destroying the service dropped it, and a caller whose ``change_state``
+    an unload cancelled (CI, under load) was left waiting for good. Retiring the
+    node (an unload, before it destroys it) now waits until such answers went out."""
+    # The client's response reader not discovered yet: what a busy machine's graph says for a while.
+    monkeypatch.setattr(_answers, "_in_graph", lambda node, srv, guid: False)
+    monkeypatch.setattr(_executor, "_ANSWERS_WAIT_S", 30.0)  # the bound is another test's
+    node, service = _served(context, "answered_at_unload", style)
+    trying, go = threading.Event(), threading.Event()
+    real_try = _answers._Resender._try
+
+    def held(client: Any, entry: Any, srv: Any, server: Any, owner: Any) -> bool | None:
+        if srv is service:  # ours, not an answer left by another test
+            trying.set()
+            go.wait(20.0)
+        return real_try(client, entry, srv, server, owner)
+
+    monkeypatch.setattr(_answers._Resender, "_try", staticmethod(held))
+    executor.add_node(node)
+    client: Client[Any, Any] = host(Node, "answered_at_unload_callers").create_client(Trigger, "answered_at_unload")
+    thread = _spin(executor)
+    try:
+        assert client.wait_for_service(timeout_sec=10.0)
+        pending = client.call_async(Trigger.Request())
+        assert trying.wait(20.0), "the answer never reached the resender: nothing here is tested"
+        retiring = asyncio.run_coroutine_threadsafe(executor.retire(node, timeout=30.0), executor.loop)
+        with pytest.raises(concurrent.futures.TimeoutError):
+            retiring.result(0.5)  # retired while its answer still waits: the old code returned here
+        assert _answers.waiting_for(node) == 1
+        go.set()
+        assert retiring.result(20.0) == []
+        node.destroy_node()
+        wait_until(pending.done, "the caller answered", timeout=10.0)
+        assert pending.result() is not None
+    finally:
+        go.set()
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+        node.destroy_node()
+        _answers.end_resender(timeout=2.0)
+
+
+def test_a_client_that_never_matches_holds_a_retiring_node_at_most_a_second(
+    context: Context, executor: AsyncioExecutor, host: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its answers would wait :data:`_answers.RETRY_S` to be given up on: an unload
+    waits for them no longer than :data:`_executor._ANSWERS_WAIT_S`, then drops them."""
+    monkeypatch.setattr(_answers, "RETRY_S", 30.0)
+    node, _ = _served(context, "unmatched_at_unload", "plain")
+    executor.add_node(node)
+    unmatched: Client[Any, Any] = host(Node, "unmatched_at_unload_callers").create_client(
+        Trigger, "unmatched_at_unload", qos_profile=UNMATCHABLE
+    )
+    thread = _spin(executor)
+    try:
+        _heard(unmatched, Trigger.Request, [])
+        assert _answers.waiting_for(node) > 0
+        started = time.monotonic()
+        retiring = asyncio.run_coroutine_threadsafe(executor.retire(node, timeout=30.0), executor.loop)
+        assert retiring.result(20.0) == []
+        took = time.monotonic() - started
+        assert _executor._ANSWERS_WAIT_S <= took < _executor._ANSWERS_WAIT_S + 5.0, took
+        node.destroy_node()
+        wait_until(lambda: _answers.waiting_for(node) == 0, "the dropped answers gone", timeout=10.0)
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        thread.join(5.0)
+        node.destroy_node()
         _answers.end_resender(timeout=2.0)

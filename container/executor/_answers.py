@@ -152,9 +152,9 @@ def respond(srv: Any, response: Any, header: Any, *, server: Server | None = Non
             _resender.unmatched(key)  # rmw waited: not matched after all
         _resender.add(key, srv, server, response, header, node=node)
     elif _resender.suspect(key):
-        _resender.add(key, srv, server, response, header)
+        _resender.add(key, srv, server, response, header, node=node)
     elif not _sent(srv, server, response, header):
-        _resender.add(key, srv, server, response, header, tried=True)
+        _resender.add(key, srv, server, response, header, tried=True, node=node)
 
 
 def _in_graph(node: Node, srv: Any, guid: bytes) -> bool:
@@ -228,11 +228,6 @@ def _sent(srv: Any, server: Server | None, response: Any, header: Any, *, let_go
     return True
 
 
-def _serves(node: Node, srv: Any) -> bool:
-    """Whether ``srv`` is one of ``node``'s services (an answer handed over without its node)."""
-    return srv is not None and any(served is srv for served in node.services)
-
-
 def _remember_matched(key: _Key) -> None:
     """Changed only under the resender's lock; read without it (respond's one lookup)."""
     _matched[key] = None
@@ -304,11 +299,8 @@ class _Resender:
     def waiting_for(self, node: Node) -> int:
         """:func:`waiting_for`."""
         with self._wake:
-            return sum(
-                len(client.answers)
-                for client in self._clients.values()
-                if client.answers and (client.node is node or _serves(node, client.srv))
-            )
+            # A client holds its node while answers wait for it, and only then (``let_go``).
+            return sum(len(client.answers) for client in self._clients.values() if client.node is node)
 
     def matched(self, key: _Key) -> None:
         """Remember that an answer to that client went through: its next ones go inline."""
@@ -478,6 +470,8 @@ class _Resender:
                 while client.answers and client.answers[0][0] <= now:
                     client.answers.popleft()
                     count += 1
+                if not client.answers:
+                    client.let_go()
                 self._waiting -= count
                 self._count_dropped(client, count)
             if client.logged:

@@ -355,3 +355,26 @@ def test_a_client_that_never_matches_holds_a_retiring_node_at_most_a_second(
         thread.join(5.0)
         node.destroy_node()
         _answers.end_resender(timeout=2.0)
+
+
+def test_a_service_without_client_guids_lets_go_of_its_node_once_its_answers_expired(
+    context: Context, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A binding whose headers name no client (``guid`` ``None``) has its answers sent
+    from the resender for a while; expired there, they let go of the service and
+    its node as a client's dropped answers do (it kept both until forgotten)."""
+    monkeypatch.setattr(_answers, "RETRY_S", 0.2)
+    monkeypatch.setattr(_answers, "_sent", lambda *args, **kwargs: False)  # never matched
+    node, service = _served(context, "guidless", "plain")
+    resender = _answers._Resender()
+    key = (weakref.ref(service), None)
+    try:
+        resender.add(key, service, None, Trigger.Response(), object(), tried=True, node=node)
+        assert resender.waiting_for(node) == 1
+        wait_until(lambda: resender.dropped == 1, "the answer expired", timeout=10.0)
+        assert resender.waiting_for(node) == 0
+        client = resender._clients[key]
+        assert client.srv is None and client.node is None
+    finally:
+        resender.end(timeout=2.0)
+        node.destroy_node()

@@ -55,6 +55,10 @@ _SERVICES = {
 _LOG_LEVELS = {"unset": 0, "debug": 10, "info": 20, "warn": 30, "warning": 30, "error": 40, "fatal": 50}
 #: Interval between two looks at the discovered graph.
 _POLL_S = 0.02
+#: How long a node seen in the graph may take to show its services: a
+#: discovery message lost under load is sent again at the writer's heartbeat
+#: (Fast DDS's default period: 3 s).
+_ENDPOINTS_S = 4.0
 #: ``list`` without a container stops once the set of containers has been
 #: stable this long (it cannot know how many to expect).
 _SETTLE_S = 0.5
@@ -192,7 +196,7 @@ def _run_load(args: argparse.Namespace) -> int:
 
     async def load(node: Node) -> int:
         container = args.container_node_name
-        client = await _container_client(node, container, "load_node", LoadNode, args.spin_time)
+        client = await _container_client(node, container, "load_node", LoadNode, args)
         if client is None:
             return _fail(f"Unable to find container node '{container}'")
         response = await _call(client, request, timeout=args.timeout)
@@ -216,7 +220,7 @@ def _run_unload(args: argparse.Namespace) -> int:
 
     async def unload(node: Node) -> int:
         container = args.container_node_name
-        client = await _container_client(node, container, "unload_node", UnloadNode, args.spin_time)
+        client = await _container_client(node, container, "unload_node", UnloadNode, args)
         if client is None:
             return _fail(f"Unable to find container node '{container}'")
         for uid in args.component_uid:
@@ -246,7 +250,7 @@ def _run_list(args: argparse.Namespace) -> int:
     async def listing(node: Node) -> int:
         wanted = args.container_node_name
         if wanted is not None:
-            client = await _container_client(node, wanted, "list_nodes", ListNodes, args.spin_time)
+            client = await _container_client(node, wanted, "list_nodes", ListNodes, args)
             if client is None:
                 return _fail(f"Unable to find container node '{wanted}'")
             node.destroy_client(client)
@@ -291,7 +295,7 @@ def _run_reload(args: argparse.Namespace) -> int:
         container = args.container if args.container is not None else await holder(node)
         if container is None:
             return _fail(f"No container on the ROS domain holds a node named '{request.node_name}'")
-        client = await _container_client(node, container, "reload_node", ReloadNode, args.spin_time)
+        client = await _container_client(node, container, "reload_node", ReloadNode, args)
         if client is None:
             return _fail(f"Unable to find container node '{container}' serving reload_node")
         response = await _call(client, request, timeout=args.timeout)
@@ -364,7 +368,8 @@ async def _poll(condition: Callable[[], T | None], *, timeout: float) -> T | Non
         await asyncio.sleep(_POLL_S)
 
 
-def _is_container(node: Node, name: str, namespace: str) -> bool:
+def _is_container(node: Node, name: str, namespace: str, *, also: str | None = None) -> bool:
+    """Whether the node serves the three container services (and ``also``, another under ``_container/``)."""
     from rclpy.node import NodeNameNonExistentError
 
     try:
@@ -372,6 +377,8 @@ def _is_container(node: Node, name: str, namespace: str) -> bool:
     except NodeNameNonExistentError:
         return False  # gone between listing and asking
     base = f"{namespace.rstrip('/')}/{name}/_container/"
+    if also is not None and base + also not in served:
+        return False
     return all(type_name in served.get(base + service, []) for service, type_name in _SERVICES.items())
 
 
@@ -384,23 +391,46 @@ def _containers(node: Node) -> list[str]:
 
 
 async def _container_client(
-    node: Node, container: str, service: str, srv_type: Any, spin_time: float
+    node: Node, container: str, service: str, srv_type: Any, args: argparse.Namespace
 ) -> Client[Any, Any] | None:
     """Wait for ``container`` to show up as a container and its ``service`` to be ready.
 
+    Discovery has three steps, bounded apart. The node's name, within
+    ``args.spin_time``: not seen by then, there is no such node. Then, the
+    name seen, its services in the graph, within :data:`_ENDPOINTS_S`: a
+    node's name and its endpoints are discovered apart, and a discovery
+    message lost under load is sent again only at the writer's next
+    heartbeat, so a container whose name came first is not called missing
+    for that (a node that is no container costs those seconds). Last, ``service``
+    matched with our client, within ``args.timeout``, as any service the
+    verbs wait for.
+
     :return: a client of the service, or ``None`` if ``container`` is no
-        container node within ``spin_time`` seconds.
+        container node serving ``service``.
+    :raises _Failure: ``service`` in the graph, not matched within ``args.timeout``.
     """
     full_name = _full_name(container)
-    found = await _poll(lambda: True if full_name in _containers(node) else None, timeout=spin_time)
-    if found is None:
+    if await _poll(lambda: True if full_name in _node_names(node) else None, timeout=args.spin_time) is None:
+        return None
+    namespace, _, name = full_name.rpartition("/")
+    also = None if service in _SERVICES else service
+
+    def serves() -> bool | None:
+        return True if _is_container(node, name, namespace or "/", also=also) else None
+
+    if await _poll(serves, timeout=min(args.timeout, _ENDPOINTS_S)) is None:
         return None
     client: Client[Any, Any] = node.create_client(srv_type, f"{full_name}/_container/{service}")
     # Seen in the graph is not yet matched with our client's endpoints.
-    if await _poll(lambda: True if client.service_is_ready() else None, timeout=spin_time) is None:
+    timeout = args.timeout
+    if await _poll(lambda: True if client.service_is_ready() else None, timeout=timeout) is None:
         node.destroy_client(client)
-        return None
+        raise _Failure(f"No '{client.srv_name}' service found within {timeout:g} s")
     return client
+
+
+def _node_names(node: Node) -> list[str]:
+    return [f"{namespace.rstrip('/')}/{name}" for name, namespace in node.get_node_names_and_namespaces()]
 
 
 async def _settled_containers(node: Node, spin_time: float) -> list[str]:

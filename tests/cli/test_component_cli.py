@@ -10,12 +10,15 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from tests.container_support import REPO, ContainerProcess
+from tests.container_support import REPO, ContainerProcess, LoggedProcess
 
 EMPTY = "container:\n  name: ComponentManager\n"
 
@@ -273,3 +276,46 @@ def test_a_running_container_follows_installs_and_uninstalls(
     # The container is still whole: the installed demo types load.
     result = load("lifecycle_container", "lifecycle_container::Talker")
     assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.slow
+def test_a_container_whose_services_are_discovered_after_its_name_is_waited_for(spinning: Any) -> None:
+    """Under load a discovery message can come a Fast DDS heartbeat (3 s) late: the command, once it
+    saw the container's name, waits for its services rather than calling it missing (CI saw
+    "Unable to find container node '/ComponentManager'" between two loads that worked).
+
+    Here the services come 1.5 s after the command saw the name, past its ``--spin-time`` of 1 s
+    (the command could only have seen the name after it started looking)."""
+    from composition_interfaces.srv import ListNodes, LoadNode, UnloadNode
+    from rclpy.node import Node
+
+    node = Node("late_container", context=spinning.context)
+    spinning.add_node(node)
+    command = LoggedProcess(
+        [sys.executable, "-m", "container", "load", "/late_container", "some_package", "Some",
+         "--spin-time", "1"],
+        name="load",
+    )
+    try:
+        deadline = time.monotonic() + 20.0
+        cli = f"_container_cli_{command.process.pid}"
+        while not any(name == cli for name, _ in node.get_node_names_and_namespaces()):
+            assert time.monotonic() < deadline and command.process.poll() is None, command.output()
+            threading.Event().wait(0.02)
+        seen = time.monotonic()
+
+        def load(request: Any, response: Any) -> Any:
+            response.success, response.unique_id, response.full_node_name = True, 7, "/some"
+            return response
+
+        threading.Event().wait(max(0.0, seen + 1.5 - time.monotonic()))
+        assert command.process.poll() is None, f"gave up before the services came:\n{command.output()}"
+        node.create_service(LoadNode, "~/_container/load_node", load)
+        node.create_service(UnloadNode, "~/_container/unload_node", lambda request, response: response)
+        node.create_service(ListNodes, "~/_container/list_nodes", lambda request, response: response)
+        assert command.process.wait(20.0) == 0, command.output()
+        command.wait_for_line("Loaded component 7 into '/late_container' container node as '/some'")
+    finally:
+        command.close()
+        spinning.remove_node(node)
+        node.destroy_node()

@@ -55,9 +55,18 @@ _SERVICES = {
 _LOG_LEVELS = {"unset": 0, "debug": 10, "info": 20, "warn": 30, "warning": 30, "error": 40, "fatal": 50}
 #: Interval between two looks at the discovered graph.
 _POLL_S = 0.02
-#: How long a node seen in the graph may take to show its services: a
-#: discovery message lost under load is sent again at the writer's heartbeat
-#: (Fast DDS's default period: 3 s).
+#: How long a named container may take to be seen (the default ``--spin-time``
+#: of the verbs that name one). A node's name comes on ``ros_discovery_info``,
+#: a reliable topic: a sample lost under load (CI saw the name still missing
+#: after 2 s, between two loads that worked) is sent again at its writer's
+#: next heartbeat, every 3 s in Fast DDS by default. Found sooner, the wait
+#: ends sooner; only a name nobody serves costs all of it.
+_NAMED_SPIN_S = 5.0
+#: How long ``list`` without a container looks at most (its default ``--spin-time``).
+_LIST_SPIN_S = 2.0
+#: How long a node seen in the graph may take to show its container services:
+#: their endpoints come by discovery (sent again at a 1 s heartbeat) and are
+#: tied to the node by ``ros_discovery_info`` (at its writer's, 3 s).
 _ENDPOINTS_S = 4.0
 #: ``list`` without a container stops once the set of containers has been
 #: stable this long (it cannot know how many to expect).
@@ -148,8 +157,11 @@ def add_parser(subparsers: SubParsers) -> None:
 
 def _add_spin_time(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--spin-time", type=float, default=2.0,
-        help="seconds to wait for discovery of the container (default: %(default)s)",
+        "--spin-time", type=float, default=None,
+        help=(
+            f"seconds to wait for discovery of the container (default: {_NAMED_SPIN_S:g} for a container "
+            f"named, {_LIST_SPIN_S:g} to list them all)"
+        ),
     )
     parser.add_argument(
         "--timeout", type=positive_seconds, default=CLIENT_TIMEOUT_S, metavar="SECONDS",
@@ -258,7 +270,7 @@ def _run_list(args: argparse.Namespace) -> int:
                 for line in await components(node, wanted):
                     print(line)
             return 0
-        for container in await _settled_containers(node, args.spin_time):
+        for container in await _settled_containers(node, _spin_time(args, named=False)):
             print(container)
             if not args.containers_only:
                 for line in await components(node, container):
@@ -281,7 +293,7 @@ def _run_reload(args: argparse.Namespace) -> int:
 
     async def holder(node: Node) -> str | None:
         """The container whose list_nodes names the node."""
-        for container in await _settled_containers(node, args.spin_time):
+        for container in await _settled_containers(node, _spin_time(args, named=False)):
             client: Client[Any, Any] = node.create_client(ListNodes, f"{container}/_container/list_nodes")
             try:
                 listed = await _call(client, ListNodes.Request(), timeout=args.timeout)
@@ -396,12 +408,12 @@ async def _container_client(
     """Wait for ``container`` to show up as a container and its ``service`` to be ready.
 
     Discovery has three steps, bounded apart. The node's name, within
-    ``args.spin_time``: not seen by then, there is no such node. Then, the
+    ``--spin-time`` (:data:`_NAMED_SPIN_S`): not seen by then, there is no such node. Then, the
     name seen, its services in the graph, within :data:`_ENDPOINTS_S`: a
-    node's name and its endpoints are discovered apart, and a discovery
-    message lost under load is sent again only at the writer's next
-    heartbeat, so a container whose name came first is not called missing
-    for that (a node that is no container costs those seconds). Last, ``service``
+    node's name and its endpoints are discovered apart, and what is lost
+    under load is sent again only at the next heartbeat, so a container
+    whose name came first is not called missing for that (a node that is
+    no container costs those seconds). Last, ``service``
     matched with our client, within ``args.timeout``, as any service the
     verbs wait for.
 
@@ -410,7 +422,7 @@ async def _container_client(
     :raises _Failure: ``service`` in the graph, not matched within ``args.timeout``.
     """
     full_name = _full_name(container)
-    if await _poll(lambda: True if full_name in _node_names(node) else None, timeout=args.spin_time) is None:
+    if await _poll(lambda: True if full_name in _node_names(node) else None, timeout=_spin_time(args)) is None:
         return None
     namespace, _, name = full_name.rpartition("/")
     also = None if service in _SERVICES else service
@@ -427,6 +439,13 @@ async def _container_client(
         node.destroy_client(client)
         raise _Failure(f"No '{client.srv_name}' service found within {timeout:g} s")
     return client
+
+
+def _spin_time(args: argparse.Namespace, *, named: bool = True) -> float:
+    """``--spin-time``, or its default for looking for one named container or for all of them."""
+    if args.spin_time is not None:
+        return float(args.spin_time)
+    return _NAMED_SPIN_S if named else _LIST_SPIN_S
 
 
 def _node_names(node: Node) -> list[str]:

@@ -57,10 +57,11 @@ _LOG_LEVELS = {"unset": 0, "debug": 10, "info": 20, "warn": 30, "warning": 30, "
 _POLL_S = 0.02
 #: How long a named container may take to be seen (the default ``--spin-time``
 #: of the verbs that name one). A node's name comes on ``ros_discovery_info``,
-#: a reliable topic: a sample lost under load (CI saw the name still missing
-#: after 2 s, between two loads that worked) is sent again at its writer's
-#: next heartbeat, every 3 s in Fast DDS by default. Found sooner, the wait
-#: ends sooner; only a name nobody serves costs all of it.
+#: a reliable topic: a sample lost under load is sent again at its writer's
+#: next heartbeat, every 3 s in Fast DDS by default (CI twice found no
+#: container within 2 s between two loads into it that worked; which sample
+#: was late is not known). Found sooner, the wait ends sooner; only a name
+#: nobody serves costs all of it.
 _NAMED_SPIN_S = 5.0
 #: How long ``list`` without a container looks at most (its default ``--spin-time``).
 _LIST_SPIN_S = 2.0

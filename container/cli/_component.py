@@ -409,14 +409,14 @@ async def _container_client(
     """Wait for ``container`` to show up as a container and its ``service`` to be ready.
 
     Discovery has three steps, bounded apart. The node's name, within
-    ``--spin-time`` (:data:`_NAMED_SPIN_S`): not seen by then, there is no such node. Then, the
-    name seen, its services in the graph, within :data:`_ENDPOINTS_S`: a
-    node's name and its endpoints are discovered apart, and what is lost
-    under load is sent again only at the next heartbeat, so a container
-    whose name came first is not called missing for that (a node that is
-    no container costs those seconds). Last, ``service``
-    matched with our client, within ``args.timeout``, as any service the
-    verbs wait for.
+    ``--spin-time`` (:data:`_NAMED_SPIN_S`): not seen by then, there is no
+    such node. Then, the name seen, its services in the graph, within
+    :data:`_ENDPOINTS_S`: a node's name and its endpoints are discovered
+    apart, and what is lost under load is sent again only at the next
+    heartbeat, so a container whose name came first is not called missing
+    for that (a node that is no container costs those seconds). Last,
+    ``service`` matched with our client, within ``args.timeout``, as any
+    service the verbs wait for (:func:`_matched`).
 
     :return: a client of the service, or ``None`` if ``container`` is no
         container node serving ``service``.
@@ -435,10 +435,11 @@ async def _container_client(
         return None
     client: Client[Any, Any] = node.create_client(srv_type, f"{full_name}/_container/{service}")
     # Seen in the graph is not yet matched with our client's endpoints.
-    timeout = args.timeout
-    if await _poll(lambda: True if client.service_is_ready() else None, timeout=timeout) is None:
+    try:
+        await _matched(client, timeout=args.timeout)
+    except _Failure:
         node.destroy_client(client)
-        raise _Failure(f"No '{client.srv_name}' service found within {timeout:g} s")
+        raise
     return client
 
 
@@ -474,9 +475,7 @@ async def _call(client: Client[Any, Any], request: Any, *, timeout: float) -> An
     :param timeout: seconds to wait for the server, then for the response.
     :raises _Failure: no server, or no response in time.
     """
-    ready = await _poll(lambda: True if client.service_is_ready() else None, timeout=timeout)
-    if ready is None:
-        raise _Failure(f"No '{client.srv_name}' service found within {timeout:g} s")
+    await _matched(client, timeout=timeout)
     from ..executor import result as future_result
 
     future = client.call_async(request)
@@ -485,6 +484,15 @@ async def _call(client: Client[Any, Any], request: Any, *, timeout: float) -> An
     except TimeoutError:
         client.remove_pending_request(future)
         raise _Failure(f"No response from '{client.srv_name}' within {timeout:g} s") from None
+
+
+async def _matched(client: Client[Any, Any], *, timeout: float) -> None:
+    """Wait until ``client``'s service is matched with it.
+
+    :raises _Failure: not within ``timeout`` seconds.
+    """
+    if await _poll(lambda: True if client.service_is_ready() else None, timeout=timeout) is None:
+        raise _Failure(f"No '{client.srv_name}' service found within {timeout:g} s")
 
 
 class _Failure(Exception):

@@ -302,6 +302,11 @@ def ros_context() -> Iterator[Context]:
         # announcing endpoints at that moment; the GIL stays held, so not
         # even pytest-timeout ends the hang.
         gc.collect()
+        # And the participant goes now, before the next test makes its own,
+        # not whenever the last reference to the context goes (a node the
+        # test keeps somewhere holds it): rclpy destroys it once no node of
+        # the context is in use.
+        context.destroy()
 
 
 # The plugin loads in every pytest run of the environment: never break one

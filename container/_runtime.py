@@ -15,18 +15,21 @@ import signal
 from pathlib import Path
 
 __all__ = [
-    "DDS_PROFILE",
     "PROFILE_VARIABLES",
     "configure_logging",
     "configure_warnings",
+    "dds_profile",
     "dump_stacks_on_sigusr1",
     "fast_dds_major",
     "profile_variable",
     "use_fast_discovery",
 ]
 
-#: Fast DDS participant profile with quick discovery announcements.
-DDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
+#: The project's Fast DDS profile (quick discovery announcements, frequent
+#: writer heartbeats), by Fast DDS major version: 3.x renamed XML elements
+#: (``heartbeatPeriod`` is ``heartbeat_period``), and a file with one unknown
+#: element is not applied at all.
+_DDS_PROFILES = {2: "fastdds2_profile.xml", 3: "fastdds_profile.xml"}
 
 #: Where Fast DDS looks for an XML profile: 3.x (Kilted) reads the first, and
 #: the second too but with a deprecation warning on every process start;
@@ -47,7 +50,12 @@ def use_fast_discovery() -> None:
     """
     if any(os.environ.get(name) for name in PROFILE_VARIABLES):
         return
-    os.environ[profile_variable()] = str(DDS_PROFILE)
+    os.environ[profile_variable()] = str(dds_profile())
+
+
+def dds_profile() -> Path:
+    """The project's profile in the XML the installed Fast DDS reads."""
+    return Path(__file__).with_name(_DDS_PROFILES[2 if fast_dds_major() < 3 else 3])
 
 
 def profile_variable() -> str:

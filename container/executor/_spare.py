@@ -84,6 +84,7 @@ class _SpareThreads:
             if job is _END:
                 return
             call, deliver, name = job
+            del job  # what a call returned (a node it made) is not kept while this thread idles
             this.name = name
             value: object = None
             error: BaseException | None = None

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import threading
+import weakref
 
 import pytest
 
@@ -72,3 +74,18 @@ async def test_an_idle_spare_thread_ends(monkeypatch: pytest.MonkeyPatch) -> Non
     while thread.is_alive() and loop.time() < deadline:
         await asyncio.sleep(0.02)
     assert not thread.is_alive()
+
+
+async def test_an_idle_spare_thread_keeps_nothing_of_the_call_it_ran() -> None:
+    class Made:
+        """What a call returns: a node a constructor made, say."""
+
+    # Whoever awaited it let go of it (the node was unloaded): it is garbage,
+    # though the thread that made it waits idle for the next call (3 s), once
+    # that thread is past handing it over.
+    made = weakref.ref(await in_thread(Made, name="construct:/made"))
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 1.0
+    while gc.collect() >= 0 and made() is not None and loop.time() < deadline:
+        await asyncio.sleep(0.01)
+    assert made() is None

@@ -152,6 +152,9 @@ def test_the_wheels_carry_the_ament_index_and_executables(venv: Path) -> None:
         )
     for package in ("lifecycle_container", "ldlidar"):
         assert (venv / INDEX / "packages" / package).is_file()
+    # Both Fast DDS profiles: container._runtime.dds_profile() picks the one its Fast DDS reads.
+    for profile in ("fastdds_profile.xml", "fastdds2_profile.xml"):
+        assert (venv / SITE / "container" / profile).is_file()
     for name in EXECUTABLES:
         assert os.access(venv / "lib" / "lifecycle_container" / name, os.X_OK)
     # The command: the wheel's launcher (sh, which starts the virtualenv's Python with the
@@ -207,6 +210,8 @@ def test_the_lidar_example_runs_from_the_wheels(venv: Path) -> None:
         rest, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0, rest
     assert "Unloaded '/ldlidar'" in rest
+    # The project's Fast DDS profile was found and read whole.
+    assert not [line for line in [*lines, *rest.splitlines()] if "XMLPARSER" in line], rest
 
 
 def test_a_plugin_with_its_own_interfaces_installs_and_uninstalls_them(wheels: dict[str, Path], venv: Path) -> None:

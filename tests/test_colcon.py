@@ -147,6 +147,8 @@ def test_the_installed_container_executable_serves_load_requests(workspace: tupl
         loaded = _in_workspace(root, env, "container load /colcon_container lifecycle_container Talker")
         assert loaded == "Loaded component 1 into '/colcon_container' container node as '/talker'\n"
     assert "Unloaded '/talker'" in "".join(output)
+    # The project's Fast DDS profile was installed, found and read whole.
+    assert not [line for line in output if "XMLPARSER" in line], "".join(output)
 
 
 # -- third-party plugins in the workspace, as docs/guide/install.md lays them out ---------------------

@@ -303,9 +303,9 @@ def ros_context() -> Iterator[Context]:
         # even pytest-timeout ends the hang.
         gc.collect()
         # And the participant goes now, before the next test makes its own,
-        # not whenever the last reference to the context goes (a node the
-        # test keeps somewhere holds it): rclpy destroys it once no node of
-        # the context is in use.
+        # not whenever the last reference to the context goes; a node the
+        # test still holds keeps it (rclpy finalises the context once
+        # nothing of it holds it any more).
         context.destroy()
 
 

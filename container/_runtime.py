@@ -53,9 +53,10 @@ def use_fast_discovery() -> None:
     os.environ[profile_variable()] = str(dds_profile())
 
 
-def dds_profile() -> Path:
-    """The project's profile in the XML the installed Fast DDS reads."""
-    return Path(__file__).with_name(_DDS_PROFILES[2 if fast_dds_major() < 3 else 3])
+def dds_profile(*, major: int | None = None) -> Path:
+    """The project's profile in the XML the installed Fast DDS reads (or Fast DDS ``major``'s)."""
+    major = fast_dds_major() if major is None else major
+    return Path(__file__).with_name(_DDS_PROFILES[2 if major < 3 else 3])
 
 
 def profile_variable() -> str:

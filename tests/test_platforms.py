@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -95,6 +96,22 @@ def test_the_projects_profile_is_used_quietly_when_the_user_names_none(empty_con
     # Kilted warned on every start while the project set FASTRTPS_... there;
     # and Fast DDS refuses the whole file over one element it does not know.
     assert not [line for line in lines if "deprecated" in line or "PROFILES_FILE" in line or "XMLPARSER" in line], lines
+
+
+#: Elements Fast DDS 2.x names otherwise than 3.x: (2.x, 3.x).
+_RENAMED_IN_FAST_DDS_3 = {"heartbeatPeriod": "heartbeat_period"}
+
+
+def test_the_profiles_for_both_fast_dds_majors_say_the_same() -> None:
+    """One profile a major (each refuses the other's names); what they set must not drift apart."""
+
+    def settings(element: ET.Element) -> object:
+        tag = _RENAMED_IN_FAST_DDS_3.get(element.tag.rpartition("}")[2], element.tag.rpartition("}")[2])
+        return (tag, sorted(element.attrib.items()), (element.text or "").strip(), [settings(e) for e in element])
+
+    profiles = {major: ET.parse(dds_profile(major=major)).getroot() for major in (2, 3)}
+    assert settings(profiles[2]) == settings(profiles[3])
+    assert any(e.tag.endswith("}heartbeatPeriod") for e in profiles[2].iter())
 
 
 # A container process.

@@ -58,16 +58,18 @@ _POLL_S = 0.02
 #: How long a named container may take to be seen (the default ``--spin-time``
 #: of the verbs that name one). A node's name comes on ``ros_discovery_info``,
 #: a reliable topic: a sample lost under load is sent again at its writer's
-#: next heartbeat, every 3 s in Fast DDS by default (CI twice found no
-#: container within 2 s between two loads into it that worked; which sample
-#: was late is not known). Found sooner, the wait ends sooner; only a name
-#: nobody serves costs all of it.
+#: next heartbeat, every 3 s in Fast DDS by default (every 0.1 s under this
+#: project's profile, but a container may run with a profile of its own, or
+#: be rclcpp's; CI twice found no container within 2 s between two loads into
+#: it that worked, before the profile set it; which sample was late is not
+#: known). Found sooner, the wait ends sooner; only a name nobody serves
+#: costs all of it.
 _NAMED_SPIN_S = 5.0
 #: How long ``list`` without a container looks at most (its default ``--spin-time``).
 _LIST_SPIN_S = 2.0
 #: How long a node seen in the graph may take to show its container services:
 #: their endpoints come by discovery (sent again at a 1 s heartbeat) and are
-#: tied to the node by ``ros_discovery_info`` (at its writer's, 3 s).
+#: tied to the node by ``ros_discovery_info`` (at its writer's: 3 s by default).
 _ENDPOINTS_S = 4.0
 #: ``list`` without a container stops once the set of containers has been
 #: stable this long (it cannot know how many to expect).

@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import contextvars
+import functools
 import json
 import os
 import subprocess
@@ -333,7 +334,17 @@ def _handle_meters(engine: ModuleType) -> Trace:
     async def step() -> None:
         ran.append("a task's step")
 
-    theirs.run(loop.create_task, step())
+    task = theirs.run(loop.create_task, step())
+    # A function or a partial is metered like any handle; a function whose own attributes
+    # name a task as its __self__ is told a task's step, as getattr tells it.
+    loop.call_soon(lambda: ran.append("the node's function"), context=theirs)
+    loop.call_soon(functools.partial(ran.append, "the node's partial"), context=theirs)
+
+    def posing() -> None:
+        ran.append("a function posing as a task's step")
+
+    posing.__self__ = task  # type: ignore[attr-defined]
+    loop.call_soon(posing, context=theirs)
     due = loop.time() - 0.005  # due 5 ms ago: that late, at least
     loop.call_at(due, ran.append, "the node's timer", context=theirs)
     theirs.run(loop.call_later, 0, ran.append, "the node's call_later")
@@ -365,11 +376,12 @@ def test_a_loops_handles_are_metered_as_whose_alike_on_both_engines() -> None:
     assert trace[2] == sorted(
         [
             "the executor's", "the node's", "the node's, scheduled in its context", "nobody's", "a task's step",
+            "the node's function", "the node's partial", "a function posing as a task's step",
             "the node's timer", "the node's call_later", "the executor's timer",
             "failed: AttributeError",  # a context that is none: in asyncio, as it would unmetered
         ]
     )  # fmt: skip
-    assert trace[3:6] == [(4, 4), True, (1, 1)], "the node's two soon and two timers; one late 5 ms at least"
+    assert trace[3:6] == [(6, 6), True, (1, 1)], "the node's four soon and two timers; one late 5 ms at least"
     assert [error[0] for error in trace[6:8]] == ["TypeError", "TypeError"]  # the loop's own methods say
     usage = "HandleMeter(owner: ContextVar, executor, task_type: type, call_soon: callable, call_at: callable, "
     assert trace[8:] == [

@@ -74,6 +74,7 @@ typedef struct {
   PyObject * call_soon;    /* the loop's own call_soon, unbound */
   PyObject * call_at;      /* the loop's own call_at, unbound */
   PyObject * unattributed; /* the owner of work nobody's context names */
+  PyObject * self_name;    /* "__self__", interned */
   Kept soon, at;
 } HandleMeterObject;
 
@@ -95,6 +96,10 @@ static int HandleMeter_init(HandleMeterObject * self, PyObject * args, PyObject 
   if (!PyContextVar_CheckExact(owner) || !PyType_Check(task_type) || !PyCallable_Check(call_soon) ||
       !PyCallable_Check(call_at)) {
     PyErr_SetString(PyExc_TypeError, USAGE);
+    return -1;
+  }
+  /* First: initialised() is told by call_soon, set below. */
+  if (self->self_name == NULL && (self->self_name = PyUnicode_InternFromString("__self__")) == NULL) {
     return -1;
   }
   Py_XSETREF(self->owner, Py_NewRef(owner));
@@ -132,6 +137,7 @@ static int HandleMeter_clear(HandleMeterObject * self)
   Py_CLEAR(self->call_soon);
   Py_CLEAR(self->call_at);
   Py_CLEAR(self->unattributed);
+  Py_CLEAR(self->self_name);
   kept_clear(&self->soon);
   kept_clear(&self->at);
   return 0;
@@ -183,10 +189,15 @@ static void HandleMeter_dealloc(HandleMeterObject * self)
 }
 
 /* Whether callback is a step or wake-up of a task: its __self__ is one (as getattr(callback,
- * "__self__", None) says; bound methods and builtin methods without a lookup). -1: error. */
+ * "__self__", None) says; bound methods, builtin methods and functions without a lookup). -1: error.
+ *
+ * A lookup that finds nothing costs an AttributeError, its message formatted and thrown away:
+ * a function scheduled by a node (asyncio.gather's and asyncio.wait's done-callbacks, a lambda)
+ * cost 1,170 ns a call_soon against 390 ns on a loop without accounting. A function has a
+ * __self__ only in its own __dict__ (its type has none), which is looked at directly. */
 static int steps_a_task(HandleMeterObject * self, PyObject * callback)
 {
-  PyObject * bound;
+  PyObject * bound, * attributes;
   int is_task;
   if (PyMethod_Check(callback)) {
     return PyObject_TypeCheck(PyMethod_GET_SELF(callback), (PyTypeObject *)self->task_type);
@@ -195,7 +206,16 @@ static int steps_a_task(HandleMeterObject * self, PyObject * callback)
     bound = PyCFunction_GET_SELF(callback);
     return bound != NULL && PyObject_TypeCheck(bound, (PyTypeObject *)self->task_type);
   }
-  bound = PyObject_GetAttrString(callback, "__self__");
+  if (PyFunction_Check(callback)) {
+    if ((attributes = PyObject_GenericGetDict(callback, NULL)) == NULL) {
+      return -1;
+    }
+    bound = PyDict_GetItemWithError(attributes, self->self_name); /* borrowed */
+    is_task = bound != NULL ? PyObject_TypeCheck(bound, (PyTypeObject *)self->task_type) : PyErr_Occurred() ? -1 : 0;
+    Py_DECREF(attributes);
+    return is_task;
+  }
+  bound = PyObject_GetAttr(callback, self->self_name);
   if (bound == NULL) {
     if (!PyErr_ExceptionMatches(PyExc_AttributeError)) {
       return -1;

@@ -1,7 +1,7 @@
 """What the executor's accounting costs: the same work with it on and off, side by side.
 
 Run: ``.venv/bin/python tests/benchmarks/bench_accounting.py [--pairs 12] [--seconds 2] [--cpus 1]
-[--only MEASURE] [--kinds KIND ...] [--null]``
+[--only MEASURE] [--kinds KIND ...] [--null] [--per-process PAIRS]``
 
 The per-node accounting (``container.executor.Accounting``) is always on in
 a container; its budget is 3%. With it on, a window is closed every second
@@ -390,7 +390,7 @@ def _ask_all(children: list[_Child], command: str) -> list[str]:
 
 
 def _crossover(
-    kind: str, variant: str, seconds: float, pairs: int, *, null: bool = False
+    kind: str, variant: str, seconds: float, pairs: int, *, null: bool = False, per_process: int = 0
 ) -> tuple[list[float], list[float], list[float]]:
     """Two processes of the same nodes run at once, one with the accounting on and one off, and
     swap at every turn; each turn's figure is a process's CPU per unit of work (round trip or
@@ -403,7 +403,12 @@ def _crossover(
     B on) gives ``sqrt((A_t / B_t) * (B_t+1 / A_t+1))``, where both cancel.
 
     ``null``: the accounting off in both (what the method reads when nothing differs: 1.0, give
-    or take its own error)."""
+    or take its own error).
+
+    ``per_process``: after that many pairs, two new processes take over (0: the same two
+    throughout). What makes one process's accounting dearer than another's for good (where
+    its memory and threads landed) cancels in neither a pair nor the mean of one pair of
+    processes; new ones sample it, and the interval then covers it."""
     domains = random.sample(range(1, 200), 2)
     children = [_Child(kind, variant, domain) for domain in domains]
     estimates: list[float] = []
@@ -411,6 +416,10 @@ def _crossover(
     off_costs: list[float] = []
     try:
         for index in range(pairs):
+            if per_process > 0 and index > 0 and index % per_process == 0:
+                for child in children:
+                    child.close()
+                children = [_Child(kind, variant, domain) for domain in domains]
             per_turn: list[tuple[float, float]] = []
             a_on_first = index % 2 == 0
             for a_on in (a_on_first, not a_on_first):
@@ -464,6 +473,10 @@ def main() -> None:
     parser.add_argument("--only", choices=sorted(MEASURES), help="run one measurement")
     parser.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS))
     parser.add_argument("--null", action="store_true", help="the accounting off on both sides: the method's own error")
+    parser.add_argument(
+        "--per-process", type=int, default=0, metavar="PAIRS",
+        help="two new processes after every PAIRS pairs (0: the same two throughout)",
+    )  # fmt: skip
     parser.add_argument("--serve", nargs=2, metavar=("KIND", "VARIANT"), help=argparse.SUPPRESS)
     cpus.add_option(parser)
     args = parser.parse_args()
@@ -476,7 +489,9 @@ def main() -> None:
     rows = []
     for measure in measures:
         for kind in args.kinds:
-            estimates, on, off = _crossover(kind, measure, args.seconds, args.pairs, null=args.null)
+            estimates, on, off = _crossover(
+                kind, measure, args.seconds, args.pairs, null=args.null, per_process=args.per_process
+            )
             low, high = _interval(estimates)
             ratio = _geometric_mean(estimates)
             rows.append((measure, kind, statistics.median(on), statistics.median(off), ratio, low, high))

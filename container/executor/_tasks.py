@@ -176,6 +176,11 @@ class DoneCallbacks:
         #: Set and cleared by the response's taker, under the wait set's take lock (clients are
         #: taken by the hot wait set only): one taker at a time.
         self.owner: Owner | None = None
+        #: The last owner whose done-callbacks were posted, and its account's call: asking
+        #: the owner (a Python call and a bound method) twice a response (rclpy's client
+        #: adds a done-callback of its own) was about half a point of a service call.
+        #: Touched on the loop's thread only; holds one owner at most, never a node.
+        self._last: tuple[Owner, Callable[..., Any]] | None = None
         #: Whether a function is a coroutine function, by the function (a
         #: bound method's ``__func__``): ``inspect`` asks in several calls.
         self._coroutine: weakref.WeakKeyDictionary[Any, bool] = weakref.WeakKeyDictionary()
@@ -191,7 +196,10 @@ class DoneCallbacks:
             finally:
                 OWNER.reset(reset)
         if owner is not None:
-            self._post(owner.account("loop_callback").call, 0, _run_done_callback, callback, args)
+            last = self._last
+            if last is None or last[0] is not owner:
+                self._last = last = (owner, owner.account("loop_callback").call)
+            self._post(last[1], 0, _run_done_callback, callback, args)
         else:
             self._post(_run_done_callback, callback, args)
         return None

@@ -350,3 +350,53 @@ def _named(name: str) -> Callable[[], None]:
 
     callback.__qualname__ = name
     return callback
+
+
+def test_each_clients_done_callbacks_are_its_nodes_when_two_nodes_take_turns(
+    executor: AsyncioExecutor, host: Callable[..., Any]
+) -> None:
+    """Two nodes call one server in turn, each call made from the other node's last
+    done-callback; one node's done-callbacks burn 4 ms each, the other's 1 ms. Each node is
+    credited its own (within 20% of what they measured themselves), whichever came last."""
+    from std_srvs.srv import Trigger
+
+    host(Node, "answerer").create_service(Trigger, "/turns", lambda _, response: response)
+    burns = {"/heavy": 0.004, "/light": 0.001}
+    clients = {name: host(Node, name.removeprefix("/")).create_client(Trigger, "/turns") for name in burns}
+    for client in clients.values():
+        assert client.wait_for_service(timeout_sec=10.0)
+    spent = dict.fromkeys(burns, 0.0)
+    counting = [False]
+    calls = [0]
+    warm: Future[None] = Future()
+    enough: Future[None] = Future()
+    order = ["/heavy", "/light"]
+
+    def call(index: int) -> None:
+        name = order[index % 2]
+
+        def answered(_: Any) -> None:
+            start = time.thread_time()
+            burn(burns[name])
+            if counting[0]:
+                spent[name] += time.thread_time() - start
+                calls[0] += 1
+            if index >= 10 and not warm.done():
+                warm.set_result(None)
+            if calls[0] >= 80:
+                enough.set_result(None)
+            else:
+                call(index + 1)
+
+        clients[name].call_async(Trigger.Request()).add_done_callback(answered)
+
+    accounting = executor.accounting
+    assert accounting is not None
+    call(0)
+    _spin_until(executor, warm, "ten answered calls")  # the chain runs; it pauses with the spin
+    accounting.sample()
+    counting[0] = True
+    _spin_until(executor, enough, "80 answered calls")
+    load = accounting.sample()
+    for name, burned in spent.items():
+        assert _node(load, name).cpu * load.period == pytest.approx(burned, rel=0.2), (name, burned, load.nodes)
